@@ -1,0 +1,1 @@
+"""bioscara-gym: the Bioscara SCARA arm as a reinforcement-learning testbed."""

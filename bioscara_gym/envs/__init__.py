@@ -1,0 +1,1 @@
+"""Gymnasium tasks of the Bioscara arm."""

@@ -1,0 +1,449 @@
+"""The joint driver API and the host-side rules every backend shares."""
+
+from __future__ import annotations
+
+import abc
+import math
+
+from bioscara_gym.hardware.clock import Clock, WallClock
+from bioscara_gym.hardware.codec import pack_bytes
+from bioscara_gym.hardware.errors import (
+    CommError,
+    IncorrectStateError,
+    InvalidArgumentError,
+    NotEnabledError,
+    NotHomedError,
+    NotInitError,
+    StalledError,
+)
+from bioscara_gym.hardware.registers import ACK, POWER_UP_FLAGS, BrakeMode, Flag, Reg
+from bioscara_gym.hardware.transmission import (
+    HOMING_RPM_MAX,
+    HOMING_RPM_MIN,
+    degrees_to_position,
+    position_to_degrees,
+    rate_to_degrees,
+    rpm_to_velocity,
+    velocity_to_rpm,
+)
+
+#: Poll period of :meth:`BaseJoint.home` while the joint is BUSY, seconds.
+BUSY_POLL_S = 0.01
+
+
+class BaseJoint(abc.ABC):
+    """One joint of the arm: the C++ ``BaseJoint`` API, with exceptions.
+
+    Units on the joint side: rad, rad/s, rad/s^2 for revolute joints and m,
+    m/s, m/s^2 for the prismatic lift. Currents are percent (0-100) of the
+    driver's 2.5 A output. Every method that talks to the joint raises
+    :class:`~bioscara_gym.hardware.errors.NotInitError` before ``init()`` and
+    :class:`~bioscara_gym.hardware.errors.CommError` when the transaction
+    fails; the flags of the last transaction are kept and read by
+    :meth:`is_homed`, :meth:`is_enabled`, :meth:`is_stalled`, :meth:`is_busy`.
+
+    Subclasses provide the two register-level primitives :meth:`_command` and
+    :meth:`_query`; the host rules of SPEC.md (refusals before any traffic,
+    homing bounds and offsets, positions 0.0 while not homed) live here once.
+
+    Args:
+        name: Joint name used in messages (``"j1"``).
+        reduction: Motor turns per joint unit, signed (SPEC.md kinematics).
+        min: Lower joint limit (rad or m); the offset after homing negative.
+        max: Upper joint limit (rad or m); the offset after homing positive.
+        clock: Time source for waiting on blocking commands.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        reduction: float,
+        min: float,  # noqa: A002 - the C++ API's parameter name
+        max: float,  # noqa: A002
+        clock: Clock | None = None,
+    ) -> None:
+        """Create the joint object; nothing is sent before :meth:`init`."""
+        if not math.isfinite(reduction) or reduction == 0.0:
+            raise InvalidArgumentError(f"{name}: reduction {reduction} must be finite and non-zero")
+        if not min < max:
+            raise InvalidArgumentError(f"{name}: min {min} must be below max {max}")
+        self.name = name
+        self.reduction = float(reduction)
+        self.min = float(min)
+        self.max = float(max)
+        self.clock: Clock = clock if clock is not None else WallClock()
+        self.offset = 0.0
+        self._flags = int(POWER_UP_FLAGS)
+        self._current_b_cmd = Reg.NONE
+        self._homing_offset = 0.0
+        self._initialized = False
+
+    # ----------------------------------------------------------- primitives
+    @abc.abstractmethod
+    def _command(self, reg: Reg, value: float | int) -> int:
+        """Send a command register with its payload; return the flags byte."""
+
+    @abc.abstractmethod
+    def _query(self, reg: Reg) -> tuple[float | int, int]:
+        """Read a register; return its payload value and the flags byte."""
+
+    def _open(self) -> None:  # noqa: B027 - optional hook
+        """Acquire the connection (bus handle); called by :meth:`init`."""
+
+    def _close(self) -> None:  # noqa: B027 - optional hook
+        """Release the connection; called by :meth:`deinit`."""
+
+    # --------------------------------------------------------------- helpers
+    def _require_init(self) -> None:
+        if not self._initialized:
+            raise NotInitError(f"{self.name}: joint not initialized; call init() first")
+
+    def _require_enabled(self) -> None:
+        self._require_init()
+        if self._flags & Flag.NOT_ENABLED:
+            raise NotEnabledError(f"{self.name}: joint not enabled; call enable() first")
+
+    def _require_homed(self) -> None:
+        self._require_enabled()
+        if self._flags & Flag.NOT_HOMED:
+            raise NotHomedError(f"{self.name}: joint not homed; home it before moving")
+
+    def _send(self, reg: Reg, value: float | int) -> int:
+        self._require_init()
+        self._flags = self._command(reg, value)
+        return self._flags
+
+    def _get(self, reg: Reg) -> float | int:
+        self._require_init()
+        value, self._flags = self._query(reg)
+        return value
+
+    def _send_motion(self, reg: Reg, value: float | int) -> None:
+        """Send a motion command and raise if the reply says it was not taken."""
+        flags = self._send(reg, value)
+        if flags & Flag.STALL:
+            raise StalledError(f"{self.name}: joint stalled; re-enable it to clear the stall")
+        if flags & Flag.NOT_ENABLED:
+            raise NotEnabledError(
+                f"{self.name}: joint reports not enabled (deadman or disable); re-enable it"
+            )
+
+    @staticmethod
+    def _check_percent(name: str, what: str, value: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
+            raise InvalidArgumentError(f"{name}: {what} {value!r} must be an integer percent 0-100")
+        return value
+
+    def _check_finite(self, what: str, value: float) -> float:
+        value = float(value)
+        if not math.isfinite(value):
+            raise InvalidArgumentError(f"{self.name}: {what} {value} must be finite")
+        return value
+
+    # ------------------------------------------------------------ lifecycle
+    def init(self) -> None:
+        """Open the connection, PING the joint and restore the homing offset.
+
+        If the joint reports homed (it kept power while the host restarted),
+        the offset is read back from HOMEOFFSET so positions stay valid.
+
+        Raises:
+            CommError: No answer, or PING did not answer ``'O'``.
+        """
+        self._open()
+        self._initialized = True
+        try:
+            ack = self._get(Reg.PING)
+            if ack != ACK:
+                raise CommError(f"{self.name}: PING answered {ack!r}, expected {ACK!r} ('O')")
+            if not self._flags & Flag.NOT_HOMED:
+                self.offset = float(self._get(Reg.HOMEOFFSET))
+        except BaseException:
+            self._initialized = False
+            self._close()
+            raise
+
+    def deinit(self) -> None:
+        """Release the connection; the joint itself is left as it is."""
+        if self._initialized:
+            self._initialized = False
+            self._close()
+
+    @property
+    def initialized(self) -> bool:
+        """Whether :meth:`init` succeeded and :meth:`deinit` was not called."""
+        return self._initialized
+
+    def __enter__(self) -> BaseJoint:
+        """``init()`` and return the joint."""
+        self.init()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Disable (best effort) and ``deinit()``: leave the joint safe."""
+        try:
+            if self._initialized:
+                self.disable()
+        finally:
+            self.deinit()
+
+    def enable(self, drive_current: int, hold_current: int) -> None:
+        """Engage the motor with drive and hold current (percent 0-100).
+
+        Clears STALL and disables stall detection (re-enable it with
+        :meth:`enable_stallguard` afterwards).
+
+        Raises:
+            InvalidArgumentError: A current outside 0-100.
+            NotEnabledError: The joint still reports not enabled afterwards.
+        """
+        self._check_percent(self.name, "drive current", drive_current)
+        self._check_percent(self.name, "hold current", hold_current)
+        flags = self._send(Reg.SETUP, pack_bytes(drive_current, hold_current))
+        if flags & Flag.NOT_ENABLED:
+            raise NotEnabledError(f"{self.name}: failed to enable; the joint still reports not enabled")
+
+    def disable(self) -> None:
+        """Stop, set hold and drive current to 0 and let the joint freewheel."""
+        self.stop()
+        self.set_hold_current(0)
+        self.set_drive_current(0)
+        self.set_brake_mode(BrakeMode.FREEWHEEL)
+
+    # --------------------------------------------------------------- homing
+    def homing_rpm(self, velocity: float) -> float:
+        """Motor RPM of a joint-side homing velocity (rad/s or m/s)."""
+        return velocity_to_rpm(velocity, self.reduction)
+
+    def start_homing(self, velocity: float, sensitivity: int, current: int) -> None:
+        """Start homing against the end stop and return at once.
+
+        The joint runs at ``velocity`` until the PID error exceeds
+        ``sensitivity``, zeros its encoder there and clears NOT_HOMED. The end
+        stop becomes the joint's ``max`` for a positive velocity and its
+        ``min`` for a negative one (applied by :meth:`post_homing`).
+
+        Args:
+            velocity: Signed homing velocity, rad/s or m/s. The motor speed
+                ``rad2deg(reduction * velocity) / 6`` must satisfy
+                ``1.0 < |rpm| < 250.0``.
+            sensitivity: PID-error threshold 0-255 (lower trips earlier).
+            current: Homing current, percent 0-100.
+
+        Raises:
+            InvalidArgumentError: Speed, sensitivity or current out of bounds.
+            NotEnabledError: The joint is not enabled.
+            IncorrectStateError: Another blocking command is running.
+        """
+        velocity = self._check_finite("homing velocity", velocity)
+        rpm = self.homing_rpm(velocity)
+        if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
+            unit = "m/s" if abs(self.reduction) > 500 else "rad/s"
+            raise InvalidArgumentError(
+                f"{self.name}: homing speed {velocity:g} {unit} is {abs(rpm):.3g} RPM at the "
+                f"motor; must be between {HOMING_RPM_MIN:g} and {HOMING_RPM_MAX:g} RPM"
+            )
+        if isinstance(sensitivity, bool) or not isinstance(sensitivity, int) or not 0 <= sensitivity <= 255:
+            raise InvalidArgumentError(f"{self.name}: homing sensitivity {sensitivity!r} must be 0-255")
+        self._check_percent(self.name, "homing current", current)
+        self._require_enabled()
+        if self._current_b_cmd is not Reg.NONE and self._flags & Flag.BUSY:
+            raise IncorrectStateError(
+                f"{self.name}: {self._current_b_cmd.name} is still running; stop it first"
+            )
+        direction = 1 if rpm > 0 else 0
+        self._homing_offset = self.max if velocity > 0 else self.min
+        self._current_b_cmd = Reg.HOME
+        self._send(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
+
+    def post_homing(self) -> None:
+        """Finish a homing: clear the blocking command, check, store the offset.
+
+        Raises:
+            NotHomedError: The joint did not home (aborted or failed).
+        """
+        self._current_b_cmd = Reg.NONE
+        self.get_flags()
+        if self._flags & Flag.NOT_HOMED:
+            raise NotHomedError(f"{self.name}: homing did not complete (aborted or failed)")
+        self.offset = self._homing_offset
+        self._send(Reg.HOMEOFFSET, self.offset)
+
+    def wait_while_busy(self, period_s: float = BUSY_POLL_S, timeout_s: float | None = None) -> None:
+        """Poll the flags every ``period_s`` until BUSY clears.
+
+        Raises:
+            IncorrectStateError: Still busy after ``timeout_s`` (the joint is
+                stopped first).
+        """
+        start = self.clock.now()
+        while self.get_flags() & Flag.BUSY:
+            if timeout_s is not None and self.clock.now() - start > timeout_s:
+                self.stop()
+                raise IncorrectStateError(
+                    f"{self.name}: still busy after {timeout_s:g} s; stopped the joint"
+                )
+            self.clock.sleep(period_s)
+
+    def home(
+        self, velocity: float, sensitivity: int, current: int, timeout_s: float | None = 600.0
+    ) -> None:
+        """Home and wait: :meth:`start_homing`, wait while BUSY, :meth:`post_homing`.
+
+        Raises:
+            The errors of :meth:`start_homing` and :meth:`post_homing`, and
+            IncorrectStateError when it takes longer than ``timeout_s``.
+        """
+        self.start_homing(velocity, sensitivity, current)
+        try:
+            self.wait_while_busy(timeout_s=timeout_s)
+        except IncorrectStateError:
+            self._current_b_cmd = Reg.NONE
+            raise
+        self.post_homing()
+
+    # --------------------------------------------------------------- motion
+    def get_position(self) -> float:
+        """Joint position in rad or m; 0.0 (no error) while not homed."""
+        deg = self._get(Reg.ANGLEMOVED)
+        if self._flags & Flag.NOT_HOMED:
+            return 0.0
+        return degrees_to_position(float(deg), self.reduction, self.offset)
+
+    def set_position(self, pos: float) -> None:
+        """Move to ``pos`` (rad or m) with the configured velocity and acceleration.
+
+        Raises:
+            NotEnabledError, NotHomedError: Refused before any bus traffic.
+            StalledError: The reply says the joint is stalled.
+            InvalidArgumentError: ``pos`` is not finite.
+        """
+        pos = self._check_finite("position", pos)
+        self._require_homed()
+        self._send_motion(Reg.MOVETOANGLE, position_to_degrees(pos, self.reduction, self.offset))
+
+    def get_velocity(self) -> float:
+        """Measured joint velocity in rad/s or m/s."""
+        return rpm_to_velocity(float(self._get(Reg.GETENCODERRPM)), self.reduction)
+
+    def set_velocity(self, vel: float) -> None:
+        """Run at ``vel`` (rad/s or m/s) until told otherwise.
+
+        In velocity mode the host must talk to the joint at least every 50 ms,
+        or the firmware's deadman stops it and sets NOT_ENABLED.
+
+        Raises:
+            NotEnabledError, NotHomedError: Refused before any bus traffic.
+            StalledError: The reply says the joint is stalled.
+            InvalidArgumentError: ``vel`` is not finite.
+        """
+        vel = self._check_finite("velocity", vel)
+        self._require_homed()
+        self._send_motion(Reg.SETRPM, velocity_to_rpm(vel, self.reduction))
+
+    def move_steps(self, steps: int) -> None:
+        """Move ``steps`` full motor steps; allowed while not homed.
+
+        Raises:
+            NotEnabledError: The joint is not enabled.
+            StalledError: The reply says the joint is stalled.
+        """
+        if isinstance(steps, bool) or not isinstance(steps, int):
+            raise InvalidArgumentError(f"{self.name}: steps {steps!r} must be an integer")
+        self._require_enabled()
+        self._send_motion(Reg.MOVESTEPS, steps)
+
+    def stop(self) -> None:
+        """Stop the motor (speed 0); aborts a running homing."""
+        self._send(Reg.STOP, 0)
+
+    def check_orientation(self, angle: float = 2.0) -> None:
+        """Turn the motor ``angle`` degrees and back to check its wiring (blocking)."""
+        angle = self._check_finite("orientation angle", angle)
+        self._require_enabled()
+        self._current_b_cmd = Reg.CHECKORIENTATION
+        try:
+            self._send(Reg.CHECKORIENTATION, angle)
+            self.wait_while_busy()
+        finally:
+            self._current_b_cmd = Reg.NONE
+
+    def disable_closed_loop(self) -> None:
+        """Disable the encoder closed loop (the joint reports not enabled)."""
+        self._send(Reg.DISABLECLOSEDLOOP, 0)
+
+    def set_drive_current(self, current: int) -> None:
+        """Drive current, percent 0-100; 0 sets NOT_ENABLED."""
+        self._send(Reg.SETCURRENT, self._check_percent(self.name, "drive current", current))
+
+    def set_hold_current(self, current: int) -> None:
+        """Hold current, percent 0-100; 0 sets NOT_ENABLED."""
+        self._send(Reg.SETHOLDCURRENT, self._check_percent(self.name, "hold current", current))
+
+    def set_brake_mode(self, mode: int) -> None:
+        """Brake mode when idle: 0 freewheel, 1 coolbrake, 2 hardbrake."""
+        try:
+            mode = BrakeMode(mode)
+        except ValueError as e:
+            raise InvalidArgumentError(f"{self.name}: brake mode {mode!r} must be 0, 1 or 2") from e
+        self._send(Reg.SETBRAKEMODE, int(mode))
+
+    def set_max_acceleration(self, acceleration: float) -> None:
+        """Maximum acceleration and deceleration, rad/s^2 or m/s^2 (> 0).
+
+        Sent as ``|rad2deg(reduction * acceleration)|`` deg/s^2; the magnitude
+        is used because the lift's reduction is negative.
+        """
+        acceleration = self._check_finite("max acceleration", acceleration)
+        if acceleration <= 0:
+            raise InvalidArgumentError(f"{self.name}: max acceleration {acceleration} must be > 0")
+        self._send(Reg.SETMAXACCELERATION, abs(rate_to_degrees(acceleration, self.reduction)))
+
+    def set_max_velocity(self, velocity: float) -> None:
+        """Maximum velocity, rad/s or m/s (> 0); sent as deg/s like the acceleration."""
+        velocity = self._check_finite("max velocity", velocity)
+        if velocity <= 0:
+            raise InvalidArgumentError(f"{self.name}: max velocity {velocity} must be > 0")
+        self._send(Reg.SETMAXVELOCITY, abs(rate_to_degrees(velocity, self.reduction)))
+
+    def enable_stallguard(self, sensitivity: int) -> None:
+        """Enable stall detection with threshold 10 x ``sensitivity`` (0-255); clears STALL."""
+        if isinstance(sensitivity, bool) or not isinstance(sensitivity, int) or not 0 <= sensitivity <= 255:
+            raise InvalidArgumentError(f"{self.name}: stall sensitivity {sensitivity!r} must be 0-255")
+        self._send(Reg.ENABLESTALLGUARD, sensitivity)
+
+    # ---------------------------------------------------------------- flags
+    def get_flags(self) -> Flag:
+        """Refresh the flags from the joint (a PING) and return them."""
+        self._get(Reg.PING)
+        return Flag(self._flags)
+
+    @property
+    def flags(self) -> Flag:
+        """Flags of the last transaction (no bus traffic)."""
+        return Flag(self._flags)
+
+    def is_homed(self) -> bool:
+        """Homed, per the last transaction's flags."""
+        return not self._flags & Flag.NOT_HOMED
+
+    def is_enabled(self) -> bool:
+        """Enabled, per the last transaction's flags (check STALL too)."""
+        return not self._flags & Flag.NOT_ENABLED
+
+    def is_stalled(self) -> bool:
+        """Stalled, per the last transaction's flags."""
+        return bool(self._flags & Flag.STALL)
+
+    def is_busy(self) -> bool:
+        """A blocking command runs, per the last transaction's flags."""
+        return bool(self._flags & Flag.BUSY)
+
+    @property
+    def current_blocking_command(self) -> Reg:
+        """The blocking command the host started and has not finished (``Reg.NONE``)."""
+        return self._current_b_cmd
+
+    def __repr__(self) -> str:
+        """Name and flags."""
+        return f"{type(self).__name__}({self.name!r}, flags={Flag(self._flags)!r})"

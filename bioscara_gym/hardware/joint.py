@@ -1,0 +1,101 @@
+"""The real joint driver: the register protocol over an :class:`I2CBus`."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+from bioscara_gym.hardware.base_joint import BaseJoint
+from bioscara_gym.hardware.bus import I2CBus
+from bioscara_gym.hardware.clock import Clock
+from bioscara_gym.hardware.errors import CommError, InvalidArgumentError
+from bioscara_gym.hardware.registers import FLAGS_SIZE, PAYLOAD_FORMAT, Reg
+from bioscara_gym.hardware.stats import CommStats
+
+_RESERVED_FLAG_BITS = 0xF0
+
+
+class _BadReply(Exception):
+    """A reply that cannot be right (wrong length, reserved bits, NaN)."""
+
+
+class Joint(BaseJoint):
+    """A joint on the I2C bus (address 0x11-0x14 on the Bioscara).
+
+    Every call is one combined write-then-read transaction: a read writes
+    ``[REG]`` and reads ``payload + 1`` bytes, a command writes
+    ``[REG][payload]`` and reads the flags byte. A failed attempt (``OSError``
+    from the bus, a short reply, a flags byte with reserved bits set, a
+    non-finite float) is retried ``retries`` times, then :class:`CommError`
+    names the joint and the register. :attr:`stats` counts every attempt.
+
+    Args:
+        name: Joint name for messages.
+        address: 7-bit I2C address.
+        reduction: Signed reduction (motor turns per joint unit).
+        min: Lower joint limit (rad or m).
+        max: Upper joint limit (rad or m).
+        bus: The bus (``SMBusI2C`` on the arm, ``EmulatedI2CBus`` in tests).
+        retries: Extra attempts after a failed transaction.
+        clock: Time source for waiting on blocking commands.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        address: int,
+        reduction: float,
+        min: float,  # noqa: A002 - the C++ API's parameter name
+        max: float,  # noqa: A002
+        bus: I2CBus,
+        retries: int = 2,
+        clock: Clock | None = None,
+    ) -> None:
+        """Create the driver; nothing is sent before :meth:`init`."""
+        super().__init__(name, reduction, min, max, clock)
+        if not 0x03 <= address <= 0x77:
+            raise InvalidArgumentError(f"{name}: I2C address {address:#04x} is outside 0x03-0x77")
+        if retries < 0:
+            raise InvalidArgumentError(f"{name}: retries {retries} must be >= 0")
+        self.address = address
+        self.bus = bus
+        self.retries = retries
+        self.stats = CommStats()
+
+    def _transfer(self, reg: Reg, data: bytes, fmt: str | None) -> tuple[float | int, int]:
+        """One transaction with retries; returns the decoded payload (0 if none) and flags."""
+        size = struct.calcsize(fmt) if fmt else 0
+        read_len = size + FLAGS_SIZE
+        last: Exception | None = None
+        for _ in range(self.retries + 1):
+            try:
+                reply = self.bus.transfer(self.address, data, read_len)
+                if len(reply) != read_len:
+                    raise _BadReply(f"reply of {len(reply)} bytes, expected {read_len}")
+                if reply[-1] & _RESERVED_FLAG_BITS:
+                    raise _BadReply(f"flags byte {reply[-1]:#04x} has reserved bits set")
+                value = struct.unpack(fmt, reply[:size])[0] if fmt else 0
+                if isinstance(value, float) and not math.isfinite(value):
+                    raise _BadReply(f"value {value} is not finite")
+            except (OSError, _BadReply) as e:
+                self.stats.record(ok=False)
+                last = e
+                continue
+            self.stats.record(ok=True)
+            return value, reply[-1]
+        raise CommError(
+            f"{self.name} ({self.address:#04x}): {reg.name} failed after "
+            f"{self.retries + 1} attempts: {last}. Check wiring, power and the address"
+        ) from last
+
+    def _command(self, reg: Reg, value: float | int) -> int:
+        """Write ``[REG][payload]``, read the flags byte."""
+        try:
+            payload = struct.pack(PAYLOAD_FORMAT[reg], value)
+        except struct.error as e:
+            raise InvalidArgumentError(f"{self.name}: {reg.name} payload {value!r}: {e}") from e
+        return self._transfer(reg, bytes((reg,)) + payload, None)[1]
+
+    def _query(self, reg: Reg) -> tuple[float | int, int]:
+        """Write ``[REG]``, read the payload and the flags byte."""
+        return self._transfer(reg, bytes((reg,)), PAYLOAD_FORMAT[reg])
