@@ -7,6 +7,7 @@ the deployment code stand on.
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
 from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
+from bioscara_gym.hardware.config import ArmConfig, GripperConfig, HomingConfig, JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, Fault, FaultPlan
 from bioscara_gym.hardware.errors import (
     CommError,
@@ -22,6 +23,7 @@ from bioscara_gym.hardware.errors import (
     error_to_string,
 )
 from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
+from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.motor import KinematicStepper, Motor
@@ -29,6 +31,8 @@ from bioscara_gym.hardware.registers import BrakeMode, Flag, Reg
 from bioscara_gym.hardware.stats import CommStats
 
 __all__ = [
+    "ArmConfig",
+    "BaseGripper",
     "BaseJoint",
     "BrakeMode",
     "Clock",
@@ -41,14 +45,19 @@ __all__ = [
     "FaultPlan",
     "FirmwareCore",
     "Flag",
+    "Gripper",
+    "GripperConfig",
+    "HomingConfig",
     "I2CBus",
     "IncorrectStateError",
     "InvalidArgumentError",
     "Joint",
+    "JointConfig",
     "JointError",
     "JointFirmware",
     "KinematicStepper",
     "ManualClock",
+    "MockGripper",
     "MockJoint",
     "Motor",
     "NotEnabledError",
@@ -59,4 +68,5 @@ __all__ = [
     "StalledError",
     "WallClock",
     "error_to_string",
+    "load_config",
 ]

@@ -1,0 +1,709 @@
+"""Validated configuration of the arm: joints, gripper, joint groups and bus.
+
+The configuration is a tree of frozen dataclasses (:class:`ArmConfig` holding
+:class:`JointConfig`, :class:`HomingConfig` and :class:`GripperConfig`). Every
+dataclass checks its own invariants when it is built, so an ``ArmConfig`` that
+exists is valid; YAML is only the file format. :func:`load_config` reads a YAML
+file (or, with no path, the packaged ``default_config.yaml``, whose numbers are
+those of SPEC.md), :func:`config_from_dict` builds a configuration from plain
+data and :func:`config_to_dict` turns one back into plain data.
+
+Every validation failure raises :class:`~bioscara_gym.hardware.errors.ConfigError`
+whose message names the source, the joint, the field and the expectation, e.g.
+``"config.yaml: joint j2: homing.speed 5e-05 m/s is -0.75 RPM at the motor;
+|RPM| must be strictly between 1 and 250"``.
+
+File format (all joint, homing and gripper fields are required; unknown
+fields are errors so that typos cannot pass silently)::
+
+    bus: 1                      # optional, /dev/i2c-N, default 1
+    joints:
+      - name: j1
+        address: 0x11
+        joint_type: revolute    # revolute | prismatic
+        reduction: 35.0
+        min: -3.04647
+        max: 3.04647
+        max_velocity: 1.0
+        max_acceleration: 2.0
+        stall_threshold: 6
+        hold_current: 20
+        drive_current: 20
+        homing: {speed: 0.03, threshold: 30, current: 15, acceleration: 0.01}
+      ...
+    gripper:
+      reduction: 3333.3
+      offset: 0.058
+      min: 0.04
+      max: 0.12
+      max_velocity: 1.0
+      backup_init_pos: 0.08
+      pwm_chip: 0               # optional, default 0
+      pwm_channel: 0            # optional, default 0
+      state_file: null          # optional, default: chosen by the caller
+    groups:                     # optional, default: all, arm, gripper
+      all: [j1, j2, j3, j4, gripper]
+      arm: [j1, j2, j3, j4]
+      gripper: [gripper]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from types import MappingProxyType
+from typing import Any
+
+import yaml
+
+from bioscara_gym.hardware.errors import ConfigError
+
+__all__ = [
+    "GRIPPER_NAME",
+    "JOINT_TYPES",
+    "ArmConfig",
+    "GripperConfig",
+    "HomingConfig",
+    "JointConfig",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+]
+
+#: Name under which the gripper appears in joint groups.
+GRIPPER_NAME = "gripper"
+
+#: Allowed values of :attr:`JointConfig.joint_type`.
+JOINT_TYPES = ("revolute", "prismatic")
+
+#: 7-bit I2C addresses a device may use (0x00-0x02 and 0x78-0x7F are reserved
+#: by the I2C specification).
+I2C_ADDRESS_MIN = 0x03
+I2C_ADDRESS_MAX = 0x77
+
+#: The driver's homing speed bounds in motor RPM, exclusive (SPEC.md "The
+#: host driver's rules": ``1.0 < |rpm| < 250.0``; the firmware takes the speed
+#: as one unsigned byte).
+HOMING_RPM_MIN = 1.0
+HOMING_RPM_MAX = 250.0
+
+#: Currents are percent of the driver's 2.5 A output (SPEC.md).
+CURRENT_MAX = 100
+#: Stall and homing thresholds are one unsigned byte (SPEC.md).
+THRESHOLD_MAX = 255
+
+_PACKAGE = "bioscara_gym.hardware"
+_DEFAULT_CONFIG = "default_config.yaml"
+_DEFAULT_SOURCE = f"{_PACKAGE}/{_DEFAULT_CONFIG}"
+
+
+# --------------------------------------------------------------------------
+# Field checks. Each returns the normalised value or raises ConfigError with a
+# message that names ``what`` (the field, e.g. "homing.speed"); the caller adds
+# the joint and the source in front.
+# --------------------------------------------------------------------------
+
+
+def _type_name(value: object) -> str:
+    return type(value).__name__
+
+
+def _fmt(value: float) -> str:
+    """Format a float exactly (shortest round-trip form), e.g. ``5e-05``."""
+    return repr(float(value))
+
+
+def _number(value: object, what: str) -> float:
+    """Check that ``value`` is a finite real number (not a bool); return a float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        hint = ""
+        if isinstance(value, str):
+            try:
+                float(value)
+            except ValueError:
+                pass
+            else:
+                hint = " (YAML reads exponents without a dot, such as 1e-3, as strings; write 1.0e-3)"
+        raise ConfigError(f"{what} {value!r} ({_type_name(value)}) must be a number{hint}")
+    result = float(value)
+    if not math.isfinite(result):
+        raise ConfigError(f"{what} {value!r} must be finite")
+    return result
+
+
+def _positive(value: object, what: str, unit: str = "") -> float:
+    result = _number(value, what)
+    if result <= 0.0:
+        raise ConfigError(f"{what} {_fmt(result)}{unit} must be > 0")
+    return result
+
+
+def _nonzero(value: object, what: str) -> float:
+    result = _number(value, what)
+    if result == 0.0:
+        raise ConfigError(f"{what} must be non-zero")
+    return result
+
+
+def _int(value: object, what: str) -> int:
+    """Check that ``value`` is an int (a bool is not)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{what} {value!r} ({_type_name(value)}) must be an integer")
+    return value
+
+
+def _integer(
+    value: object,
+    what: str,
+    low: int = 0,
+    high: int | None = None,
+    unit: str = "",
+) -> int:
+    """Check that ``value`` is an int in ``[low, high]`` (``high=None``: no bound)."""
+    result = _int(value, what)
+    if high is None:
+        if result < low:
+            raise ConfigError(f"{what} {result} must be >= {low}")
+    elif not low <= result <= high:
+        raise ConfigError(f"{what} {result} is outside {low}-{high}{unit}")
+    return result
+
+
+def _limits(low: object, high: object, unit: str = "") -> tuple[float, float]:
+    low_f = _number(low, "min")
+    high_f = _number(high, "max")
+    if low_f >= high_f:
+        raise ConfigError(f"min {_fmt(low_f)}{unit} must be less than max {_fmt(high_f)}{unit}")
+    return low_f, high_f
+
+
+def _unit(joint_type: str) -> str:
+    return " m" if joint_type == "prismatic" else " rad"
+
+
+def _is_list(value: object) -> bool:
+    """Tell whether ``value`` is a list-like sequence (strings are not)."""
+    return isinstance(value, Sequence) and not isinstance(value, (str, bytes))
+
+
+def _set(obj: object, name: str, value: object) -> None:
+    """Store a normalised value on a frozen dataclass during ``__post_init__``."""
+    object.__setattr__(obj, name, value)
+
+
+# --------------------------------------------------------------------------
+# The dataclasses.
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HomingConfig:
+    """How a joint homes against its end stop.
+
+    Attributes:
+        speed: Signed joint-side homing speed, rad/s (revolute) or m/s
+            (prismatic). The sign picks the end stop: positive homes to
+            ``max``, negative to ``min``. Never 0.
+        threshold: PID-error sensitivity that detects the end stop, 0-255
+            (lower is more sensitive).
+        current: Motor current while homing, percent 0-100 of 2.5 A.
+        acceleration: Joint-side acceleration while homing, rad/s² or m/s²,
+            > 0.
+
+    Raises:
+        ConfigError: On construction, if a field has the wrong type or range.
+    """
+
+    speed: float
+    threshold: int
+    current: int
+    acceleration: float
+
+    def __post_init__(self) -> None:
+        """Validate and normalise the fields (ints given for floats become floats)."""
+        speed = _number(self.speed, "homing.speed")
+        if speed == 0.0:
+            raise ConfigError(
+                "homing.speed must be non-zero (its sign picks the end stop: + homes to max, - to min)"
+            )
+        _set(self, "speed", speed)
+        _integer(self.threshold, "homing.threshold", high=THRESHOLD_MAX)
+        _integer(self.current, "homing.current", high=CURRENT_MAX, unit=" %")
+        _set(self, "acceleration", _positive(self.acceleration, "homing.acceleration"))
+
+
+@dataclass(frozen=True)
+class JointConfig:
+    """One stepper joint: bus address, transmission, limits and driver settings.
+
+    Attributes:
+        name: Joint name, e.g. ``"j1"``.
+        address: 7-bit I2C address, 0x03-0x77.
+        joint_type: ``"revolute"`` (rad) or ``"prismatic"`` (m).
+        reduction: Actuator units per joint unit (motor rad per joint rad or
+            per joint m); negative reverses the direction. Non-zero.
+        min: Lower joint limit, rad or m.
+        max: Upper joint limit, rad or m; greater than ``min``.
+        max_velocity: Joint-side velocity limit, rad/s or m/s, > 0.
+        max_acceleration: Joint-side acceleration limit, rad/s² or m/s², > 0.
+        stall_threshold: Stall detection sensitivity, 0-255.
+        hold_current: Standstill current, percent 0-100 of 2.5 A.
+        drive_current: Running current, percent 0-100 of 2.5 A.
+        homing: Homing settings; the homing speed must be 1-250 RPM
+            (exclusive) at the motor.
+
+    Raises:
+        ConfigError: On construction, if a field has the wrong type or range;
+            the message starts with ``"joint <name>: "``.
+    """
+
+    name: str
+    address: int
+    joint_type: str
+    reduction: float
+    min: float
+    max: float
+    max_velocity: float
+    max_acceleration: float
+    stall_threshold: int
+    hold_current: int
+    drive_current: int
+    homing: HomingConfig
+
+    def __post_init__(self) -> None:
+        """Validate and normalise the fields (ints given for floats become floats)."""
+        if not isinstance(self.name, str) or not self.name:
+            raise ConfigError(
+                f"joint name {self.name!r} ({_type_name(self.name)}) must be a non-empty string"
+            )
+        try:
+            self._validate()
+        except ConfigError as e:
+            raise ConfigError(f"joint {self.name}: {e}") from None
+
+    def _validate(self) -> None:
+        address = _int(self.address, "address")
+        if not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
+            raise ConfigError(
+                f"address 0x{address:02X} is outside the 7-bit I2C range "
+                f"0x{I2C_ADDRESS_MIN:02X}-0x{I2C_ADDRESS_MAX:02X}"
+            )
+        if not isinstance(self.joint_type, str) or self.joint_type not in JOINT_TYPES:
+            allowed = ", ".join(repr(t) for t in JOINT_TYPES)
+            raise ConfigError(f"joint_type {self.joint_type!r} must be one of {allowed}")
+        unit = _unit(self.joint_type)
+        _set(self, "reduction", _nonzero(self.reduction, "reduction"))
+        low, high = _limits(self.min, self.max, unit)
+        _set(self, "min", low)
+        _set(self, "max", high)
+        _set(
+            self,
+            "max_velocity",
+            _positive(self.max_velocity, "max_velocity", f"{unit}/s"),
+        )
+        _set(
+            self,
+            "max_acceleration",
+            _positive(self.max_acceleration, "max_acceleration", f"{unit}/s²"),
+        )
+        _integer(self.stall_threshold, "stall_threshold", high=THRESHOLD_MAX)
+        _integer(self.hold_current, "hold_current", high=CURRENT_MAX, unit=" %")
+        _integer(self.drive_current, "drive_current", high=CURRENT_MAX, unit=" %")
+        if not isinstance(self.homing, HomingConfig):
+            raise ConfigError(f"homing must be a HomingConfig, got {_type_name(self.homing)}")
+        rpm = self.homing_rpm()
+        if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
+            raise ConfigError(
+                f"homing.speed {_fmt(self.homing.speed)}{unit}/s is {rpm:.2f} RPM at "
+                f"the motor; |RPM| must be strictly between {HOMING_RPM_MIN:g} "
+                f"and {HOMING_RPM_MAX:g}"
+            )
+
+    def homing_rpm(self) -> float:
+        """Return the signed motor speed of homing in RPM.
+
+        Returns:
+            ``rad2deg(reduction × homing.speed) / 6`` (SPEC.md "Velocity
+            command"); the sign is the motor's direction.
+        """
+        return math.degrees(self.reduction * self.homing.speed) / 6.0
+
+
+@dataclass(frozen=True)
+class GripperConfig:
+    """The servo gripper: width transmission, limits and PWM output.
+
+    Attributes:
+        reduction: Servo degrees per metre of width (α = r·(w − o)); non-zero.
+        offset: Width at servo angle 0, m.
+        min: Smallest width, m.
+        max: Largest width, m; greater than ``min``.
+        max_velocity: Width velocity limit from the original parameter file,
+            > 0.
+        backup_init_pos: Width assumed at enable when no saved width can be
+            read back, m; within ``[min, max]``.
+        pwm_chip: Linux PWM chip number (``/sys/class/pwm/pwmchipN``), >= 0.
+        pwm_channel: PWM channel on that chip (``pwmM``), >= 0.
+        state_file: File that keeps the last width across restarts; ``None``
+            lets the caller choose a default under the user's state directory.
+
+    Raises:
+        ConfigError: On construction, if a field has the wrong type or range;
+            the message starts with ``"gripper: "``.
+    """
+
+    reduction: float
+    offset: float
+    min: float
+    max: float
+    max_velocity: float
+    backup_init_pos: float
+    pwm_chip: int = 0
+    pwm_channel: int = 0
+    state_file: str | None = None
+
+    def __post_init__(self) -> None:
+        """Validate and normalise the fields (ints given for floats become floats)."""
+        try:
+            self._validate()
+        except ConfigError as e:
+            raise ConfigError(f"{GRIPPER_NAME}: {e}") from None
+
+    def _validate(self) -> None:
+        _set(self, "reduction", _nonzero(self.reduction, "reduction"))
+        _set(self, "offset", _number(self.offset, "offset"))
+        low, high = _limits(self.min, self.max, " m")
+        _set(self, "min", low)
+        _set(self, "max", high)
+        _set(self, "max_velocity", _positive(self.max_velocity, "max_velocity"))
+        init = _number(self.backup_init_pos, "backup_init_pos")
+        if not low <= init <= high:
+            raise ConfigError(
+                f"backup_init_pos {_fmt(init)} m must be within [min, max] = [{_fmt(low)}, {_fmt(high)}] m"
+            )
+        _set(self, "backup_init_pos", init)
+        _integer(self.pwm_chip, "pwm_chip")
+        _integer(self.pwm_channel, "pwm_channel")
+        if self.state_file is not None and (not isinstance(self.state_file, str) or not self.state_file):
+            raise ConfigError(
+                f"state_file {self.state_file!r} ({_type_name(self.state_file)}) "
+                "must be a non-empty string or null"
+            )
+
+
+@dataclass(frozen=True)
+class ArmConfig:
+    """The whole arm: joints, gripper, named joint groups and the I2C bus.
+
+    Attributes:
+        joints: The joints in order (j1 first); names and addresses are
+            unique, and no joint may be called ``"gripper"``.
+        gripper: The gripper.
+        groups: Named groups of joint names (read-only mapping); members are
+            joint names or ``"gripper"``, each at most once per group.
+        bus: I2C bus number (``/dev/i2c-N``), >= 0.
+
+    Raises:
+        ConfigError: On construction, if the parts are inconsistent.
+    """
+
+    joints: tuple[JointConfig, ...]
+    gripper: GripperConfig
+    groups: Mapping[str, tuple[str, ...]] = field(hash=False)
+    bus: int = 1
+
+    def __post_init__(self) -> None:
+        """Validate the parts; freeze ``joints`` (tuple) and ``groups`` (read-only)."""
+        if not _is_list(self.joints):
+            raise ConfigError(f"joints must be a sequence of JointConfig, got {_type_name(self.joints)}")
+        joints = tuple(self.joints)
+        if not joints:
+            raise ConfigError("joints must list at least one joint")
+        by_name: dict[str, JointConfig] = {}
+        by_address: dict[int, JointConfig] = {}
+        for index, joint in enumerate(joints):
+            if not isinstance(joint, JointConfig):
+                raise ConfigError(f"joints[{index}] must be a JointConfig, got {_type_name(joint)}")
+            if joint.name == GRIPPER_NAME:
+                raise ConfigError(
+                    f"joint {joint.name}: the name {GRIPPER_NAME!r} is reserved "
+                    "for the gripper in joint groups"
+                )
+            if joint.name in by_name:
+                raise ConfigError(f"joint {joint.name}: defined more than once; joint names must be unique")
+            other = by_address.get(joint.address)
+            if other is not None:
+                raise ConfigError(
+                    f"joint {joint.name}: address 0x{joint.address:02X} is already "
+                    f"used by joint {other.name}; addresses must be unique"
+                )
+            by_name[joint.name] = joint
+            by_address[joint.address] = joint
+        _set(self, "joints", joints)
+        if not isinstance(self.gripper, GripperConfig):
+            raise ConfigError(f"gripper must be a GripperConfig, got {_type_name(self.gripper)}")
+        _set(self, "groups", MappingProxyType(self._checked_groups()))
+        _integer(self.bus, "bus")
+
+    def _checked_groups(self) -> dict[str, tuple[str, ...]]:
+        if not isinstance(self.groups, Mapping):
+            raise ConfigError(
+                "groups must be a mapping of group name to a list of joint "
+                f"names, got {_type_name(self.groups)}"
+            )
+        known = (*self.names, GRIPPER_NAME)
+        groups: dict[str, tuple[str, ...]] = {}
+        for group, members in self.groups.items():
+            if not isinstance(group, str) or not group:
+                raise ConfigError(f"groups: group name {group!r} must be a non-empty string")
+            where = f"groups.{group}"
+            if not _is_list(members):
+                raise ConfigError(f"{where}: {members!r} must be a list of joint names")
+            if not members:
+                raise ConfigError(f"{where}: must name at least one joint")
+            for member in members:
+                if member not in known:
+                    raise ConfigError(f"{where}: unknown joint {member!r}; known: {', '.join(known)}")
+            if len(set(members)) != len(members):
+                raise ConfigError(f"{where}: lists a joint more than once")
+            groups[group] = tuple(members)
+        return groups
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The joint names in order (the gripper is not a joint)."""
+        return tuple(joint.name for joint in self.joints)
+
+    def joint(self, name: str) -> JointConfig:
+        """Return the configuration of one joint.
+
+        Args:
+            name: Joint name, e.g. ``"j2"``.
+
+        Returns:
+            The joint's configuration.
+
+        Raises:
+            ConfigError: If there is no joint called ``name``; the message
+                lists the known joints.
+        """
+        for joint in self.joints:
+            if joint.name == name:
+                return joint
+        raise ConfigError(f"unknown joint {name!r}; known joints: {', '.join(self.names)}")
+
+
+# --------------------------------------------------------------------------
+# Plain data <-> dataclasses.
+# --------------------------------------------------------------------------
+
+_HOMING_FIELDS = tuple(f.name for f in dataclasses.fields(HomingConfig))
+_JOINT_FIELDS = tuple(f.name for f in dataclasses.fields(JointConfig))
+_GRIPPER_REQUIRED = tuple(
+    f.name for f in dataclasses.fields(GripperConfig) if f.default is dataclasses.MISSING
+)
+_GRIPPER_OPTIONAL = tuple(
+    f.name for f in dataclasses.fields(GripperConfig) if f.default is not dataclasses.MISSING
+)
+_TOP_REQUIRED = ("joints", "gripper")
+_TOP_OPTIONAL = ("groups", "bus")
+
+
+def _check_fields(
+    data: Mapping[Any, Any],
+    required: Sequence[str],
+    optional: Sequence[str] = (),
+    prefix: str = "",
+) -> None:
+    """Raise ConfigError for unknown fields first (typos), then missing ones."""
+    allowed = (*required, *optional)
+    for key in data:
+        if key not in allowed:
+            close = difflib.get_close_matches(str(key), allowed, n=1)
+            hint = (
+                f" (did you mean {prefix + close[0]!r}?)"
+                if close
+                else f"; allowed: {', '.join(prefix + a for a in allowed)}"
+            )
+            raise ConfigError(f"unknown field {prefix + str(key)!r}{hint}")
+    missing = [f"{prefix}{name}" for name in required if name not in data]
+    if missing:
+        plural = "s" if len(missing) > 1 else ""
+        raise ConfigError(f"missing field{plural} {', '.join(repr(m) for m in missing)}")
+
+
+def _mapping(value: object, what: str) -> Mapping[Any, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{what} must be a mapping, got {_type_name(value)}")
+    return value
+
+
+def _homing_from_dict(data: object) -> HomingConfig:
+    homing = _mapping(data, "homing")
+    _check_fields(homing, _HOMING_FIELDS, prefix="homing.")
+    return HomingConfig(**{name: homing[name] for name in _HOMING_FIELDS})
+
+
+def _joint_from_dict(data: object, index: int) -> JointConfig:
+    joint = _mapping(data, f"joints[{index}]")
+    name = joint.get("name")
+    where = f"joint {name}" if isinstance(name, str) and name else f"joints[{index}]"
+    try:
+        _check_fields(joint, _JOINT_FIELDS)
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"name {name!r} ({_type_name(name)}) must be a non-empty string")
+        values = {key: joint[key] for key in _JOINT_FIELDS}
+        values["homing"] = _homing_from_dict(joint["homing"])
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    # JointConfig names itself ("joint <name>: ...") in its own errors.
+    return JointConfig(**values)
+
+
+def _gripper_from_dict(data: object) -> GripperConfig:
+    try:
+        gripper = _mapping(data, "section")
+        _check_fields(gripper, _GRIPPER_REQUIRED, _GRIPPER_OPTIONAL)
+    except ConfigError as e:
+        raise ConfigError(f"{GRIPPER_NAME}: {e}") from None
+    # GripperConfig names itself ("gripper: ...") in its own errors.
+    return GripperConfig(**dict(gripper))
+
+
+def _default_groups(names: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    return {
+        "all": (*names, GRIPPER_NAME),
+        "arm": tuple(names),
+        GRIPPER_NAME: (GRIPPER_NAME,),
+    }
+
+
+def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConfig:
+    """Build and validate an :class:`ArmConfig` from plain data.
+
+    Args:
+        data: A mapping in the file format of this module (see the module
+            docstring), e.g. what ``yaml.safe_load`` returns. ``groups`` and
+            ``bus`` may be left out (defaults: groups ``all``, ``arm`` and
+            ``gripper``; bus 1).
+        source: Where the data came from; starts every error message.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        ConfigError: If a field is missing, unknown, of the wrong type or out
+            of range; the message reads ``"<source>: joint <name>: <field>
+            <value> <expectation>"``.
+    """
+    try:
+        top = _mapping(data, "the top level")
+        _check_fields(top, _TOP_REQUIRED, _TOP_OPTIONAL)
+        joints_data = top["joints"]
+        if not _is_list(joints_data):
+            raise ConfigError(f"joints must be a list of joint mappings, got {_type_name(joints_data)}")
+        joints = tuple(_joint_from_dict(item, i) for i, item in enumerate(joints_data))
+        gripper = _gripper_from_dict(top["gripper"])
+        groups = top["groups"] if "groups" in top else _default_groups([joint.name for joint in joints])
+        return ArmConfig(joints=joints, gripper=gripper, groups=groups, bus=top.get("bus", 1))
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
+    """Turn a configuration into plain data (dicts, lists, numbers, strings).
+
+    The result can be written with ``yaml.safe_dump`` and read back with
+    :func:`config_from_dict` to an equal :class:`ArmConfig`.
+
+    Args:
+        cfg: The configuration.
+
+    Returns:
+        A new dict with the keys ``bus``, ``joints``, ``gripper`` and ``groups``.
+    """
+    return {
+        "bus": cfg.bus,
+        "joints": [dataclasses.asdict(joint) for joint in cfg.joints],
+        "gripper": dataclasses.asdict(cfg.gripper),
+        "groups": {group: list(members) for group, members in cfg.groups.items()},
+    }
+
+
+class _StrictSafeLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses duplicate keys in a mapping.
+
+    Plain YAML keeps the last of two equal keys silently, so a doubled
+    ``address:`` line would go unnoticed.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:  # type: ignore[override]
+        """Construct a mapping after checking its keys are unique."""
+        seen: set[tuple[str, str]] = set()
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                continue
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = (key_node.tag, key_node.value)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while constructing a mapping",
+                    node.start_mark,
+                    f"found duplicate key {key_node.value!r}",
+                    key_node.start_mark,
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _parse_yaml(text: str, source: str) -> Any:
+    try:
+        # Safe loading (no arbitrary objects), plus a duplicate-key check.
+        return yaml.load(text, Loader=_StrictSafeLoader)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{source}: not valid YAML: {e}") from e
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
+    """Load and validate a YAML configuration file.
+
+    Args:
+        path: The file to read; ``None`` loads the packaged
+            ``default_config.yaml`` (the values of SPEC.md).
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        ConfigError: If the file cannot be read, is not YAML, its top level is
+            not a mapping, or any value is invalid; the message starts with
+            the path. Read and parse errors are chained (``__cause__``).
+    """
+    if path is None:
+        source = _DEFAULT_SOURCE
+        try:
+            text = resources.files(_PACKAGE).joinpath(_DEFAULT_CONFIG).read_text(encoding="utf-8")
+        except (OSError, ModuleNotFoundError) as e:
+            raise ConfigError(
+                f"{source}: cannot read the packaged default configuration ({e}); reinstall bioscara_gym"
+            ) from e
+    else:
+        source = os.fspath(path)
+        try:
+            with open(path, encoding="utf-8") as file:
+                text = file.read()
+        except OSError as e:
+            raise ConfigError(f"{source}: cannot read config file: {e.strerror or e}") from e
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"{source}: not a UTF-8 text file: {e}") from e
+    data = _parse_yaml(text, source)
+    if not isinstance(data, Mapping):
+        found = "an empty document" if data is None else _type_name(data)
+        raise ConfigError(f"{source}: top level must be a mapping with 'joints' and 'gripper', found {found}")
+    return config_from_dict(data, source)
