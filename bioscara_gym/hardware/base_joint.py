@@ -357,14 +357,18 @@ class BaseJoint(abc.ABC):
         """Stop the motor (speed 0); aborts a running homing."""
         self._send(Reg.STOP, 0)
 
-    def check_orientation(self, angle: float = 2.0) -> None:
-        """Turn the motor ``angle`` degrees and back to check its wiring (blocking)."""
+    def check_orientation(self, angle: float = 2.0, timeout_s: float | None = 10.0) -> None:
+        """Turn the motor ``angle`` degrees and back to check its wiring (blocking).
+
+        Raises:
+            IncorrectStateError: Still busy after ``timeout_s`` (stopped).
+        """
         angle = self._check_finite("orientation angle", angle)
         self._require_enabled()
         self._current_b_cmd = Reg.CHECKORIENTATION
         try:
             self._send(Reg.CHECKORIENTATION, angle)
-            self.wait_while_busy()
+            self.wait_while_busy(timeout_s=timeout_s)
         finally:
             self._current_b_cmd = Reg.NONE
 

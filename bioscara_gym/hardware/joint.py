@@ -92,7 +92,7 @@ class Joint(BaseJoint):
         """Write ``[REG][payload]``, read the flags byte."""
         try:
             payload = struct.pack(PAYLOAD_FORMAT[reg], value)
-        except struct.error as e:
+        except (struct.error, OverflowError) as e:
             raise InvalidArgumentError(f"{self.name}: {reg.name} payload {value!r}: {e}") from e
         return self._transfer(reg, bytes((reg,)) + payload, None)[1]
 
