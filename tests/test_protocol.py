@@ -201,11 +201,19 @@ def test_init_reads_home_offset_when_joint_reports_homed(
 def test_init_fails_when_ping_does_not_answer_ack(
     scripted_bus: Any, make_joint: Callable[..., Joint], reply: bytes
 ) -> None:
-    joint = make_joint("j1")
-    scripted_bus.queue(reply)
-    with pytest.raises(CommError, match="j1"):
+    joint = make_joint("j1", retries=2)
+    scripted_bus.queue(reply, reply, reply)
+    with pytest.raises(CommError, match="j1.*PING answered"):
         joint.init()
     assert not joint.initialized
+    assert len(scripted_bus.log) == 3  # a wrong ack is retried like any bad reply
+
+
+def test_init_retries_a_corrupted_ping_ack(scripted_bus: Any, make_joint: Callable[..., Joint]) -> None:
+    joint = make_joint("j1", retries=2)
+    scripted_bus.queue(b"X" + flags(POWER_UP), ack(POWER_UP))
+    joint.init()
+    assert joint.initialized
 
 
 def test_init_fails_when_joint_does_not_answer(scripted_bus: Any, make_joint: Callable[..., Joint]) -> None:

@@ -27,6 +27,13 @@ from bioscara_gym.hardware.transmission import (
     velocity_to_rpm,
 )
 
+# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
+_STALL = int(Flag.STALL)
+_BUSY = int(Flag.BUSY)
+_NOT_HOMED = int(Flag.NOT_HOMED)
+_NOT_ENABLED = int(Flag.NOT_ENABLED)
+
+
 #: Poll period of :meth:`BaseJoint.home` while the joint is BUSY, seconds.
 BUSY_POLL_S = 0.01
 
@@ -73,6 +80,7 @@ class BaseJoint(abc.ABC):
         self.max = float(max)
         self.clock: Clock = clock if clock is not None else WallClock()
         self.offset = 0.0
+        self._offset_known = False
         self._flags = int(POWER_UP_FLAGS)
         self._current_b_cmd = Reg.NONE
         self._homing_offset = 0.0
@@ -100,12 +108,12 @@ class BaseJoint(abc.ABC):
 
     def _require_enabled(self) -> None:
         self._require_init()
-        if self._flags & Flag.NOT_ENABLED:
+        if self._flags & _NOT_ENABLED:
             raise NotEnabledError(f"{self.name}: joint not enabled; call enable() first")
 
     def _require_homed(self) -> None:
         self._require_enabled()
-        if self._flags & Flag.NOT_HOMED:
+        if self._flags & _NOT_HOMED:
             raise NotHomedError(f"{self.name}: joint not homed; home it before moving")
 
     def _send(self, reg: Reg, value: float | int) -> int:
@@ -121,9 +129,9 @@ class BaseJoint(abc.ABC):
     def _send_motion(self, reg: Reg, value: float | int) -> None:
         """Send a motion command and raise if the reply says it was not taken."""
         flags = self._send(reg, value)
-        if flags & Flag.STALL:
+        if flags & _STALL:
             raise StalledError(f"{self.name}: joint stalled; re-enable it to clear the stall")
-        if flags & Flag.NOT_ENABLED:
+        if flags & _NOT_ENABLED:
             raise NotEnabledError(
                 f"{self.name}: joint reports not enabled (deadman or disable); re-enable it"
             )
@@ -156,12 +164,22 @@ class BaseJoint(abc.ABC):
             ack = self._get(Reg.PING)
             if ack != ACK:
                 raise CommError(f"{self.name}: PING answered {ack!r}, expected {ACK!r} ('O')")
-            if not self._flags & Flag.NOT_HOMED:
-                self.offset = float(self._get(Reg.HOMEOFFSET))
+            self._offset_known = False
+            self._load_offset()
         except BaseException:
             self._initialized = False
             self._close()
             raise
+
+    def _load_offset(self) -> None:
+        """Read HOMEOFFSET once the joint reports homed and the offset is not known.
+
+        Called by :meth:`init` and again before positions are used, so a homed
+        joint whose first reply lost its flags still gets its offset.
+        """
+        if not self._offset_known and not self._flags & _NOT_HOMED:
+            self.offset = float(self._get(Reg.HOMEOFFSET))
+            self._offset_known = True
 
     def deinit(self) -> None:
         """Release the connection; the joint itself is left as it is."""
@@ -200,7 +218,7 @@ class BaseJoint(abc.ABC):
         self._check_percent(self.name, "drive current", drive_current)
         self._check_percent(self.name, "hold current", hold_current)
         flags = self._send(Reg.SETUP, pack_bytes(drive_current, hold_current))
-        if flags & Flag.NOT_ENABLED:
+        if flags & _NOT_ENABLED:
             raise NotEnabledError(f"{self.name}: failed to enable; the joint still reports not enabled")
 
     def disable(self) -> None:
@@ -247,7 +265,7 @@ class BaseJoint(abc.ABC):
             raise InvalidArgumentError(f"{self.name}: homing sensitivity {sensitivity!r} must be 0-255")
         self._check_percent(self.name, "homing current", current)
         self._require_enabled()
-        if self._current_b_cmd is not Reg.NONE and self._flags & Flag.BUSY:
+        if self._current_b_cmd is not Reg.NONE and self._flags & _BUSY:
             raise IncorrectStateError(
                 f"{self.name}: {self._current_b_cmd.name} is still running; stop it first"
             )
@@ -264,9 +282,10 @@ class BaseJoint(abc.ABC):
         """
         self._current_b_cmd = Reg.NONE
         self.get_flags()
-        if self._flags & Flag.NOT_HOMED:
+        if self._flags & _NOT_HOMED:
             raise NotHomedError(f"{self.name}: homing did not complete (aborted or failed)")
         self.offset = self._homing_offset
+        self._offset_known = True
         self._send(Reg.HOMEOFFSET, self.offset)
 
     def wait_while_busy(self, period_s: float = BUSY_POLL_S, timeout_s: float | None = None) -> None:
@@ -277,7 +296,7 @@ class BaseJoint(abc.ABC):
                 stopped first).
         """
         start = self.clock.now()
-        while self.get_flags() & Flag.BUSY:
+        while self.get_flags() & _BUSY:
             if timeout_s is not None and self.clock.now() - start > timeout_s:
                 self.stop()
                 raise IncorrectStateError(
@@ -306,8 +325,9 @@ class BaseJoint(abc.ABC):
     def get_position(self) -> float:
         """Joint position in rad or m; 0.0 (no error) while not homed."""
         deg = self._get(Reg.ANGLEMOVED)
-        if self._flags & Flag.NOT_HOMED:
+        if self._flags & _NOT_HOMED:
             return 0.0
+        self._load_offset()
         return degrees_to_position(float(deg), self.reduction, self.offset)
 
     def set_position(self, pos: float) -> None:
@@ -320,6 +340,7 @@ class BaseJoint(abc.ABC):
         """
         pos = self._check_finite("position", pos)
         self._require_homed()
+        self._load_offset()
         self._send_motion(Reg.MOVETOANGLE, position_to_degrees(pos, self.reduction, self.offset))
 
     def get_velocity(self) -> float:
@@ -429,19 +450,19 @@ class BaseJoint(abc.ABC):
 
     def is_homed(self) -> bool:
         """Homed, per the last transaction's flags."""
-        return not self._flags & Flag.NOT_HOMED
+        return not self._flags & _NOT_HOMED
 
     def is_enabled(self) -> bool:
         """Enabled, per the last transaction's flags (check STALL too)."""
-        return not self._flags & Flag.NOT_ENABLED
+        return not self._flags & _NOT_ENABLED
 
     def is_stalled(self) -> bool:
         """Stalled, per the last transaction's flags."""
-        return bool(self._flags & Flag.STALL)
+        return bool(self._flags & _STALL)
 
     def is_busy(self) -> bool:
         """A blocking command runs, per the last transaction's flags."""
-        return bool(self._flags & Flag.BUSY)
+        return bool(self._flags & _BUSY)
 
     @property
     def current_blocking_command(self) -> Reg:

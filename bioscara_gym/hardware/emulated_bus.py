@@ -7,6 +7,7 @@ runs unchanged against it, byte for byte.
 from __future__ import annotations
 
 import errno
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -74,14 +75,17 @@ class FaultPlan:
                 number = float(value)
             except ValueError as e:
                 raise ValueError(f"fault '{key}': '{value}' is not a number") from e
+            if not math.isfinite(number):
+                raise ValueError(f"fault '{key}': {value} must be finite")
             if key == "latency_ms":
-                kwargs["latency_s"] = number / 1000.0
-            elif key in ("nack", "short_read", "corrupt", "latency_s"):
-                kwargs[key] = number
-            else:
+                key, number = "latency_s", number / 1000.0
+            elif key not in ("nack", "short_read", "corrupt", "latency_s"):
                 raise ValueError(
-                    f"unknown fault '{key}'; expected nack, short_read, corrupt, latency_ms"
+                    f"unknown fault '{key}'; expected nack, short_read, corrupt, latency_ms, latency_s"
                 )
+            if key in kwargs:
+                raise ValueError(f"fault '{key}' given twice")
+            kwargs[key] = number
         return cls(seed=seed, **kwargs)
 
 

@@ -11,9 +11,14 @@ Two layers, so the rules exist once:
   keeps it in step with an injectable clock; ``EmulatedI2CBus`` routes bytes to
   it.
 
-Units inside the firmware are the motor's: degrees, deg/s, RPM. The PID error
-is in microsteps (256 per full step, 51 200 per revolution), the unit of the
-uStepper's step generator; SPEC.md does not name it, this is our reading.
+Units inside the firmware are the motor's: degrees, deg/s, RPM. SPEC.md does
+not name the PID error's unit; we read it as 1/16 microsteps (3200 per
+revolution). That is the reading under which the arm's own parameters are
+coherent: homing thresholds of 25-50 are 1.6-3 full steps, just past the
+stepper's pull-out lag of one full step, so homing trips when the motor slips
+against the end stop, and stall thresholds of 60-150 (3.75-9.4 full steps)
+trip on lost steps, never on the lag of normal motion. In 1/256 microsteps
+the same numbers would trip during ordinary acceleration.
 """
 
 from __future__ import annotations
@@ -36,10 +41,17 @@ from bioscara_gym.hardware.registers import (
     Reg,
 )
 
+# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
+_STALL = int(Flag.STALL)
+_BUSY = int(Flag.BUSY)
+_NOT_HOMED = int(Flag.NOT_HOMED)
+_NOT_ENABLED = int(Flag.NOT_ENABLED)
+
+
 #: Main-loop period of the firmware in seconds.
 TICK_S = 0.01
-#: Microsteps per motor degree (200 full steps x 256 microsteps per turn).
-MICROSTEPS_PER_DEG = 200 * 256 / 360.0
+#: PID-error units (1/16 microsteps) per motor degree: 200 full steps x 16 per turn.
+MICROSTEPS_PER_DEG = 200 * 16 / 360.0
 #: Deadman: an enabled joint moving in velocity mode stops after this silence.
 DEADMAN_S = 0.05
 #: Homing waits this long after the hard stop before it starts to move.
@@ -53,14 +65,16 @@ STALL_MID_SPEED_OFFSET = 90.0
 STALL_MID_SPEED_BAND = (12.0, 450.0)
 #: Slope of the speed-adaptive threshold (0 in the shipped firmware).
 STALL_SLOPE = 0.0
-#: Speed of the orientation check in deg/s (not documented; our choice).
-CHECK_ORIENTATION_DPS = 90.0
 #: Defaults before the host sets limits (not documented; our choice).
 DEFAULT_MAX_VELOCITY_DPS = 1000.0
 DEFAULT_MAX_ACCELERATION_DPS2 = 2000.0
 DEFAULT_CURRENT_PCT = 0
 
-_ALL_BITS = int(Flag.STALL | Flag.BUSY | Flag.NOT_HOMED | Flag.NOT_ENABLED)
+_ALL_BITS = _STALL | _BUSY | _NOT_HOMED | _NOT_ENABLED
+_LOWPASS_GAIN = TICK_S / STALL_TAU_S
+_LOWPASS_KEEP = 1.0 - _LOWPASS_GAIN
+_MID_LO, _MID_HI = STALL_MID_SPEED_BAND
+_RAD_PER_DEG = math.pi / 180.0
 
 
 class Mode(Enum):
@@ -140,14 +154,15 @@ class FirmwareCore:
         self._blocking_arg = 0.0
         self._blocking_until = 0.0
         self._homing = (1, 0.0, 0, 0)  # direction, rpm, sensitivity, current
+        self._sent = (0.0, 0.0)  # last (velocity, torque) sent to the motor
         self.motor.command(0.0, 0.0)
         self.motor.hold_here()
 
-    def has(self, flag: Flag) -> bool:
+    def has(self, flag: Flag | int) -> bool:
         """Whether ``flag`` is set."""
         return bool(self.flags & flag)
 
-    def _set(self, flag: Flag, on: bool = True) -> None:
+    def _set(self, flag: int, on: bool = True) -> None:
         if on:
             self.flags |= flag
         else:
@@ -155,8 +170,8 @@ class FirmwareCore:
 
     @property
     def pid_error(self) -> float:
-        """Set point minus encoder, microsteps."""
-        return (self.motor.setpoint_deg - self.motor.position_deg) * MICROSTEPS_PER_DEG
+        """Set point minus encoder, in 1/16 microsteps."""
+        return self.motor.pid_error_deg * MICROSTEPS_PER_DEG
 
     @property
     def angle_moved(self) -> float:
@@ -211,7 +226,7 @@ class FirmwareCore:
         self.last_rx = now
 
     def _may_move(self) -> bool:
-        return not self.flags & (Flag.STALL | Flag.NOT_ENABLED)
+        return not self.flags & (_STALL | _NOT_ENABLED)
 
     def _hard_stop(self) -> None:
         self.mode = Mode.IDLE
@@ -222,7 +237,7 @@ class FirmwareCore:
 
     def _apply(self) -> None:
         """Send the current set-point velocity and torque to the motor."""
-        if self.flags & Flag.NOT_ENABLED and self.drive_current == 0:
+        if self.flags & _NOT_ENABLED and self.drive_current == 0:
             torque = 0.0
         elif self._blocking is _Blocking.HOME_RUN:
             torque = self._homing[3] / 100.0
@@ -230,18 +245,21 @@ class FirmwareCore:
             torque = self.hold_current / 100.0
         else:
             torque = self.drive_current / 100.0
-        self.motor.command(self.sp_velocity, torque)
+        sent = (self.sp_velocity, torque)
+        if sent != self._sent or torque <= 0.0:  # unpowered motors re-follow their rotor
+            self._sent = sent
+            self.motor.command(*sent)
 
     def _cmd_setup(self, value: float | int) -> None:
         drive, hold, _, _ = unpack_bytes(int(value))
         self.drive_current = min(drive, 100)
         self.hold_current = min(hold, 100)
         self.stallguard = False
-        self._set(Flag.STALL | Flag.NOT_ENABLED, False)
+        self._set(_STALL | _NOT_ENABLED, False)
         self._hard_stop()
 
     def _cmd_set_rpm(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & Flag.NOT_HOMED or self.busy:
+        if not self._may_move() or self.flags & _NOT_HOMED or self.busy:
             return
         self.mode = Mode.VELOCITY
         self.target_rpm = float(value)
@@ -253,7 +271,7 @@ class FirmwareCore:
         self.target_deg = self.motor.setpoint_deg + int(value) * 1.8
 
     def _cmd_move_to_angle(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & Flag.NOT_HOMED or self.busy:
+        if not self._may_move() or self.flags & _NOT_HOMED or self.busy:
             return
         self.mode = Mode.POSITION
         self.target_deg = self.encoder_zero + float(value)
@@ -261,13 +279,13 @@ class FirmwareCore:
     def _cmd_set_current(self, value: float | int) -> None:
         self.drive_current = min(int(value), 100)
         if self.drive_current == 0:
-            self._set(Flag.NOT_ENABLED)
+            self._set(_NOT_ENABLED)
         self._apply()
 
     def _cmd_set_hold_current(self, value: float | int) -> None:
         self.hold_current = min(int(value), 100)
         if self.hold_current == 0:
-            self._set(Flag.NOT_ENABLED)
+            self._set(_NOT_ENABLED)
         self._apply()
 
     def _cmd_set_max_acceleration(self, value: float | int) -> None:
@@ -282,17 +300,17 @@ class FirmwareCore:
         self.stallguard = True
         self.stall_sensitivity = int(value)
         self._filter_x = self._filter_last = 0.0
-        self._set(Flag.STALL, False)
+        self._set(_STALL, False)
 
     def _cmd_set_brake_mode(self, value: float | int) -> None:
         self.brake_mode = int(value)
 
     def _cmd_disable_closed_loop(self, value: float | int) -> None:
-        self._set(Flag.NOT_ENABLED)
+        self._set(_NOT_ENABLED)
 
     def _cmd_stop(self, value: float | int) -> None:
         if self._blocking in (_Blocking.HOME_SETTLE, _Blocking.HOME_RUN):
-            self._set(Flag.NOT_HOMED)  # homing ends as aborted
+            self._set(_NOT_HOMED)  # homing ends as aborted
         self._end_blocking()
         self._hard_stop()
 
@@ -324,11 +342,11 @@ class FirmwareCore:
     # --------------------------------------------------------------- blocking
     def _start_blocking(self, reg: int, value: float | int) -> None:
         """``set_flags_for_blocking_handler``: BUSY now, work in the main loop."""
-        self._set(Flag.BUSY)
+        self._set(_BUSY)
         self._blocking_reg = reg
         self._blocking_arg = value
         if reg == Reg.HOME:
-            self._set(Flag.NOT_HOMED)
+            self._set(_NOT_HOMED)
             direction, rpm, sensitivity, current = unpack_bytes(int(value))
             self._homing = (1 if direction == 1 else -1, float(rpm), sensitivity, current)
             self._blocking = _Blocking.HOME_SETTLE
@@ -342,7 +360,7 @@ class FirmwareCore:
     def _end_blocking(self) -> None:
         self._blocking = _Blocking.NONE
         self._blocking_reg = Reg.NONE
-        self._set(Flag.BUSY, False)
+        self._set(_BUSY, False)
 
     def _run_blocking(self) -> None:
         """One main-loop tick of the running blocking command."""
@@ -362,7 +380,7 @@ class FirmwareCore:
             if abs(self.pid_error) > self._homing[2]:
                 self.motor.hold_here()
                 self.encoder_zero = self.motor.position_deg
-                self._set(Flag.NOT_HOMED | Flag.STALL, False)
+                self._set(_NOT_HOMED | _STALL, False)
                 self._end_blocking()
                 self._hard_stop()
         elif state is _Blocking.ORIENTATION_OUT:
@@ -394,12 +412,12 @@ class FirmwareCore:
             if (
                 self.mode is Mode.VELOCITY
                 and self.target_rpm != 0.0
-                and not self.flags & Flag.NOT_ENABLED
+                and not self.flags & _NOT_ENABLED
                 and self.time - self.last_rx > DEADMAN_S + 1e-9
             ):
                 self.target_rpm = 0.0
-                self._set(Flag.NOT_ENABLED)
-            if self.stallguard and not self.flags & Flag.STALL:
+                self._set(_NOT_ENABLED)
+            if self.stallguard and not self.flags & _STALL:
                 self._detect_stall()
         else:
             self._run_blocking()
@@ -412,11 +430,13 @@ class FirmwareCore:
         self._filter_last = u
         if abs(u - last) > SPIKE_LIMIT:
             u = last  # spike filter: keep the previous sample
-        k = TICK_S / STALL_TAU_S
-        self._filter_x = (1.0 - k) * self._filter_x + k * u
-        omega = math.radians(self.motor.velocity_dps)
-        if self._filter_x > stall_threshold(omega, self.stall_sensitivity):
-            self._set(Flag.STALL)
+        x = self._filter_x = _LOWPASS_KEEP * self._filter_x + _LOWPASS_GAIN * u
+        w = abs(self.motor.velocity_dps) * _RAD_PER_DEG
+        threshold = STALL_SLOPE * w + 10.0 * self.stall_sensitivity  # = stall_threshold(), inlined
+        if _MID_LO <= w <= _MID_HI:
+            threshold += STALL_MID_SPEED_OFFSET
+        if x > threshold:
+            self._set(_STALL)
             self._filter_x = self._filter_last = 0.0
             self._hard_stop()
 
@@ -445,7 +465,7 @@ class FirmwareCore:
             v -= acc_step
         else:
             v = target
-        if self.flags & Flag.NOT_ENABLED and self.drive_current == 0:
+        if self.flags & _NOT_ENABLED and self.drive_current == 0:
             v = 0.0
         self.sp_velocity = v
         self._apply()
@@ -465,10 +485,17 @@ class JointFirmware:
             ``clock.now()`` before every transaction and on :meth:`update`.
     """
 
-    def __init__(self, motor: Motor, clock: Clock) -> None:
-        """Power up a joint in front of ``motor``."""
+    def __init__(self, motor: Motor | None, clock: Clock, core: FirmwareCore | None = None) -> None:
+        """Power up a joint in front of ``motor``, or wrap an existing ``core``.
+
+        A core passed in is ticked by its owner (the simulated arm steps
+        physics and firmware together), so :meth:`update` leaves it alone.
+        """
+        if (motor is None) == (core is None):
+            raise ValueError("pass either a motor or an existing core")
         self.clock = clock
-        self.core = FirmwareCore(motor, clock.now())
+        self._owns_ticks = core is None
+        self.core = core if core is not None else FirmwareCore(motor, clock.now())
         self.transactions = 0
 
     @property
@@ -483,7 +510,8 @@ class JointFirmware:
 
     def update(self) -> None:
         """Run the main loop up to the clock's current time."""
-        self.core.run_until(self.clock.now())
+        if self._owns_ticks:
+            self.core.run_until(self.clock.now())
 
     def power_cycle(self) -> None:
         """Cut and restore the joint's power (HOMEOFFSET and homing are lost)."""
@@ -529,7 +557,7 @@ class JointFirmware:
         return reply + b"\xff" * (read_len - len(reply))
 
 
-_KNOWN = frozenset(int(r) for r in Reg)
+_KNOWN = frozenset(int(r) for r in Reg if r is not Reg.NONE)  # NONE is host-only
 
 
 def _decode(reg: int, payload: bytes) -> float | int:

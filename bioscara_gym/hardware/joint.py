@@ -9,7 +9,7 @@ from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import CommError, InvalidArgumentError
-from bioscara_gym.hardware.registers import FLAGS_SIZE, PAYLOAD_FORMAT, Reg
+from bioscara_gym.hardware.registers import ACK, FLAGS_SIZE, PAYLOAD_FORMAT, Reg
 from bioscara_gym.hardware.stats import CommStats
 
 _RESERVED_FLAG_BITS = 0xF0
@@ -77,6 +77,8 @@ class Joint(BaseJoint):
                 value = struct.unpack(fmt, reply[:size])[0] if fmt else 0
                 if isinstance(value, float) and not math.isfinite(value):
                     raise _BadReply(f"value {value} is not finite")
+                if reg == Reg.PING and fmt and value != ACK:
+                    raise _BadReply(f"PING answered {value!r}, expected {ACK!r} ('O')")
             except (OSError, _BadReply) as e:
                 self.stats.record(ok=False)
                 last = e

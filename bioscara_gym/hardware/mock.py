@@ -13,7 +13,14 @@ from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.registers import ACK, POWER_UP_FLAGS, Flag, Reg
 
-_ALL = int(Flag.STALL | Flag.BUSY | Flag.NOT_HOMED | Flag.NOT_ENABLED)
+# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
+_STALL = int(Flag.STALL)
+_BUSY = int(Flag.BUSY)
+_NOT_HOMED = int(Flag.NOT_HOMED)
+_NOT_ENABLED = int(Flag.NOT_ENABLED)
+
+
+_ALL = int(_STALL | _BUSY | _NOT_HOMED | _NOT_ENABLED)
 
 
 class MockJoint(BaseJoint):
@@ -54,34 +61,34 @@ class MockJoint(BaseJoint):
         if self._homing_done_at is not None and now >= self._homing_done_at:
             self._homing_done_at = None
             self._angle_deg = 0.0
-            self.device_flags &= ~(Flag.BUSY | Flag.NOT_HOMED) & _ALL
-        if self._rpm and not self.device_flags & (Flag.NOT_ENABLED | Flag.BUSY):
+            self.device_flags &= ~(_BUSY | _NOT_HOMED) & _ALL
+        if self._rpm and not self.device_flags & (_NOT_ENABLED | _BUSY):
             self._angle_deg += self._rpm * 6.0 * dt
 
     def _command(self, reg: Reg, value: float | int) -> int:
         self._advance()
         f = self.device_flags
         if reg == Reg.SETUP:
-            f &= ~(Flag.NOT_ENABLED | Flag.STALL) & _ALL
+            f &= ~(_NOT_ENABLED | _STALL) & _ALL
         elif reg in (Reg.SETCURRENT, Reg.SETHOLDCURRENT, Reg.DISABLECLOSEDLOOP) and value == 0:
-            f |= Flag.NOT_ENABLED
+            f |= _NOT_ENABLED
             self._rpm = 0.0
-        elif reg == Reg.SETRPM and not f & (Flag.NOT_ENABLED | Flag.NOT_HOMED):
+        elif reg == Reg.SETRPM and not f & (_NOT_ENABLED | _NOT_HOMED):
             self._rpm = float(value)
-        elif reg == Reg.MOVETOANGLE and not f & (Flag.NOT_ENABLED | Flag.NOT_HOMED):
+        elif reg == Reg.MOVETOANGLE and not f & (_NOT_ENABLED | _NOT_HOMED):
             self._rpm = 0.0
             self._angle_deg = float(value)
-        elif reg == Reg.MOVESTEPS and not f & Flag.NOT_ENABLED:
+        elif reg == Reg.MOVESTEPS and not f & _NOT_ENABLED:
             self._angle_deg += int(value) * 1.8
         elif reg == Reg.STOP:
             self._rpm = 0.0
             if self._homing_done_at is not None:
                 self._homing_done_at = None
-                f = (f | Flag.NOT_HOMED) & ~Flag.BUSY & _ALL
+                f = (f | _NOT_HOMED) & ~_BUSY & _ALL
         elif reg == Reg.HOME:
             self._rpm = 0.0
             self._homing_done_at = self.clock.now() + self.homing_time_s
-            f |= Flag.BUSY | Flag.NOT_HOMED
+            f |= _BUSY | _NOT_HOMED
         elif reg == Reg.CHECKORIENTATION:
             pass  # finishes at once: nothing moves
         elif reg == Reg.HOMEOFFSET:
@@ -96,7 +103,7 @@ class MockJoint(BaseJoint):
         elif reg == Reg.ANGLEMOVED:
             value = self._angle_deg
         elif reg == Reg.GETENCODERRPM:
-            value = 0.0 if self.device_flags & (Flag.NOT_ENABLED | Flag.BUSY) else self._rpm
+            value = 0.0 if self.device_flags & (_NOT_ENABLED | _BUSY) else self._rpm
         elif reg == Reg.HOMEOFFSET:
             value = self._home_offset
         else:

@@ -41,6 +41,11 @@ class Motor(Protocol):
         """Encoder speed."""
         ...
 
+    @property
+    def pid_error_deg(self) -> float:
+        """Set point minus encoder as the real stepper would show it, motor degrees."""
+        ...
+
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
         """Set the set-point velocity and the available torque (0-1 of full current)."""
         ...
@@ -111,6 +116,11 @@ class KinematicStepper:
     def velocity_dps(self) -> float:
         """Encoder speed over the last advance, deg/s."""
         return self._velocity
+
+    @property
+    def pid_error_deg(self) -> float:
+        """Set point minus encoder, motor degrees."""
+        return self._setpoint - self._position
 
     @property
     def torque_fraction(self) -> float:

@@ -1,0 +1,447 @@
+"""The arm layer: what ros2_control's hardware interface did on the original stack.
+
+Lifecycle (SPEC.md "The arm layer")::
+
+    UNCONFIGURED --configure--> INACTIVE --activate--> ACTIVE
+    ACTIVE --deactivate--> INACTIVE --cleanup--> UNCONFIGURED
+    any --shutdown--> FINALIZED;  an error in a transition --> UNCONFIGURED
+
+Every joint has three command interfaces, position, velocity and home, of
+which at most one is active, and three state values read in the order
+position, velocity, home. :meth:`Arm.read` and :meth:`Arm.write` are one
+control cycle's I/O; a failure in either deactivates the arm.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from enum import Enum
+
+from bioscara_gym.hardware.backends import Backend
+from bioscara_gym.hardware.base_joint import BaseJoint
+from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.errors import (
+    IncorrectStateError,
+    InvalidArgumentError,
+    JointError,
+    NotHomedError,
+)
+from bioscara_gym.hardware.registers import Flag, Reg
+
+
+class Lifecycle(Enum):
+    """Lifecycle states of the arm (ros2_control's managed-node states)."""
+
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+
+
+class CommandMode(Enum):
+    """The command interface a joint is claimed for."""
+
+    NONE = "none"
+    POSITION = "position"
+    VELOCITY = "velocity"
+    HOME = "home"
+
+
+class ArmStateError(IncorrectStateError):
+    """A request that the arm's lifecycle state or command mode does not allow."""
+
+
+@dataclass
+class JointState:
+    """State interfaces of one joint, as of the last :meth:`Arm.read`.
+
+    Attributes:
+        position: rad or m (0.0 while not homed).
+        velocity: rad/s or m/s.
+        homed: Whether the joint reports homed.
+        homing: Whether a homing started by the arm is running.
+        flags: Flags of the joint's last transaction.
+    """
+
+    position: float = 0.0
+    velocity: float = 0.0
+    homed: bool = False
+    homing: bool = False
+    flags: Flag = Flag.NOT_HOMED | Flag.NOT_ENABLED
+
+
+class Arm:
+    """Lifecycle, command modes and homing over a backend's joints and gripper.
+
+    Args:
+        backend: The joints, gripper and clock to drive.
+        config: Configuration (the backend's by default).
+    """
+
+    def __init__(self, backend: Backend, config: ArmConfig | None = None) -> None:
+        """Wrap ``backend``; nothing is sent before :meth:`configure`."""
+        self.backend = backend
+        self.config = config or backend.config
+        self.joints = backend.joints
+        self.gripper = backend.gripper
+        self.names = tuple(self.joints)
+        self.state = Lifecycle.UNCONFIGURED
+        self.modes: dict[str, CommandMode] = dict.fromkeys(self.names, CommandMode.NONE)
+        self.commands: dict[str, float] = dict.fromkeys(self.names, 0.0)
+        self.joint_states: dict[str, JointState] = {n: JointState() for n in self.names}
+        self.gripper_command = self.config.gripper.backup_init_pos
+        self._homing: set[str] = set()
+
+    # ------------------------------------------------------------ lifecycle
+    def _require(self, *states: Lifecycle, action: str) -> None:
+        if self.state not in states:
+            allowed = " or ".join(s.value for s in states)
+            raise ArmStateError(f"cannot {action} while {self.state.value}; the arm must be {allowed}")
+
+    def _transition(self, body: Callable[[], None]) -> None:
+        """Run a transition; on failure fall back to UNCONFIGURED and re-raise."""
+        try:
+            body()
+        except BaseException:
+            self._on_error()
+            raise
+
+    def configure(self) -> None:
+        """Connect and ping every joint (restoring homing offsets) and the gripper.
+
+        Raises:
+            CommError: A joint did not answer (the arm stays unconfigured).
+        """
+        self._require(Lifecycle.UNCONFIGURED, action="configure")
+
+        def body() -> None:
+            for joint in self.joints.values():
+                joint.init()
+            self.gripper.init()
+            self.state = Lifecycle.INACTIVE
+            self.read()
+
+        self._transition(body)
+
+    def activate(self) -> None:
+        """Enable the joints, stall detection and limits; hold the measured position.
+
+        Command set points are set to the measured state, and no command mode
+        is active, so nothing moves.
+        """
+        self._require(Lifecycle.INACTIVE, action="activate")
+
+        def body() -> None:
+            for name, joint in self.joints.items():
+                cfg = self.config.joint(name)
+                joint.enable(cfg.drive_current, cfg.hold_current)
+                joint.enable_stallguard(cfg.stall_threshold)
+                joint.set_max_velocity(cfg.max_velocity)
+                joint.set_max_acceleration(cfg.max_acceleration)
+            self.gripper.enable()
+            self.gripper_command = self.gripper.get_position()
+            self.state = Lifecycle.ACTIVE
+            self.read()
+            self._hold_measured()
+
+        self._transition(body)
+
+    def _hold_measured(self) -> None:
+        for name in self.names:
+            self.modes[name] = CommandMode.NONE
+            self.commands[name] = self.joint_states[name].position
+        self._homing.clear()
+
+    def deactivate(self) -> None:
+        """Disable every joint (back-drivable) and the gripper; state keeps updating."""
+        self._require(Lifecycle.ACTIVE, action="deactivate")
+        self._disable_all()
+        self.state = Lifecycle.INACTIVE
+
+    def _disable_all(self) -> None:
+        """Best effort: try every device even if one fails, then raise the first error."""
+        first: BaseException | None = None
+        for joint in self.joints.values():
+            try:
+                if joint.initialized:
+                    joint.disable()
+            except JointError as e:
+                first = first or e
+        try:
+            if self.gripper.is_enabled:
+                self.gripper.disable()
+        except JointError as e:
+            first = first or e
+        self.modes = dict.fromkeys(self.names, CommandMode.NONE)
+        self._homing.clear()
+        if first is not None:
+            raise first
+
+    def cleanup(self) -> None:
+        """Disconnect the joints and the gripper."""
+        self._require(Lifecycle.INACTIVE, action="clean up")
+        for joint in self.joints.values():
+            joint.deinit()
+        self.gripper.deinit()
+        self.state = Lifecycle.UNCONFIGURED
+
+    def shutdown(self) -> None:
+        """Finalize from any state, leaving the hardware disabled and disconnected."""
+        try:
+            if self.state is Lifecycle.ACTIVE:
+                self._disable_all()
+        finally:
+            for joint in self.joints.values():
+                joint.deinit()
+            if self.gripper.is_initialized:
+                self.gripper.deinit()
+            self.backend.close()
+            self.state = Lifecycle.FINALIZED
+
+    def _on_error(self) -> None:
+        """Error in any state: deactivate and clean up (best effort), back to UNCONFIGURED."""
+        with contextlib.suppress(JointError):
+            self._disable_all()
+        for joint in self.joints.values():
+            joint.deinit()
+        if self.gripper.is_initialized:
+            self.gripper.deinit()
+        self.state = Lifecycle.UNCONFIGURED
+
+    def recover(self) -> None:
+        """Handle an error reported from outside (ros2_control's on_error)."""
+        if self.state is not Lifecycle.FINALIZED:
+            self._on_error()
+
+    def __enter__(self) -> Arm:
+        """Configure and activate."""
+        self.configure()
+        self.activate()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Shut down: joints disabled, gripper width saved, bus closed."""
+        self.shutdown()
+
+    # -------------------------------------------------------- command modes
+    def claim(self, name: str, mode: CommandMode | str) -> None:
+        """Make ``mode`` the joint's active command interface.
+
+        Raises:
+            ArmStateError: The arm is not active, or another interface is
+                already active on the joint (release it first).
+            NotHomedError: Position or velocity on an unhomed joint.
+        """
+        mode = CommandMode(mode)
+        self._require(Lifecycle.ACTIVE, action=f"claim {mode.value} on {name}")
+        current = self._mode(name)
+        if current is mode:
+            return
+        if current is not CommandMode.NONE:
+            raise ArmStateError(
+                f"{name}: {current.value} interface is active; release it before claiming {mode.value}"
+            )
+        joint = self.joints[name]
+        if mode in (CommandMode.POSITION, CommandMode.VELOCITY) and not joint.is_homed():
+            raise NotHomedError(f"{name}: cannot command {mode.value} on an unhomed joint; home it first")
+        state = self.joint_states[name]
+        self.commands[name] = {
+            CommandMode.POSITION: state.position,
+            CommandMode.VELOCITY: 0.0,
+            CommandMode.HOME: 0.0,
+            CommandMode.NONE: 0.0,
+        }[mode]
+        self.modes[name] = mode
+
+    def release(self, name: str) -> None:
+        """Release the joint's command interface; the joint holds still.
+
+        Raises:
+            ArmStateError: Releasing home while the joint is homing (abort it
+                with a home command of 0 first).
+        """
+        mode = self._mode(name)
+        if mode is CommandMode.HOME and name in self._homing:
+            raise ArmStateError(f"{name}: homing is running; abort it (home command 0) before releasing")
+        if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE:
+            self.joints[name].set_velocity(0.0)
+        self.modes[name] = CommandMode.NONE
+
+    def _mode(self, name: str) -> CommandMode:
+        try:
+            return self.modes[name]
+        except KeyError:
+            raise InvalidArgumentError(
+                f"unknown joint {name!r}; known joints: {', '.join(self.names)}"
+            ) from None
+
+    def set_command(self, name: str, value: float) -> None:
+        """Set the value of the joint's active command interface.
+
+        Position and velocity commands are clamped to the joint's limits
+        (position range, ±max velocity); a home command is a signed homing
+        speed, 0 to abort.
+
+        Raises:
+            ArmStateError: No interface is active on the joint.
+            InvalidArgumentError: ``value`` is not finite.
+        """
+        mode = self._mode(name)
+        if mode is CommandMode.NONE:
+            raise ArmStateError(f"{name}: no command interface is active; claim one first")
+        value = float(value)
+        if not math.isfinite(value):
+            raise InvalidArgumentError(f"{name}: {mode.value} command {value} must be finite")
+        cfg = self.config.joint(name)
+        if mode is CommandMode.POSITION:
+            value = min(max(value, cfg.min), cfg.max)
+        elif mode is CommandMode.VELOCITY:
+            value = min(max(value, -cfg.max_velocity), cfg.max_velocity)
+        self.commands[name] = value
+
+    def set_gripper(self, width_m: float) -> None:
+        """Command the gripper opening in m (clamped to its limits)."""
+        if not math.isfinite(width_m):
+            raise InvalidArgumentError(f"gripper: width {width_m} must be finite")
+        g = self.config.gripper
+        self.gripper_command = min(max(float(width_m), g.min), g.max)
+
+    # ------------------------------------------------------------------ I/O
+    def read(self) -> Mapping[str, JointState]:
+        """Read every joint: position, velocity, then the homing state.
+
+        A running homing whose BUSY flag has cleared is finished here
+        (post_homing), and its home command reset to 0.
+
+        Raises:
+            JointError: A read failed; the arm is deactivated first.
+        """
+        self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="read")
+        try:
+            for name, joint in self.joints.items():
+                st = self.joint_states[name]
+                st.position = joint.get_position()
+                st.velocity = joint.get_velocity()
+                self._read_home(name, joint, st)
+        except JointError:
+            self._fail()
+            raise
+        return self.joint_states
+
+    def _read_home(self, name: str, joint: BaseJoint, st: JointState) -> None:
+        st.flags = joint.flags
+        st.homed = joint.is_homed()
+        if name in self._homing and joint.current_blocking_command is Reg.HOME and not joint.is_busy():
+            self._homing.discard(name)
+            self.commands[name] = 0.0
+            try:
+                joint.post_homing()
+            finally:
+                cfg = self.config.joint(name)
+                joint.set_max_acceleration(cfg.max_acceleration)
+                st.flags = joint.flags
+                st.homed = joint.is_homed()
+                if not st.homed:
+                    st.position = 0.0
+                else:
+                    st.position = joint.get_position()
+        st.homing = name in self._homing
+
+    def write(self) -> None:
+        """Send every active command interface's value to its joint.
+
+        Raises:
+            JointError: A write failed (e.g. :class:`StalledError`); the arm
+                is deactivated first.
+        """
+        self._require(Lifecycle.ACTIVE, action="write")
+        try:
+            for name, joint in self.joints.items():
+                mode = self.modes[name]
+                if mode is CommandMode.POSITION:
+                    joint.set_position(self.commands[name])
+                elif mode is CommandMode.VELOCITY:
+                    joint.set_velocity(self.commands[name])
+                elif mode is CommandMode.HOME:
+                    self._write_home(name)
+            if self.gripper.is_enabled and self.gripper_command != self.gripper.get_position():
+                self.gripper.set_position(self.gripper_command)
+        except JointError:
+            self._fail()
+            raise
+
+    def _write_home(self, name: str) -> None:
+        joint = self.joints[name]
+        speed = self.commands[name]
+        if speed != 0.0 and name not in self._homing:
+            if joint.current_blocking_command is not Reg.NONE and joint.is_busy():
+                raise IncorrectStateError(
+                    f"{name}: {joint.current_blocking_command.name} is running; cannot start homing"
+                )
+            cfg = self.config.joint(name).homing
+            joint.set_max_acceleration(cfg.acceleration)
+            joint.start_homing(speed, cfg.threshold, cfg.current)
+            self._homing.add(name)
+        elif speed == 0.0 and name in self._homing:
+            joint.stop()  # aborts; read() finishes it (post_homing reports not homed)
+
+    def _fail(self) -> None:
+        """A failed read or write: deactivate (best effort) so the arm is safe."""
+        if self.state is Lifecycle.ACTIVE:
+            with contextlib.suppress(JointError):
+                self._disable_all()
+            self.state = Lifecycle.INACTIVE
+
+    # ---------------------------------------------------------- conveniences
+    def home(
+        self,
+        names: Iterable[str] | None = None,
+        period_s: float = 0.02,
+        timeout_s: float = 600.0,
+        only_unhomed: bool = True,
+    ) -> None:
+        """Home joints through the home command interface and wait until done.
+
+        Uses each joint's configured homing speed (its sign picks the end
+        stop). Joints run their homing together; the arm keeps cycling
+        read/write at ``period_s`` so the deadman never trips.
+
+        Raises:
+            NotHomedError: A homing ended without the joint homed.
+            ArmStateError: Not active, or the timeout passed (homing stopped).
+        """
+        self._require(Lifecycle.ACTIVE, action="home")
+        todo = [n for n in (names or self.names) if not (only_unhomed and self.joints[n].is_homed())]
+        previous = {n: self.modes[n] for n in todo}
+        for name in todo:
+            if self.modes[name] is not CommandMode.HOME:
+                self.modes[name] = CommandMode.NONE
+                self.claim(name, CommandMode.HOME)
+            self.set_command(name, self.config.joint(name).homing.speed)
+        self.write()
+        start = self.backend.clock.now()
+        while any(n in self._homing for n in todo):
+            if self.backend.clock.now() - start > timeout_s:
+                for name in todo:
+                    self.commands[name] = 0.0
+                self.write()
+                raise ArmStateError(f"homing {', '.join(todo)} did not finish within {timeout_s:g} s")
+            self.backend.step(period_s)
+            self.read()
+            self.write()
+        for name in todo:
+            self.modes[name] = CommandMode.NONE
+            if previous[name] is not CommandMode.HOME and previous[name] is not CommandMode.NONE:
+                self.claim(name, previous[name])
+        failed = [n for n in todo if not self.joint_states[n].homed]
+        if failed:
+            raise NotHomedError(f"homing failed for {', '.join(failed)}")
+
+    def cycle(self, dt: float) -> Mapping[str, JointState]:
+        """One control cycle: write the commands, let ``dt`` pass, read the state."""
+        self.write()
+        self.backend.step(dt)
+        return self.read()

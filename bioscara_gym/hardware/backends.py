@@ -1,0 +1,253 @@
+"""Backends: joints, gripper and clock bundled, chosen by name.
+
+=========== =================================================================
+``sim``      :class:`SimJoint` on the MuJoCo arm (firmware rules, no bytes)
+``mock``     :class:`MockJoint` mirrors, :class:`MockGripper`, manual clock
+``emulated`` the real :class:`Joint` driver over :class:`EmulatedI2CBus`,
+             whose :class:`JointFirmware` devices drive the MuJoCo arm
+``i2c``      real :class:`Joint` s over :class:`SMBusI2C`, sysfs PWM gripper
+=========== =================================================================
+
+``step(dt)`` advances physics by ``dt`` in simulation and waits until ``dt``
+has passed since the previous step on the wall clock on hardware.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+from bioscara_gym.hardware.base_joint import BaseJoint
+from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
+from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
+from bioscara_gym.hardware.config import ArmConfig, load_config
+from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
+from bioscara_gym.hardware.firmware import JointFirmware
+from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
+from bioscara_gym.hardware.joint import Joint
+from bioscara_gym.hardware.mock import MockJoint
+from bioscara_gym.hardware.stats import CommStats
+
+BACKENDS = ("sim", "mock", "emulated", "i2c")
+
+
+def default_state_dir() -> Path:
+    """Where the gripper's last width is kept by default (``$XDG_STATE_HOME/bioscara``)."""
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "bioscara"
+
+
+class Backend:
+    """Joints, gripper and clock of one arm.
+
+    Attributes:
+        name: Backend name.
+        config: The arm configuration.
+        joints: Joint name to joint, in configuration order.
+        gripper: The gripper.
+        clock: The backend's time source.
+        sim: The MuJoCo arm where there is one, else ``None``.
+    """
+
+    name = ""
+
+    def __init__(
+        self,
+        config: ArmConfig,
+        joints: Mapping[str, BaseJoint],
+        gripper: BaseGripper,
+        clock: Clock,
+        sim: object | None = None,
+    ) -> None:
+        """Bundle the parts."""
+        self.config = config
+        self.joints = dict(joints)
+        self.gripper = gripper
+        self.clock = clock
+        self.sim = sim
+
+    def step(self, dt: float) -> None:
+        """Let ``dt`` seconds pass (simulated or waited)."""
+        self.clock.sleep(dt)
+
+    def comm_stats(self) -> dict[str, CommStats]:
+        """Bus statistics per joint (empty where there is no bus)."""
+        return {n: j.stats for n, j in self.joints.items() if isinstance(j, Joint)}
+
+    def close(self) -> None:
+        """Release resources (bus handles)."""
+
+    def __enter__(self) -> Backend:
+        """Use as a context manager."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Close on leaving the ``with`` block."""
+        self.close()
+
+
+class SimBackend(Backend):
+    """:class:`SimJoint` s and :class:`SimGripper` on the MuJoCo arm."""
+
+    name = "sim"
+
+    def __init__(self, config: ArmConfig, state_file: str | Path | None = None, **sim_kwargs: object) -> None:
+        """Build the simulated arm (kwargs go to :class:`ArmSim`)."""
+        from bioscara_gym.hardware.sim import ArmSim, SimGripper, make_sim_joints
+
+        sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
+        super().__init__(
+            config, make_sim_joints(sim), SimGripper(config.gripper, sim, state_file), sim.clock, sim
+        )
+
+    def step(self, dt: float) -> None:
+        """Advance physics and firmware by ``dt`` seconds."""
+        self.sim.step(dt)  # type: ignore[union-attr]
+
+
+class EmulatedBackend(Backend):
+    """The real :class:`Joint` driver over an :class:`EmulatedI2CBus` into the MuJoCo arm.
+
+    Args:
+        config: Arm configuration (addresses, reductions, limits).
+        faults: Faults the bus injects.
+        retries: Driver retries per transaction.
+        state_file: Gripper state file.
+        sim_kwargs: Passed to :class:`ArmSim`.
+    """
+
+    name = "emulated"
+
+    def __init__(
+        self,
+        config: ArmConfig,
+        faults: FaultPlan | None = None,
+        retries: int = 2,
+        state_file: str | Path | None = None,
+        **sim_kwargs: object,
+    ) -> None:
+        """Build the arm, one firmware per joint address, the bus and the drivers."""
+        from bioscara_gym.hardware.sim import ArmSim, SimGripper
+
+        sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
+        self.devices = {
+            j.address: JointFirmware(None, sim.clock, core=sim.cores[j.name]) for j in config.joints
+        }
+        self.bus = EmulatedI2CBus(self.devices, faults, clock=sim.clock)
+        joints = {
+            j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, sim.clock)
+            for j in config.joints
+        }
+        super().__init__(config, joints, SimGripper(config.gripper, sim, state_file), sim.clock, sim)
+
+    def step(self, dt: float) -> None:
+        """Advance physics and firmware by ``dt`` seconds."""
+        self.sim.step(dt)  # type: ignore[union-attr]
+
+    def close(self) -> None:
+        """Close the emulated bus."""
+        self.bus.close()
+
+
+class MockBackend(Backend):
+    """:class:`MockJoint` s and a :class:`MockGripper` on a manual clock."""
+
+    name = "mock"
+
+    def __init__(
+        self,
+        config: ArmConfig,
+        homing_time_s: float = 1.0,
+        state_file: str | Path | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        """Build mirrors of every configured joint."""
+        clock = clock or ManualClock()
+        joints = {
+            j.name: MockJoint(j.name, j.reduction, j.min, j.max, clock, homing_time_s) for j in config.joints
+        }
+        g = config.gripper
+        gripper = MockGripper(g.reduction, g.offset, g.min, g.max, g.backup_init_pos, state_file=state_file)
+        super().__init__(config, joints, gripper, clock)
+
+
+class I2CBackend(Backend):
+    """The real arm: :class:`Joint` s over ``/dev/i2c-N``, the sysfs PWM gripper.
+
+    ``step(dt)`` waits on the wall clock until ``dt`` has passed since the
+    previous step (a fixed-rate loop), not ``dt`` from now.
+    """
+
+    name = "i2c"
+
+    def __init__(
+        self,
+        config: ArmConfig,
+        bus: I2CBus | None = None,
+        retries: int = 2,
+        state_file: str | Path | None = None,
+        sysfs_root: str | Path = "/sys/class/pwm",
+    ) -> None:
+        """Open the bus and build the drivers (nothing is sent yet)."""
+        clock = WallClock()
+        self.bus = bus if bus is not None else SMBusI2C(config.bus)
+        joints = {
+            j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, clock)
+            for j in config.joints
+        }
+        g = config.gripper
+        gripper = Gripper(
+            g.reduction,
+            g.offset,
+            g.min,
+            g.max,
+            g.backup_init_pos,
+            state_file=state_file,
+            pwm_chip=g.pwm_chip,
+            pwm_channel=g.pwm_channel,
+            sysfs_root=sysfs_root,
+        )
+        super().__init__(config, joints, gripper, clock)
+        self._next = clock.now()
+
+    def step(self, dt: float) -> None:
+        """Wait until ``dt`` after the previous step's deadline (no drift)."""
+        self._next += dt
+        now = self.clock.now()
+        if self._next < now:
+            self._next = now  # overran: restart the schedule from now
+        else:
+            self.clock.sleep(self._next - now)
+
+    def close(self) -> None:
+        """Close the bus."""
+        self.bus.close()
+
+
+def make_backend(
+    name: str = "sim", config: ArmConfig | str | os.PathLike[str] | None = None, **options: object
+) -> Backend:
+    """Build a backend by name.
+
+    Args:
+        name: One of ``sim``, ``mock``, ``emulated``, ``i2c``.
+        config: An :class:`ArmConfig`, a YAML path, or ``None`` for the
+            packaged default.
+        **options: Backend-specific options (e.g. ``faults`` for ``emulated``,
+            ``initial_qpos`` for the simulated ones, ``state_file``).
+
+    Raises:
+        ValueError: Unknown backend name.
+    """
+    if not isinstance(config, ArmConfig):
+        config = load_config(config)
+    classes: dict[str, type[Backend]] = {
+        "sim": SimBackend,
+        "mock": MockBackend,
+        "emulated": EmulatedBackend,
+        "i2c": I2CBackend,
+    }
+    if name not in classes:
+        raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}")
+    return classes[name](config, **options)  # type: ignore[arg-type]

@@ -1,0 +1,542 @@
+"""The joint contract (SPEC.md "The host driver's rules"), on every backend.
+
+Every test runs on every rig of ``rigs.RIG_FACTORIES`` (the ``rig`` fixture);
+tests that need a feature a rig lacks are skipped with the reason. Time is a
+manual clock: ``rig.advance(dt)`` lets time pass with no host traffic, and
+:func:`run` lets it pass while the host keeps talking (as the arm layer does
+at its control rate, which also keeps the deadman fed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+from rigs import JointRig
+
+from bioscara_gym.hardware.errors import (
+    IncorrectStateError,
+    InvalidArgumentError,
+    NotEnabledError,
+    NotHomedError,
+    NotInitError,
+    StalledError,
+)
+from bioscara_gym.hardware.registers import POWER_UP_FLAGS, Flag, Reg
+from bioscara_gym.hardware.transmission import HOMING_RPM_MAX, HOMING_RPM_MIN, rpm_to_velocity
+
+#: Host control period while a test "runs" the joint, seconds.
+CONTROL_PERIOD_S = 0.01
+
+
+# ----------------------------------------------------------------- helpers
+
+
+def needs(rig: JointRig, feature: str) -> None:
+    """Skip unless the rig has ``feature``."""
+    if not rig.has(feature):
+        pytest.skip(f"{rig.name} has no '{feature}'")
+
+
+def tolerance(rig: JointRig) -> float:
+    """Position tolerance: 1e-4 of the joint's range (rad or m)."""
+    return 1e-4 * (rig.params.max - rig.params.min)
+
+
+def ready(rig: JointRig) -> None:
+    """``init`` and enable with the joint's currents and limits, as the arm layer does."""
+    p = rig.params
+    rig.joint.init()
+    rig.joint.enable(p.drive_current, p.hold_current)
+    rig.joint.set_max_velocity(p.max_velocity)
+    rig.joint.set_max_acceleration(p.max_acceleration)
+
+
+def home(rig: JointRig, sign: int = 1) -> None:
+    """Home with the joint's parameters; ``sign`` +1 homes to ``max``, -1 to ``min``."""
+    h = rig.params.homing
+    rig.joint.home(sign * abs(h.speed), h.threshold, h.current)
+
+
+def ready_and_homed(rig: JointRig) -> None:
+    """Enabled and homed at ``max``."""
+    ready(rig)
+    home(rig)
+
+
+def away_from_max(rig: JointRig) -> float:
+    """A velocity that moves away from ``max`` (where homing left the joint): -20 % of the limit."""
+    return -0.2 * rig.params.max_velocity
+
+
+def run(rig: JointRig, seconds: float, poll: Callable[[], object] | None = None) -> None:
+    """Let ``seconds`` pass while the host talks to the joint every control period."""
+    poll = poll or rig.joint.get_velocity
+    for _ in range(round(seconds / CONTROL_PERIOD_S)):
+        rig.advance(CONTROL_PERIOD_S)
+        poll()
+
+
+def run_until(rig: JointRig, done: Callable[[], bool], timeout_s: float) -> bool:
+    """Run (talking every control period) until ``done()``; False on timeout."""
+    for _ in range(round(timeout_s / CONTROL_PERIOD_S)):
+        if done():
+            return True
+        rig.advance(CONTROL_PERIOD_S)
+    return done()
+
+
+def homing_speed_for_rpm(rig: JointRig, rpm: float) -> float:
+    """Joint-side speed (positive) that is ``rpm`` at the motor."""
+    return abs(rpm_to_velocity(rpm, rig.params.reduction))
+
+
+# -------------------------------------------------------------- lifecycle
+
+
+def test_rig_joint_is_not_initialized(rig: JointRig) -> None:
+    assert not rig.joint.initialized
+
+
+def test_calls_before_init_raise_not_init(rig: JointRig) -> None:
+    with pytest.raises(NotInitError):
+        rig.joint.get_position()
+
+
+def test_init_reads_power_up_flags(rig: JointRig) -> None:
+    rig.joint.init()
+    assert rig.joint.flags == POWER_UP_FLAGS
+
+
+def test_device_flags_at_power_up(rig: JointRig) -> None:
+    assert rig.device_flags() == POWER_UP_FLAGS
+
+
+# --------------------------------------------------------- enable/disable
+
+
+def test_enable_clears_not_enabled(rig: JointRig) -> None:
+    rig.joint.init()
+    rig.joint.enable(rig.params.drive_current, rig.params.hold_current)
+    assert rig.joint.is_enabled()
+    assert not rig.device_flags() & Flag.NOT_ENABLED
+
+
+def test_disable_sets_not_enabled(rig: JointRig) -> None:
+    ready(rig)
+    rig.joint.disable()
+    assert not rig.joint.is_enabled()
+    assert rig.device_flags() & Flag.NOT_ENABLED
+
+
+def test_enable_with_current_above_100_is_invalid(rig: JointRig) -> None:
+    rig.joint.init()
+    with pytest.raises(InvalidArgumentError):
+        rig.joint.enable(101, 20)
+
+
+# --------------------------------------------------------------- refusals
+
+
+def test_set_velocity_refused_when_not_enabled(rig: JointRig) -> None:
+    rig.joint.init()
+    with pytest.raises(NotEnabledError):
+        rig.joint.set_velocity(0.01)
+
+
+def test_set_position_refused_when_not_enabled(rig: JointRig) -> None:
+    rig.joint.init()
+    with pytest.raises(NotEnabledError):
+        rig.joint.set_position(0.0)
+
+
+def test_set_velocity_refused_when_disabled_after_homing(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    rig.joint.disable()
+    with pytest.raises(NotEnabledError):
+        rig.joint.set_velocity(away_from_max(rig))
+
+
+def test_set_velocity_refused_when_not_homed(rig: JointRig) -> None:
+    ready(rig)
+    with pytest.raises(NotHomedError):
+        rig.joint.set_velocity(0.01)
+
+
+def test_set_position_refused_when_not_homed(rig: JointRig) -> None:
+    ready(rig)
+    with pytest.raises(NotHomedError):
+        rig.joint.set_position(0.0)
+
+
+def test_move_steps_allowed_when_not_homed(rig: JointRig) -> None:
+    ready(rig)
+    rig.joint.move_steps(-100)
+    run(rig, 0.2)
+    assert not rig.joint.is_homed()
+    assert rig.joint.is_enabled()
+
+
+def test_move_steps_refused_when_not_enabled(rig: JointRig) -> None:
+    rig.joint.init()
+    with pytest.raises(NotEnabledError):
+        rig.joint.move_steps(100)
+
+
+def test_position_reads_zero_while_not_homed(rig: JointRig) -> None:
+    ready(rig)
+    rig.joint.move_steps(-200)
+    run(rig, 0.5)
+    assert rig.joint.get_position() == 0.0
+
+
+# ----------------------------------------------------------------- homing
+
+
+def test_homing_with_positive_velocity_ends_at_max(rig: JointRig) -> None:
+    ready(rig)
+    home(rig, +1)
+    assert rig.joint.get_position() == pytest.approx(rig.params.max, abs=tolerance(rig))
+
+
+def test_homing_with_negative_velocity_ends_at_min(rig: JointRig) -> None:
+    ready(rig)
+    home(rig, -1)
+    assert rig.joint.get_position() == pytest.approx(rig.params.min, abs=tolerance(rig))
+
+
+def test_homing_clears_not_homed(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    assert rig.joint.is_homed()
+    assert not rig.device_flags() & (Flag.NOT_HOMED | Flag.BUSY)
+
+
+def test_homing_keeps_the_joint_enabled(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    assert rig.joint.get_flags() == Flag(0)
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_homing_slower_than_1_rpm_is_invalid(rig: JointRig, sign: int) -> None:
+    ready(rig)
+    h = rig.params.homing
+    slow = homing_speed_for_rpm(rig, 0.99 * HOMING_RPM_MIN)
+    with pytest.raises(InvalidArgumentError, match="RPM"):
+        rig.joint.start_homing(sign * slow, h.threshold, h.current)
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_homing_faster_than_250_rpm_is_invalid(rig: JointRig, sign: int) -> None:
+    ready(rig)
+    h = rig.params.homing
+    fast = homing_speed_for_rpm(rig, 1.01 * HOMING_RPM_MAX)
+    with pytest.raises(InvalidArgumentError, match="RPM"):
+        rig.joint.start_homing(sign * fast, h.threshold, h.current)
+
+
+def test_homing_speed_is_checked_before_any_traffic(rig: JointRig) -> None:
+    rig.joint.init()  # not enabled: a bounds check that came later would raise NotEnabledError
+    with pytest.raises(InvalidArgumentError):
+        rig.joint.start_homing(0.0, rig.params.homing.threshold, rig.params.homing.current)
+
+
+def test_homing_refused_when_not_enabled(rig: JointRig) -> None:
+    rig.joint.init()
+    h = rig.params.homing
+    with pytest.raises(NotEnabledError):
+        rig.joint.start_homing(h.speed, h.threshold, h.current)
+
+
+def test_start_homing_sets_blocking_command_home(rig: JointRig) -> None:
+    ready(rig)
+    h = rig.params.homing
+    rig.joint.start_homing(h.speed, h.threshold, h.current)
+    assert rig.joint.current_blocking_command == Reg.HOME
+
+
+def test_start_homing_reports_busy_and_not_homed_at_once(rig: JointRig) -> None:
+    ready(rig)
+    h = rig.params.homing
+    rig.joint.start_homing(h.speed, h.threshold, h.current)
+    assert rig.joint.is_busy()
+    assert not rig.joint.is_homed()
+
+
+def test_home_leaves_blocking_command_none(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    assert rig.joint.current_blocking_command == Reg.NONE
+
+
+def test_start_homing_while_homing_is_incorrect_state(rig: JointRig) -> None:
+    ready(rig)
+    h = rig.params.homing
+    rig.joint.start_homing(h.speed, h.threshold, h.current)
+    with pytest.raises(IncorrectStateError):
+        rig.joint.start_homing(h.speed, h.threshold, h.current)
+
+
+def _start_homing_then_stop(rig: JointRig) -> None:
+    ready(rig)
+    h = rig.params.homing
+    rig.joint.start_homing(h.speed, h.threshold, h.current)
+    rig.advance(0.6)
+    assert rig.joint.get_flags() & Flag.BUSY, "homing finished before the test could abort it"
+    rig.joint.stop()
+
+
+def test_homing_aborted_by_stop_fails_post_homing(rig: JointRig) -> None:
+    _start_homing_then_stop(rig)
+    with pytest.raises(NotHomedError):
+        rig.joint.post_homing()
+
+
+def test_homing_aborted_by_stop_reports_not_homed_and_not_busy(rig: JointRig) -> None:
+    _start_homing_then_stop(rig)
+    rig.advance(0.1)
+    flags = rig.joint.get_flags()
+    assert flags & Flag.NOT_HOMED
+    assert not flags & Flag.BUSY
+    assert rig.device_flags() & Flag.NOT_HOMED
+
+
+def test_homing_aborted_by_stop_clears_blocking_command_in_post_homing(rig: JointRig) -> None:
+    _start_homing_then_stop(rig)
+    with pytest.raises(NotHomedError):
+        rig.joint.post_homing()
+    assert rig.joint.current_blocking_command == Reg.NONE
+
+
+def test_homing_after_an_aborted_homing_succeeds(rig: JointRig) -> None:
+    _start_homing_then_stop(rig)
+    home(rig)
+    assert rig.joint.get_position() == pytest.approx(rig.params.max, abs=tolerance(rig))
+
+
+# ----------------------------------------------------------------- motion
+
+
+def test_set_position_reaches_target(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    p = rig.params
+    target = p.max - 0.1 * (p.max - p.min)
+    rig.joint.set_position(target)
+    reached = run_until(
+        rig, lambda: abs(rig.joint.get_position() - target) < tolerance(rig), timeout_s=5.0
+    )
+    assert reached, f"{rig.name}: at {rig.joint.get_position()}, target {target}"
+
+
+def test_set_velocity_yields_commanded_velocity_after_ramp(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    v = away_from_max(rig)
+    rig.joint.set_velocity(v)
+    run(rig, 0.5)
+    assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
+
+
+def test_set_velocity_moves_the_joint_in_its_direction(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    start = rig.joint.get_position()
+    rig.joint.set_velocity(away_from_max(rig))
+    run(rig, 0.5)
+    assert rig.joint.get_position() < start
+
+
+def test_stop_brings_velocity_to_zero(rig: JointRig) -> None:
+    ready_and_homed(rig)
+    rig.joint.set_velocity(away_from_max(rig))
+    run(rig, 0.3)
+    rig.joint.stop()
+    run(rig, 0.3)
+    assert rig.joint.get_velocity() == pytest.approx(0.0, abs=1e-9)
+
+
+# ------------------------------------------------------------------ stall
+
+
+def _stall(rig: JointRig) -> None:
+    """Home, arm stall detection, run, hold the joint until it stalls."""
+    needs(rig, "stall")
+    ready_and_homed(rig)
+    rig.joint.enable_stallguard(rig.params.stall_threshold)
+    rig.joint.set_velocity(away_from_max(rig))
+    run(rig, 0.3)
+    assert not rig.joint.is_stalled(), "stalled while moving freely"
+    rig.block()
+    assert run_until(rig, lambda: rig.joint.get_flags() & Flag.STALL, timeout_s=1.0), "never stalled"
+
+
+def test_stall_trips_when_the_joint_is_held(rig: JointRig) -> None:
+    _stall(rig)
+    assert rig.joint.is_stalled()
+    assert rig.device_flags() & Flag.STALL
+
+
+def test_set_velocity_refused_while_stalled(rig: JointRig) -> None:
+    _stall(rig)
+    rig.unblock()
+    with pytest.raises(StalledError):
+        rig.joint.set_velocity(away_from_max(rig))
+
+
+def test_set_position_refused_while_stalled(rig: JointRig) -> None:
+    _stall(rig)
+    rig.unblock()
+    with pytest.raises(StalledError):
+        rig.joint.set_position(rig.params.min)
+
+
+def test_stalled_joint_does_not_move(rig: JointRig) -> None:
+    _stall(rig)
+    rig.unblock()
+    before = rig.joint.get_position()
+    with pytest.raises(StalledError):
+        rig.joint.set_velocity(away_from_max(rig))
+    run(rig, 0.3)
+    assert rig.joint.get_position() == pytest.approx(before, abs=1e-9)
+
+
+def test_reenable_after_stall_moves_again(rig: JointRig) -> None:
+    _stall(rig)
+    rig.unblock()
+    p = rig.params
+    rig.joint.enable(p.drive_current, p.hold_current)
+    rig.joint.enable_stallguard(p.stall_threshold)
+    v = away_from_max(rig)
+    rig.joint.set_velocity(v)
+    run(rig, 0.5)
+    assert not rig.joint.is_stalled()
+    assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
+
+
+def test_reenable_clears_stall(rig: JointRig) -> None:
+    _stall(rig)
+    rig.joint.enable(rig.params.drive_current, rig.params.hold_current)
+    assert not rig.joint.is_stalled()
+    assert not rig.device_flags() & Flag.STALL
+
+
+# ---------------------------------------------------------------- deadman
+
+
+def _moving_in_velocity_mode(rig: JointRig) -> None:
+    needs(rig, "deadman")
+    ready_and_homed(rig)
+    rig.joint.set_velocity(away_from_max(rig))
+    run(rig, 0.3)
+
+
+def test_deadman_tolerates_40ms_of_silence(rig: JointRig) -> None:
+    _moving_in_velocity_mode(rig)
+    rig.advance(0.04)
+    assert not rig.device_flags() & Flag.NOT_ENABLED
+
+
+def test_deadman_trips_after_60ms_of_silence_in_velocity_mode(rig: JointRig) -> None:
+    _moving_in_velocity_mode(rig)
+    rig.advance(0.06)
+    assert rig.device_flags() & Flag.NOT_ENABLED
+
+
+def test_deadman_is_reported_to_the_host(rig: JointRig) -> None:
+    _moving_in_velocity_mode(rig)
+    rig.advance(0.06)
+    assert rig.joint.get_flags() & Flag.NOT_ENABLED
+    assert not rig.joint.is_stalled()
+    with pytest.raises(NotEnabledError):
+        rig.joint.set_velocity(away_from_max(rig))
+
+
+def test_deadman_stops_the_joint(rig: JointRig) -> None:
+    _moving_in_velocity_mode(rig)
+    rig.advance(0.06)
+    rig.advance(0.5)
+    assert rig.joint.get_velocity() == pytest.approx(0.0, abs=1e-9)
+    before = rig.joint.get_position()
+    rig.advance(0.5)
+    assert rig.joint.get_position() == pytest.approx(before, abs=1e-9)
+
+
+def test_reenable_after_deadman_moves_again(rig: JointRig) -> None:
+    _moving_in_velocity_mode(rig)
+    rig.advance(0.06)
+    rig.joint.enable(rig.params.drive_current, rig.params.hold_current)
+    v = away_from_max(rig)
+    rig.joint.set_velocity(v)
+    run(rig, 0.5)
+    assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
+
+
+def test_deadman_does_not_trip_in_position_mode(rig: JointRig) -> None:
+    needs(rig, "deadman")
+    ready_and_homed(rig)
+    rig.joint.set_position(rig.params.min)
+    rig.advance(0.5)
+    assert not rig.device_flags() & Flag.NOT_ENABLED
+    assert rig.joint.get_velocity() != 0.0
+
+
+def test_deadman_does_not_trip_when_standing_still(rig: JointRig) -> None:
+    needs(rig, "deadman")
+    ready_and_homed(rig)
+    rig.advance(1.0)
+    assert not rig.device_flags() & Flag.NOT_ENABLED
+
+
+# ------------------------------------------------- host restart, power cycle
+
+
+def test_host_restart_restores_offset_without_rehoming(rig: JointRig) -> None:
+    needs(rig, "host_restart")
+    ready_and_homed(rig)
+    p = rig.params
+    rig.joint.set_position(p.max - 0.05 * (p.max - p.min))
+    run(rig, 2.0)
+    before = rig.joint.get_position()
+    joint = rig.restart_host()
+    joint.init()
+    assert joint.is_homed()
+    assert joint.get_position() == pytest.approx(before, abs=tolerance(rig))
+
+
+def test_host_restart_after_negative_homing_restores_min_offset(rig: JointRig) -> None:
+    needs(rig, "host_restart")
+    ready(rig)
+    home(rig, -1)
+    joint = rig.restart_host()
+    joint.init()
+    assert joint.get_position() == pytest.approx(rig.params.min, abs=tolerance(rig))
+
+
+def test_host_restart_before_homing_reads_zero(rig: JointRig) -> None:
+    needs(rig, "host_restart")
+    ready(rig)
+    joint = rig.restart_host()
+    joint.init()
+    assert not joint.is_homed()
+    assert joint.get_position() == 0.0
+
+
+def test_power_cycle_reports_not_homed_and_not_enabled(rig: JointRig) -> None:
+    needs(rig, "power_cycle")
+    ready_and_homed(rig)
+    rig.power_cycle()
+    assert rig.joint.get_flags() == POWER_UP_FLAGS
+
+
+def test_power_cycle_positions_read_zero(rig: JointRig) -> None:
+    needs(rig, "power_cycle")
+    ready_and_homed(rig)
+    rig.power_cycle()
+    assert rig.joint.get_position() == 0.0
+
+
+def test_power_cycle_then_host_restart_is_not_homed(rig: JointRig) -> None:
+    needs(rig, "power_cycle")
+    needs(rig, "host_restart")
+    ready_and_homed(rig)
+    rig.power_cycle()
+    joint = rig.restart_host()
+    joint.init()
+    assert not joint.is_homed()
+    assert joint.get_position() == 0.0

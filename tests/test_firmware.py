@@ -1,0 +1,651 @@
+"""The emulated joint firmware, byte by byte (SPEC.md "The joint's I2C protocol", "Firmware behaviour").
+
+No driver here: tests write the bytes a master would write to
+:meth:`JointFirmware.transfer` and read the bytes it answers. The stall
+detector's arithmetic is tested on :class:`FirmwareCore` with a fake motor
+whose set point and encoder the test sets directly.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+
+from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.codec import pack_bytes
+from bioscara_gym.hardware.firmware import (
+    MICROSTEPS_PER_DEG,
+    TICK_S,
+    FirmwareCore,
+    JointFirmware,
+    stall_threshold,
+)
+from bioscara_gym.hardware.motor import KinematicStepper
+from bioscara_gym.hardware.registers import PAYLOAD_FORMAT, Flag, Reg
+
+POWER_UP = 0b00001100
+#: SPEC j1 homing, at the motor: 10 RPM, sensitivity 30, current 15 %.
+HOME_POSITIVE = pack_bytes(1, 10, 30, 15)
+HOME_NEGATIVE = pack_bytes(0, 10, 30, 15)
+SETUP_20_20 = pack_bytes(20, 20)
+
+# ----------------------------------------------------------------- helpers
+
+
+def command(fw: JointFirmware, reg: Reg, value: float | int = 0) -> int:
+    """Write ``[REG][payload]`` and read the flags byte."""
+    data = bytes((reg,)) + struct.pack(PAYLOAD_FORMAT[reg], value)
+    (flags,) = fw.transfer(data, 1)
+    return flags
+
+
+def query(fw: JointFirmware, reg: Reg) -> tuple[float | int, int]:
+    """Write ``[REG]``, read payload + flags; return (value, flags)."""
+    fmt = PAYLOAD_FORMAT[reg]
+    reply = fw.transfer(bytes((reg,)), struct.calcsize(fmt) + 1)
+    return struct.unpack(fmt, reply[:-1])[0], reply[-1]
+
+
+def ping_flags(fw: JointFirmware) -> int:
+    return query(fw, Reg.PING)[1]
+
+
+def ticks(fw: JointFirmware, n: int = 1) -> None:
+    """Let ``n`` main-loop ticks pass without bus traffic."""
+    fw.clock.sleep(n * TICK_S)
+    fw.update()
+
+
+def run_until_idle(fw: JointFirmware, timeout_s: float = 10.0) -> None:
+    """Poll (PING every tick) until BUSY clears."""
+    for _ in range(round(timeout_s / TICK_S)):
+        if not ping_flags(fw) & Flag.BUSY:
+            return
+        ticks(fw)
+    raise AssertionError("still BUSY")
+
+
+def firmware_between_stops(lower: float = -720.0, upper: float = 360.0) -> JointFirmware:
+    """Firmware in front of a stepper at 0 deg between two end stops (motor degrees)."""
+    motor = KinematicStepper(0.0, lower_stop_deg=lower, upper_stop_deg=upper)
+    return JointFirmware(motor, ManualClock())
+
+
+def enabled(fw: JointFirmware) -> JointFirmware:
+    command(fw, Reg.SETUP, SETUP_20_20)
+    return fw
+
+
+def homed(fw: JointFirmware, payload: int = HOME_POSITIVE) -> JointFirmware:
+    """Enable and home against the end stop (positive by default)."""
+    enabled(fw)
+    command(fw, Reg.HOME, payload)
+    run_until_idle(fw)
+    return fw
+
+
+def stalled(fw: JointFirmware) -> JointFirmware:
+    """Home, arm stall detection (sensitivity 6), run, block the rotor until STALL."""
+    homed(fw)
+    command(fw, Reg.ENABLESTALLGUARD, 6)
+    command(fw, Reg.SETRPM, -10.0)
+    for _ in range(20):
+        ticks(fw)
+        ping_flags(fw)
+    fw.motor.blocked = True
+    for _ in range(50):
+        if ping_flags(fw) & Flag.STALL:
+            fw.motor.blocked = False
+            return fw
+        ticks(fw)
+    raise AssertionError("never stalled")
+
+
+class FakeMotor:
+    """A motor whose set point, encoder and speed the test sets directly."""
+
+    def __init__(self) -> None:
+        self.setpoint_deg = 0.0
+        self.position_deg = 0.0
+        self.velocity_dps = 0.0
+
+    @property
+    def pid_error_deg(self) -> float:
+        return self.setpoint_deg - self.position_deg
+
+    def set_error(self, microsteps: float) -> None:
+        """Make the PID error (set point - encoder) ``microsteps``."""
+        self.setpoint_deg = self.position_deg + microsteps / MICROSTEPS_PER_DEG
+
+    def command(self, velocity_dps: float, torque_fraction: float) -> None:
+        pass
+
+    def hold_here(self) -> None:
+        self.setpoint_deg = self.position_deg
+
+    def advance(self, dt: float) -> None:
+        pass
+
+
+@pytest.fixture
+def fake_motor() -> FakeMotor:
+    return FakeMotor()
+
+
+@pytest.fixture
+def guarded_core(fake_motor: FakeMotor) -> FirmwareCore:
+    """A core, enabled, with stall detection at sensitivity 6 (threshold 60 microsteps at rest)."""
+    core = FirmwareCore(fake_motor, 0.0)
+    core.write(Reg.SETUP, SETUP_20_20, 0.0)
+    core.write(Reg.ENABLESTALLGUARD, 6, 0.0)
+    return core
+
+
+def feed(core: FirmwareCore, motor: FakeMotor, errors: list[float]) -> list[bool]:
+    """Run one tick per PID error in ``errors``; return whether STALL was set after each."""
+    out = []
+    for e in errors:
+        motor.set_error(e)
+        core.tick()
+        out.append(core.has(Flag.STALL))
+    return out
+
+
+# ------------------------------------------------------------ power-up, PING
+
+
+def test_power_up_flags_are_not_homed_and_not_enabled(firmware: JointFirmware) -> None:
+    assert firmware.flags == POWER_UP
+
+
+def test_ping_replies_ack_then_flags(firmware: JointFirmware) -> None:
+    assert firmware.transfer(bytes((Reg.PING,)), 2) == b"O" + bytes((POWER_UP,))
+
+
+def test_every_command_reply_is_the_flags_byte(firmware: JointFirmware) -> None:
+    assert command(firmware, Reg.SETBRAKEMODE, 1) == POWER_UP
+
+
+# --------------------------------------------------------- blocking commands
+
+
+def test_home_reply_already_has_busy_and_not_homed(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    flags = command(firmware, Reg.HOME, HOME_POSITIVE)
+    assert flags & Flag.BUSY
+    assert flags & Flag.NOT_HOMED
+
+
+def test_ping_straight_after_home_sees_busy_and_not_homed() -> None:
+    fw = homed(firmware_between_stops())
+    assert not fw.flags & Flag.NOT_HOMED
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    flags = ping_flags(fw)
+    assert flags & Flag.BUSY
+    assert flags & Flag.NOT_HOMED
+
+
+def test_check_orientation_sets_busy_at_once(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    assert command(firmware, Reg.CHECKORIENTATION, 2.0) & Flag.BUSY
+
+
+def test_check_orientation_returns_to_start(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    start = firmware.motor.position_deg
+    command(firmware, Reg.CHECKORIENTATION, 2.0)
+    run_until_idle(firmware)
+    assert firmware.motor.position_deg == pytest.approx(start, abs=1e-6)
+
+
+@pytest.mark.parametrize("reg", [0x21, 0x7F, 0x01, 0xFF])
+def test_unknown_register_sets_busy(firmware: JointFirmware, reg: int) -> None:
+    (flags,) = firmware.transfer(bytes((reg, 1, 2, 3, 4)), 1)
+    assert flags & Flag.BUSY
+
+
+@pytest.mark.parametrize("reg", [0x21, 0x7F])
+def test_unknown_register_without_payload_sets_busy(firmware: JointFirmware, reg: int) -> None:
+    (flags,) = firmware.transfer(bytes((reg,)), 1)
+    assert flags & Flag.BUSY
+
+
+@pytest.mark.parametrize("reg", [0x21, 0x7F, 0x01, 0xFF])
+def test_unknown_register_busy_clears_after_one_tick(firmware: JointFirmware, reg: int) -> None:
+    firmware.transfer(bytes((reg, 1, 2, 3, 4)), 1)
+    ticks(firmware)
+    assert ping_flags(firmware) == POWER_UP
+
+
+@pytest.mark.parametrize("reg", [Reg.GETPIDERROR, Reg.MOVETOEND, Reg.CLEARSTALL, Reg.GETDRIVERRPM])
+def test_known_unused_register_written_goes_to_blocking_handler(firmware: JointFirmware, reg: Reg) -> None:
+    (flags,) = firmware.transfer(bytes((reg, 0, 0, 0, 0)), 1)
+    assert flags & Flag.BUSY
+    ticks(firmware)
+    assert not ping_flags(firmware) & Flag.BUSY
+
+
+# ------------------------------------------------------- lengths and padding
+
+
+def test_short_payload_is_zero_padded(firmware: JointFirmware) -> None:
+    firmware.transfer(bytes((Reg.SETUP, 20)), 1)  # byte0 drive only: hold becomes 0
+    assert (firmware.core.drive_current, firmware.core.hold_current) == (20, 0)
+
+
+def test_short_float_payload_is_zero_padded(firmware: JointFirmware) -> None:
+    raw = struct.pack("<f", 1.5)
+    firmware.transfer(bytes((Reg.HOMEOFFSET,)) + raw[:3], 1)
+    expected = struct.unpack("<f", raw[:3] + b"\x00")[0]
+    assert query(firmware, Reg.HOMEOFFSET)[0] == expected
+
+
+def test_long_payload_extra_bytes_are_dropped(firmware: JointFirmware) -> None:
+    firmware.transfer(bytes((Reg.HOMEOFFSET,)) + struct.pack("<f", 1.5) + b"\x12\x34\x56", 1)
+    assert query(firmware, Reg.HOMEOFFSET)[0] == 1.5
+
+
+def test_long_payload_of_one_byte_register_uses_first_byte(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    firmware.transfer(bytes((Reg.ENABLESTALLGUARD, 6, 0xFF, 0xFF, 0xFF, 0xFF)), 1)
+    assert firmware.core.stall_sensitivity == 6
+
+
+def test_empty_write_replies_flags(firmware: JointFirmware) -> None:
+    assert firmware.transfer(b"", 1) == bytes((POWER_UP,))
+
+
+def test_empty_write_with_zero_read_returns_nothing(firmware: JointFirmware) -> None:
+    assert firmware.transfer(b"", 0) == b""
+
+
+def test_read_longer_than_reply_is_padded_with_ff(firmware: JointFirmware) -> None:
+    assert firmware.transfer(bytes((Reg.PING,)), 5) == b"O" + bytes((POWER_UP,)) + b"\xff\xff\xff"
+
+
+def test_command_read_longer_than_flags_is_padded_with_ff(firmware: JointFirmware) -> None:
+    assert firmware.transfer(bytes((Reg.STOP, 0)), 3) == bytes((POWER_UP,)) + b"\xff\xff"
+
+
+def test_read_shorter_than_reply_is_cut(firmware: JointFirmware) -> None:
+    firmware.transfer(bytes((Reg.HOMEOFFSET,)) + struct.pack("<f", -2.25), 1)
+    assert firmware.transfer(bytes((Reg.HOMEOFFSET,)), 2) == struct.pack("<f", -2.25)[:2]
+
+
+def test_zero_length_read_returns_nothing(firmware: JointFirmware) -> None:
+    assert firmware.transfer(bytes((Reg.PING,)), 0) == b""
+
+
+def test_non_finite_float_payload_is_read_as_zero(firmware: JointFirmware) -> None:
+    command(firmware, Reg.HOMEOFFSET, 1.0)
+    command(firmware, Reg.HOMEOFFSET, math.nan)
+    assert query(firmware, Reg.HOMEOFFSET)[0] == 0.0
+
+
+# ------------------------------------------------------------------ motion
+
+
+def test_setrpm_ignored_while_not_homed(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    command(firmware, Reg.SETRPM, 10.0)
+    ticks(firmware, 20)
+    assert firmware.motor.position_deg == 0.0
+
+
+def test_setrpm_ignored_while_not_enabled() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.DISABLECLOSEDLOOP, 0)
+    command(fw, Reg.SETRPM, -10.0)
+    ticks(fw, 20)
+    assert query(fw, Reg.ANGLEMOVED)[0] == 0.0
+
+
+def test_setrpm_ignored_while_stalled() -> None:
+    fw = stalled(firmware_between_stops())
+    before = fw.motor.position_deg
+    flags = command(fw, Reg.SETRPM, -10.0)
+    ticks(fw, 20)
+    assert flags & Flag.STALL
+    assert fw.motor.position_deg == before
+
+
+def test_setrpm_runs_at_the_commanded_speed_when_homed() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.SETRPM, -10.0)
+    for _ in range(50):
+        ticks(fw)
+        ping_flags(fw)
+    assert query(fw, Reg.GETENCODERRPM)[0] == pytest.approx(-10.0)
+
+
+def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.MOVETOANGLE, -90.0)
+    for _ in range(200):
+        ticks(fw)
+    assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-90.0, abs=1e-3)
+
+
+def test_movesteps_allowed_while_not_homed(firmware: JointFirmware) -> None:
+    enabled(firmware)
+    command(firmware, Reg.MOVESTEPS, -50)
+    ticks(firmware, 100)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-50 * 1.8, abs=1e-3)
+
+
+def test_movesteps_ignored_while_not_enabled(firmware: JointFirmware) -> None:
+    command(firmware, Reg.MOVESTEPS, -50)
+    ticks(firmware, 100)
+    assert firmware.motor.position_deg == 0.0
+
+
+def test_stop_halts_velocity_mode() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.SETRPM, -10.0)
+    ticks(fw, 3)
+    command(fw, Reg.STOP, 0)
+    ticks(fw, 3)
+    assert query(fw, Reg.GETENCODERRPM)[0] == 0.0
+
+
+# ------------------------------------------------------------------ homing
+
+
+def test_homing_waits_half_a_second_before_moving() -> None:
+    fw = enabled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    ticks(fw, 45)
+    assert fw.motor.position_deg == 0.0
+
+
+def test_homing_runs_at_the_homing_speed() -> None:
+    fw = enabled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    ticks(fw, 100)
+    assert fw.motor.velocity_dps == pytest.approx(10 * 6.0)
+
+
+@pytest.mark.parametrize(
+    ("payload", "stop"), [(HOME_POSITIVE, 360.0), (HOME_NEGATIVE, -240.0)], ids=["positive", "negative"]
+)
+def test_homing_direction_byte_picks_the_end_stop(payload: int, stop: float) -> None:
+    fw = homed(firmware_between_stops(lower=-240.0, upper=360.0), payload)
+    assert fw.motor.position_deg == stop
+
+
+def test_homing_zeroes_the_encoder_at_the_end_stop() -> None:
+    fw = homed(firmware_between_stops())
+    assert query(fw, Reg.ANGLEMOVED)[0] == 0.0
+
+
+def test_homing_clears_not_homed_busy_and_stall() -> None:
+    fw = stalled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    run_until_idle(fw)
+    assert ping_flags(fw) == 0
+
+
+def test_stop_during_homing_clears_busy_and_leaves_not_homed() -> None:
+    fw = enabled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    ticks(fw, 70)  # past the 0.5 s settle: running toward the end stop
+    flags = command(fw, Reg.STOP, 0)
+    assert not flags & Flag.BUSY
+    assert flags & Flag.NOT_HOMED
+
+
+def test_stop_during_homing_settle_clears_busy_and_leaves_not_homed() -> None:
+    fw = enabled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    ticks(fw, 10)
+    command(fw, Reg.STOP, 0)
+    ticks(fw, 100)
+    assert ping_flags(fw) == Flag.NOT_HOMED
+    assert fw.motor.position_deg == 0.0
+
+
+def test_stop_during_homing_of_a_homed_joint_leaves_not_homed() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_NEGATIVE)
+    ticks(fw, 70)
+    command(fw, Reg.STOP, 0)
+    assert ping_flags(fw) & Flag.NOT_HOMED
+
+
+# -------------------------------------------------------------- HOMEOFFSET
+
+
+def test_homeoffset_round_trip(firmware: JointFirmware) -> None:
+    command(firmware, Reg.HOMEOFFSET, 3.04647)
+    assert query(firmware, Reg.HOMEOFFSET)[0] == pytest.approx(3.04647, rel=1e-7)
+
+
+def test_homeoffset_is_zero_at_power_up(firmware: JointFirmware) -> None:
+    assert query(firmware, Reg.HOMEOFFSET)[0] == 0.0
+
+
+def test_homeoffset_kept_across_time_and_commands(firmware: JointFirmware) -> None:
+    command(firmware, Reg.HOMEOFFSET, -0.0016)
+    enabled(firmware)
+    command(firmware, Reg.STOP, 0)
+    ticks(firmware, 1000)
+    assert query(firmware, Reg.HOMEOFFSET)[0] == pytest.approx(-0.0016, rel=1e-7)
+
+
+def test_homeoffset_lost_on_power_cycle(firmware: JointFirmware) -> None:
+    command(firmware, Reg.HOMEOFFSET, 3.04647)
+    firmware.power_cycle()
+    assert query(firmware, Reg.HOMEOFFSET)[0] == 0.0
+
+
+def test_power_cycle_restores_power_up_flags() -> None:
+    fw = homed(firmware_between_stops())
+    fw.power_cycle()
+    assert fw.flags == POWER_UP
+
+
+def test_power_cycle_keeps_the_rotor_and_zeroes_the_encoder_there() -> None:
+    fw = homed(firmware_between_stops())
+    fw.power_cycle()
+    assert fw.motor.position_deg == 360.0
+    assert query(fw, Reg.ANGLEMOVED)[0] == 0.0
+
+
+# --------------------------------------------------------- SETUP and stall
+
+
+def test_enablestallguard_clears_stall() -> None:
+    fw = stalled(firmware_between_stops())
+    assert not command(fw, Reg.ENABLESTALLGUARD, 6) & Flag.STALL
+
+
+def test_setup_clears_stall_and_not_enabled() -> None:
+    fw = stalled(firmware_between_stops())
+    command(fw, Reg.DISABLECLOSEDLOOP, 0)
+    assert command(fw, Reg.SETUP, SETUP_20_20) & (Flag.STALL | Flag.NOT_ENABLED) == 0
+
+
+def test_setup_disables_stall_detection() -> None:
+    fw = stalled(firmware_between_stops())
+    command(fw, Reg.SETUP, SETUP_20_20)
+    command(fw, Reg.SETRPM, -10.0)
+    fw.motor.blocked = True
+    for _ in range(50):
+        ticks(fw)
+        ping_flags(fw)
+    assert not fw.flags & Flag.STALL
+
+
+def test_stall_stops_the_motor() -> None:
+    fw = stalled(firmware_between_stops())
+    before = fw.motor.position_deg
+    ticks(fw, 20)
+    assert fw.motor.position_deg == before
+    assert query(fw, Reg.GETENCODERRPM)[0] == 0.0
+
+
+@pytest.mark.parametrize("reg", [Reg.SETCURRENT, Reg.SETHOLDCURRENT])
+def test_zero_current_sets_not_enabled(reg: Reg) -> None:
+    fw = enabled(firmware_between_stops())
+    assert command(fw, reg, 0) & Flag.NOT_ENABLED
+
+
+def test_disableclosedloop_sets_not_enabled() -> None:
+    fw = enabled(firmware_between_stops())
+    assert command(fw, Reg.DISABLECLOSEDLOOP, 0) & Flag.NOT_ENABLED
+
+
+# ----------------------------------------------------------------- deadman
+
+
+def velocity_mode(fw: JointFirmware, rpm: float = -10.0) -> JointFirmware:
+    homed(fw)
+    command(fw, Reg.SETRPM, rpm)
+    return fw
+
+
+def test_deadman_sets_not_enabled_after_silence_in_velocity_mode() -> None:
+    fw = velocity_mode(firmware_between_stops())
+    ticks(fw, 6)
+    assert fw.flags & Flag.NOT_ENABLED
+
+
+def test_deadman_tolerates_40ms_of_silence() -> None:
+    fw = velocity_mode(firmware_between_stops())
+    ticks(fw, 4)
+    assert not fw.flags & Flag.NOT_ENABLED
+
+
+def test_deadman_is_fed_by_any_transaction() -> None:
+    fw = velocity_mode(firmware_between_stops())
+    for _ in range(20):
+        ticks(fw, 4)
+        fw.transfer(b"", 1)
+    assert not fw.flags & Flag.NOT_ENABLED
+
+
+def test_deadman_stops_the_motor() -> None:
+    fw = velocity_mode(firmware_between_stops())
+    ticks(fw, 100)
+    assert fw.motor.velocity_dps == 0.0
+
+
+def test_deadman_ignores_zero_velocity_set_point() -> None:
+    fw = velocity_mode(firmware_between_stops(), rpm=0.0)
+    ticks(fw, 100)
+    assert not fw.flags & Flag.NOT_ENABLED
+
+
+def test_deadman_ignores_position_mode() -> None:
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.MOVETOANGLE, -600.0)
+    ticks(fw, 100)
+    assert not fw.flags & Flag.NOT_ENABLED
+    assert fw.motor.velocity_dps != 0.0
+
+
+def test_deadman_ignores_idle_joint() -> None:
+    fw = homed(firmware_between_stops())
+    ticks(fw, 100)
+    assert not fw.flags & Flag.NOT_ENABLED
+
+
+def test_deadman_does_not_interrupt_homing() -> None:
+    fw = enabled(firmware_between_stops())
+    command(fw, Reg.HOME, HOME_POSITIVE)
+    ticks(fw, 800)  # 0.5 s settle + 360 deg at 60 deg/s, all in silence
+    assert fw.flags == 0
+
+
+# ------------------------------------------------- stall detection: the rules
+
+
+@pytest.mark.parametrize(
+    ("omega", "sensitivity", "expected"),
+    [
+        (0.0, 6, 60.0),
+        (11.99, 6, 60.0),
+        (12.0, 6, 150.0),
+        (100.0, 6, 150.0),
+        (450.0, 6, 150.0),
+        (450.01, 6, 60.0),
+        (-12.0, 6, 150.0),
+        (-450.0, 6, 150.0),
+        (-451.0, 6, 60.0),
+        (0.0, 0, 0.0),
+        (200.0, 255, 2640.0),
+    ],
+)
+def test_stall_threshold_is_10x_sensitivity_plus_90_in_mid_band(
+    omega: float, sensitivity: int, expected: float
+) -> None:
+    assert stall_threshold(omega, sensitivity) == expected
+
+
+def test_sustained_error_trips_when_the_low_pass_crosses_the_threshold(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor
+) -> None:
+    # x_n = 100 (1 - 0.9^n) with Ts/tau = 0.1 crosses 60 at n = 9 (0.9^8 = 0.43, 0.9^9 = 0.387).
+    tripped = feed(guarded_core, fake_motor, [100.0] * 10)
+    assert tripped.index(True) == 8
+
+
+def test_error_at_the_threshold_never_trips(guarded_core: FirmwareCore, fake_motor: FakeMotor) -> None:
+    assert not any(feed(guarded_core, fake_motor, [60.0] * 300))
+
+
+def test_mid_band_speed_raises_the_threshold(guarded_core: FirmwareCore, fake_motor: FakeMotor) -> None:
+    fake_motor.velocity_dps = math.degrees(20.0)  # 20 rad/s: threshold 150
+    assert not any(feed(guarded_core, fake_motor, [100.0] * 100))
+
+
+def test_single_jump_above_100_is_ignored_for_that_tick(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor
+) -> None:
+    # Fed to the low pass, 1000 would make x = 100 > 60 at once.
+    assert feed(guarded_core, fake_motor, [0.0, 0.0, 1000.0]) == [False, False, False]
+
+
+@pytest.mark.parametrize(("jump", "taken"), [(100.0, True), (100.5, False)])
+def test_spike_filter_limit_is_a_jump_of_more_than_100(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor, jump: float, taken: bool
+) -> None:
+    # Threshold 0 (sensitivity 0): any sample the low pass takes trips at once.
+    guarded_core.write(Reg.ENABLESTALLGUARD, 0, 0.0)
+    assert feed(guarded_core, fake_motor, [jump]) == [taken]
+
+
+def test_sustained_step_above_100_is_taken_one_tick_late(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor
+) -> None:
+    # 0 -> 1000 held: the first tick is a spike (u = 0), from the second on u = 1000, x = 100 > 60.
+    assert feed(guarded_core, fake_motor, [1000.0, 1000.0]) == [False, True]
+
+
+def test_stall_trip_resets_the_filter_and_holds_the_motor(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor
+) -> None:
+    feed(guarded_core, fake_motor, [100.0] * 9)
+    assert guarded_core.has(Flag.STALL)
+    assert guarded_core._filter_x == 0.0  # internal state: not observable over the bus
+    assert guarded_core._filter_last == 0.0
+    assert guarded_core.pid_error == 0.0
+
+
+def test_stall_detection_off_until_enabled(fake_motor: FakeMotor) -> None:
+    core = FirmwareCore(fake_motor, 0.0)
+    core.write(Reg.SETUP, SETUP_20_20, 0.0)
+    assert not any(feed(core, fake_motor, [5000.0] * 50))
+
+
+def test_stall_detection_paused_while_a_blocking_command_runs(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor
+) -> None:
+    guarded_core.write(Reg.CHECKORIENTATION, 2.0, 0.0)
+    fake_motor.set_error(100.0)
+    for _ in range(20):
+        guarded_core.tick()
+        fake_motor.set_error(100.0)
+    assert not guarded_core.has(Flag.STALL)
