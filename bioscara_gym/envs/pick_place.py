@@ -1,0 +1,175 @@
+"""Bioscara-PickPlace: pick a block off the table and place it at a target."""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+
+from bioscara_gym import kinematics
+from bioscara_gym.envs.base import BioscaraEnv
+
+#: Block edge length in m (``geom block`` in ``assets/scene.xml``).
+BLOCK_SIZE = 0.03
+#: The gripper's width is measured between the finger pads' mid-planes; the clear
+#: gap is this much narrower (``assets/README.md``, "Gripper").
+PAD_THICKNESS = 0.02
+#: TCP below the block centre, m, when grasped (fingertips near the block's bottom).
+GRASP_DEPTH = 0.015
+
+
+class KinematicBlock:
+    """The block where there is no physics (``mock``, ``i2c``): carried when grasped.
+
+    The block is held when the gripper is commanded narrower than the block
+    with the TCP within 1.5 cm (horizontally) of the block's centre and below
+    its top; it falls back to the table when the gripper opens. On the real
+    arm this stands in for an external block sensor, which the testbed does
+    not have.
+    """
+
+    def __init__(self) -> None:
+        """Start with the block at the origin, not held."""
+        self.pos = np.zeros(3)
+        self.yaw = 0.0
+        self.held = False
+        self._offset = np.zeros(3)
+
+    def place(self, pos: np.ndarray, yaw: float) -> None:
+        """Put the block at ``pos`` with ``yaw`` (rad), not held."""
+        self.pos = np.asarray(pos, dtype=float).copy()
+        self.yaw = yaw
+        self.held = False
+
+    def update(self, tcp: np.ndarray, width: float) -> None:
+        """Carry, grasp or drop the block after a control step."""
+        closed = width - PAD_THICKNESS < BLOCK_SIZE
+        if self.held and not closed:
+            self.held = False
+            self.pos[2] = BLOCK_SIZE / 2
+        elif not self.held and closed:
+            d = tcp - self.pos
+            if math.hypot(d[0], d[1]) < 0.015 and -BLOCK_SIZE < d[2] < BLOCK_SIZE / 2:
+                self.held = True
+                self._offset = self.pos - tcp
+        if self.held:
+            self.pos = tcp + self._offset
+            self.pos[2] = max(self.pos[2], BLOCK_SIZE / 2)
+
+
+class BioscaraPickPlaceEnv(BioscaraEnv):
+    """Pick a 3 cm block off the table and place it at a target position.
+
+    ## Description
+    Same arm, backends and conventions as ``Bioscara-Reach`` (see
+    :class:`~bioscara_gym.envs.reach.BioscaraReachEnv`), plus the gripper. The
+    block lies on the table within reach, with a random yaw; the target is on
+    the table or up to 5 cm above it (the lift moves at 0.03 m/s). The gap
+    between the finger pads is the commanded width minus 2 cm, so the block
+    is touched at a width of 0.05 m and squeezed at 0.04 m.
+
+    ## Action space
+    ``Box(-1, 1, (5,), float32)``: the four joint commands of Reach, then the
+    gripper opening mapped onto [0.04, 0.12] m.
+
+    ## Observation space
+    | key           | shape | content                                                            |
+    |---------------|-------|--------------------------------------------------------------------|
+    | observation   | (22,) | Reach's 12 values, block position (3), block minus TCP (3),         |
+    |               |       | block linear velocity (3), block yaw (1)                            |
+    | achieved_goal | (3,)  | block position in m                                                 |
+    | desired_goal  | (3,)  | target position in m                                                |
+
+    On ``sim`` and ``emulated`` the block is simulated by MuJoCo; on ``mock``
+    and ``i2c`` a kinematic stand-in (:class:`KinematicBlock`) is carried when
+    grasped, since the testbed has no block sensor.
+
+    ## Rewards, episode end, arguments
+    As Reach: dense (minus block-target distance) or sparse, a stall ends the
+    episode with -10, ``max_episode_steps`` 200 (8 s at 25 Hz), and the same
+    kwargs (``distance_threshold`` default 0.01 m).
+
+    ## Version history
+    * v0: initial release.
+    """
+
+    uses_gripper = True
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        """See the class docstring for the arguments."""
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._block = KinematicBlock()
+        self.block_yaw = 0.0
+        if self.sim is not None:
+            m = self.sim.model
+            jid = m.joint("block").id
+            self._block_qadr = int(m.jnt_qposadr[jid])
+            self._block_dadr = int(m.jnt_dofadr[jid])
+
+    def _obs_size(self) -> int:
+        return 2 * len(self.joint_names) + 1 + 3 + 3 + 3 + 3 + 1
+
+    def _random_pose(self) -> np.ndarray:
+        """TCP above the table, clear of the block's top, anywhere in reach."""
+        q = super()._random_pose()
+        z = self.np_random.uniform(BLOCK_SIZE + 0.01, BLOCK_SIZE + 0.03)
+        q[1] = z - kinematics.TCP_Z0
+        return q
+
+    def _sample_table_point(self, r_min: float = 0.25, r_max: float = 0.55) -> np.ndarray:
+        """A point on the table within the arm's planar reach."""
+        r = self.np_random.uniform(r_min, r_max)
+        phi = self.np_random.uniform(-2.5, 2.5)
+        return np.array([r * math.cos(phi), r * math.sin(phi), BLOCK_SIZE / 2])
+
+    def _reset_task(self) -> None:
+        tcp = self.tcp_position()
+        while True:
+            block = self._sample_table_point()
+            if np.linalg.norm(block[:2] - tcp[:2]) > 0.08:
+                break
+        while True:
+            target = self._sample_table_point()
+            if np.linalg.norm(target[:2] - block[:2]) > 0.1:
+                break
+        if self.np_random.random() < 0.5:
+            target[2] += self.np_random.uniform(0.0, 0.05)
+        self.goal = target
+        self.block_yaw = float(self.np_random.uniform(-math.pi / 4, math.pi / 4))
+        if self.sim is not None:
+            d, a = self.sim.data, self._block_qadr
+            d.qpos[a : a + 3] = block
+            d.qpos[a + 3 : a + 7] = [math.cos(self.block_yaw / 2), 0, 0, math.sin(self.block_yaw / 2)]
+            d.qvel[self._block_dadr : self._block_dadr + 6] = 0.0
+            mujoco.mj_forward(self.sim.model, d)
+        else:
+            self._block.place(block, self.block_yaw)
+
+    def _block_state(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Block position (m), linear velocity (m/s) and yaw (rad)."""
+        if self.sim is None:
+            self._block.update(self.tcp_position(), self.arm.gripper_command)
+            return self._block.pos.copy(), np.zeros(3), self._block.yaw
+        d, a = self.sim.data, self._block_qadr
+        w, x, y, z = d.qpos[a + 3 : a + 7]
+        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        return d.qpos[a : a + 3].copy(), d.qvel[self._block_dadr : self._block_dadr + 3].copy(), yaw
+
+    def _get_obs(self) -> dict[str, np.ndarray]:
+        tcp = self.tcp_position()
+        block, block_vel, yaw = self._block_state()
+        observation = np.concatenate((self._joint_obs(), block, block - tcp, block_vel, (yaw,)))
+        return {"observation": observation, "achieved_goal": block, "desired_goal": self.goal.copy()}
+
+    def _viz_model(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
+        model, data = super()._viz_model()
+        if self.sim is None:
+            a = int(model.jnt_qposadr[model.joint("block").id])
+            yaw = self._block.yaw
+            data.qpos[a : a + 3] = self._block.pos
+            data.qpos[a + 3 : a + 7] = [math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]
+            mujoco.mj_forward(model, data)
+        return model, data
+
+

@@ -1,0 +1,120 @@
+"""Bioscara-Reach: bring the tool centre point to a goal in space."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bioscara_gym import kinematics
+from bioscara_gym.envs.base import BioscaraEnv
+
+#: Episode length when the env is not made through ``gym.make`` (2 s at 25 Hz).
+DEFAULT_EPISODE_STEPS = 50
+
+
+def reachable_travel(v_max: np.ndarray, a_max: np.ndarray, t: float) -> np.ndarray:
+    """Distance a trapezoidal profile covers from rest in ``t`` seconds and stops.
+
+    Accelerate, cruise, brake within ``t``: ``a t^2 / 4`` when the peak speed is
+    below ``v_max``, else ``v_max (t - v_max / a_max)``.
+    """
+    t_peak = 2.0 * v_max / a_max
+    triangular = a_max * t * t / 4.0
+    trapezoid = v_max * (t - v_max / a_max)
+    return np.where(t <= t_peak, triangular, trapezoid)
+
+
+class BioscaraReachEnv(BioscaraEnv):
+    """Move the Bioscara's tool centre point (TCP) to a goal position.
+
+    ## Description
+    The policy commands the four joints of the Bioscara SCARA arm through the
+    joint driver API (``set_velocity`` or ``set_position`` on each joint), on a
+    simulated arm (``backend="sim"``) or on the real one (``backend="i2c"``)
+    without a change. Goals are sampled where the arm can reach them within
+    the episode under its joint speed and acceleration limits (the lift j2
+    moves at only 0.03 m/s).
+
+    ## Action space
+    ``Box(-1, 1, (4,), float32)``; one entry per joint, scaled to the joint:
+
+    | idx | joint | velocity mode (default)      | position mode                   |
+    |-----|-------|------------------------------|---------------------------------|
+    | 0   | j1    | × 1.0 rad/s                  | [-3.04647, 3.04647] rad         |
+    | 1   | j2    | × 0.03 m/s                   | [-0.0016, 0.338] m              |
+    | 2   | j3    | × 5.0 rad/s                  | [-2.62672, 2.62672] rad         |
+    | 3   | j4    | × 10.0 rad/s                 | [-3.01069, 3.01069] rad         |
+
+    Position targets keep 2 % of each range clear of the end stops; velocity
+    commands are braked so a joint stops before its end stop (soft limits), so
+    only obstacles and overloads stall a joint.
+
+    ## Observation space
+    ``Dict`` with:
+
+    | key             | shape | content                                                        |
+    |-----------------|-------|----------------------------------------------------------------|
+    | observation     | (12,) | joint positions scaled to [-1, 1] by their limits (4),         |
+    |                 |       | joint velocities divided by their max velocity (4), gripper    |
+    |                 |       | width scaled to [-1, 1] (1), TCP position x, y, z in m (3)      |
+    | achieved_goal   | (3,)  | TCP position in m, from the measured joints (forward kinematics)|
+    | desired_goal    | (3,)  | goal position in m                                             |
+
+    ## Rewards
+    ``dense`` (default): minus the distance between TCP and goal in m.
+    ``sparse``: 0 within ``distance_threshold``, else -1. A stall adds -10 and
+    ends the episode. ``compute_reward`` is vectorized (for HER).
+
+    ## Episode end
+    ``terminated`` when a joint stalls (``info["stalled"]``, ``info["stalled_joint"]``);
+    ``truncated`` after ``max_episode_steps`` (50, i.e. 2 s at 25 Hz).
+    ``info["is_success"]`` is True within ``distance_threshold`` of the goal.
+
+    ## Starting state
+    The first reset configures, activates and homes the arm through the home
+    command interface (in simulation too: each joint drives into its end
+    stop). Later resets keep the homed arm and start from a pose drawn
+    uniformly within the joint limits.
+
+    ## Arguments
+    | kwarg              | default    | meaning                                                       |
+    |--------------------|------------|---------------------------------------------------------------|
+    | backend            | "sim"      | "sim", "mock", "emulated" (real driver, emulated bus), "i2c"  |
+    | control_mode       | "velocity" | "velocity" or "position"                                      |
+    | control_freq       | 25.0       | control rate in Hz; >= 20 (the joints' 50 ms deadman)         |
+    | reward_type        | "dense"    | "dense" or "sparse"                                           |
+    | distance_threshold | 0.01       | success radius in m                                           |
+    | randomization      | None       | DomainRandomization / dict / True: masses, friction, damping, |
+    |                    |            | sensor noise, command latency (seeded by ``reset(seed=)``)    |
+    | render_mode        | None       | "rgb_array" or "human"                                        |
+    | config             | None       | ArmConfig or YAML path (default: the packaged SPEC values)    |
+    | backend_options    | None       | dict passed to the backend (e.g. ``faults`` for "emulated")   |
+    | width, height      | 480, 480   | rendered image size in pixels                                 |
+
+    ``max_episode_steps`` is ``gym.make``'s argument (default 50).
+
+    ## Version history
+    * v0: initial release.
+    """
+
+    def _obs_size(self) -> int:
+        return 2 * len(self.joint_names) + 1 + 3
+
+    def _episode_seconds(self) -> float:
+        steps = self.spec.max_episode_steps if self.spec and self.spec.max_episode_steps else None
+        return (steps or DEFAULT_EPISODE_STEPS) * self.dt
+
+    def _reset_task(self) -> None:
+        """Sample a goal the arm can reach in ~60 % of the episode from here."""
+        travel = reachable_travel(self._vmax, self._amax, 0.6 * self._episode_seconds())
+        lo = np.maximum(self._cmd_lo, self._q - travel)
+        hi = np.minimum(self._cmd_hi, self._q + travel)
+        self.goal_joints = self.np_random.uniform(lo, hi)
+        self.goal = kinematics.forward(self.goal_joints)
+
+    def _get_obs(self) -> dict[str, np.ndarray]:
+        tcp = self.tcp_position()
+        return {
+            "observation": self._joint_obs(),
+            "achieved_goal": tcp,
+            "desired_goal": self.goal.copy(),
+        }
