@@ -94,8 +94,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     uses_gripper = False
     #: Reward when a stall ends the episode.
     stall_penalty = -10.0
-    #: Fraction of each joint's range kept clear of the end stops by commands.
-    limit_margin = 0.02
+    #: Commands stay this far inside the end stops: rad for revolute joints, m for the lift.
+    limit_margin = {"revolute": 0.03, "prismatic": 0.002}
 
     def __init__(
         self,
@@ -145,7 +145,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._joint_cfgs = [self.config.joint(n) for n in self.joint_names]
         self._lo = np.array([j.min for j in self._joint_cfgs])
         self._hi = np.array([j.max for j in self._joint_cfgs])
-        margin = self.limit_margin * (self._hi - self._lo)
+        margin = np.array([self.limit_margin[j.joint_type] for j in self._joint_cfgs])
         self._cmd_lo, self._cmd_hi = self._lo + margin, self._hi - margin
         self._vmax = np.array([j.max_velocity for j in self._joint_cfgs])
         self._amax = np.array([j.max_acceleration for j in self._joint_cfgs])

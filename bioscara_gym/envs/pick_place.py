@@ -117,20 +117,30 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
         q[1] = z - kinematics.TCP_Z0
         return q
 
-    def _sample_table_point(self, r_min: float = 0.25, r_max: float = 0.55) -> np.ndarray:
-        """A point on the table within the arm's planar reach."""
-        r = self.np_random.uniform(r_min, r_max)
-        phi = self.np_random.uniform(-2.5, 2.5)
-        return np.array([r * math.cos(phi), r * math.sin(phi), BLOCK_SIZE / 2])
+    def _sample_table_point(self, near: np.ndarray) -> np.ndarray:
+        """A point on the table within reach, at most ``SECTOR`` rad around ``near``'s bearing.
+
+        The sector keeps every leg of the task within what j1 (1 rad/s) can
+        swing in a couple of seconds, so the episode is long enough.
+        """
+        bearing = math.atan2(near[1], near[0])
+        while True:
+            r = self.np_random.uniform(0.25, 0.55)
+            phi = bearing + self.np_random.uniform(-self.SECTOR, self.SECTOR)
+            if abs(phi) < 2.8:  # j1 stops at +-3.05 rad
+                return np.array([r * math.cos(phi), r * math.sin(phi), BLOCK_SIZE / 2])
+
+    #: Half-width in rad of the sectors blocks and targets are drawn from.
+    SECTOR = 1.0
 
     def _reset_task(self) -> None:
         tcp = self.tcp_position()
         while True:
-            block = self._sample_table_point()
+            block = self._sample_table_point(tcp)
             if np.linalg.norm(block[:2] - tcp[:2]) > 0.08:
                 break
         while True:
-            target = self._sample_table_point()
+            target = self._sample_table_point(block)
             if np.linalg.norm(target[:2] - block[:2]) > 0.1:
                 break
         if self.np_random.random() < 0.5:

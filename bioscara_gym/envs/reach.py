@@ -44,7 +44,7 @@ class BioscaraReachEnv(BioscaraEnv):
     | 2   | j3    | × 5.0 rad/s                  | [-2.62672, 2.62672] rad         |
     | 3   | j4    | × 10.0 rad/s                 | [-3.01069, 3.01069] rad         |
 
-    Position targets keep 2 % of each range clear of the end stops; velocity
+    Position targets stay 0.03 rad (2 mm for j2) inside the end stops; velocity
     commands are braked so a joint stops before its end stop (soft limits), so
     only obstacles and overloads stall a joint.
 
