@@ -2,16 +2,31 @@
 
 from __future__ import annotations
 
+import os
+
+# Headless rendering; must be set before anything imports mujoco.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import dataclasses
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import pytest
 from rigs import J1, RIG_FACTORIES, EmulatedJoint, JointRig, build_emulated
 
+from bioscara_gym.hardware.backends import Backend, make_backend
+from bioscara_gym.hardware.base_joint import BUSY_POLL_S
 from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.motor import KinematicStepper
+from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.sim import ArmSim
 
 
 class ScriptedBus:
@@ -102,3 +117,159 @@ def make_emulated_j1() -> Callable[..., EmulatedJoint]:
         return build_emulated(J1, start_q=2.9, faults=faults, retries=retries)
 
     return make
+
+
+# ------------------------------------------------------------ arm backends
+
+#: Backends an :class:`~bioscara_gym.hardware.arm.Arm` runs on without hardware.
+ARM_BACKENDS = ("mock", "sim", "emulated")
+
+
+@pytest.fixture
+def gripper_state_file(tmp_path: Path) -> Path:
+    """The gripper's state file under ``tmp_path``, holding the backup width 0.08 m."""
+    path = tmp_path / "state" / "gripper.json"
+    path.parent.mkdir()
+    path.write_text('{"width_m": 0.08}\n', encoding="utf-8")
+    return path
+
+
+@pytest.fixture
+def make_arm_backend(gripper_state_file: Path) -> Iterator[Callable[..., Backend]]:
+    """Factory ``make(name, **options)`` of backends keeping the gripper width in ``tmp_path``.
+
+    ``state_file`` defaults to :func:`gripper_state_file`; every backend built
+    is closed at teardown.
+    """
+    built: list[Backend] = []
+
+    def make(name: str, **options: object) -> Backend:
+        options.setdefault("state_file", gripper_state_file)
+        backend = make_backend(name, **options)
+        built.append(backend)
+        return backend
+
+    yield make
+    for backend in built:
+        backend.close()
+
+
+# ------------------------------------------------------------------ gym envs
+
+
+@pytest.fixture
+def make_env() -> Iterator[Callable[..., gym.Env]]:
+    """Factory ``make(env_id="Bioscara-Reach-v0", **kwargs)`` of ``gym.make`` envs, closed at teardown."""
+    made: list[gym.Env] = []
+
+    def make(env_id: str = "Bioscara-Reach-v0", **kwargs: object) -> gym.Env:
+        env = gym.make(env_id, **kwargs)
+        made.append(env)
+        return env
+
+    yield make
+    for env in made:
+        env.close()
+
+
+# ------------------------------------------------------------- MuJoCo arm (test_sim)
+
+#: Names of the backends with MuJoCo behind them.
+MUJOCO_BACKENDS = ("sim", "emulated")
+
+
+def homing_config(direction: int) -> ArmConfig:
+    """The packaged configuration with every joint homing towards ``max`` (+1) or ``min`` (-1)."""
+    config = load_config()
+    joints = tuple(
+        dataclasses.replace(j, homing=dataclasses.replace(j.homing, speed=direction * abs(j.homing.speed)))
+        for j in config.joints
+    )
+    return dataclasses.replace(config, joints=joints)
+
+
+def ready_arm(backend: Backend) -> Backend:
+    """``init`` and enable every joint with its configured currents and limits, as the arm layer does."""
+    for name, joint in backend.joints.items():
+        j = backend.config.joint(name)
+        joint.init()
+        joint.enable(j.drive_current, j.hold_current)
+        joint.set_max_velocity(j.max_velocity)
+        joint.set_max_acceleration(j.max_acceleration)
+    return backend
+
+
+def near_max_pose(config: ArmConfig, margin: float = 0.005) -> dict[str, float]:
+    """Every joint ``margin`` of its range inside ``max``: homing there takes ~1 s of simulated time."""
+    return {j.name: j.max - margin * (j.max - j.min) for j in config.joints}
+
+
+@pytest.fixture(params=MUJOCO_BACKENDS)
+def mujoco_arm(request: pytest.FixtureRequest) -> Iterator[Backend]:
+    """A ``sim`` or ``emulated`` backend at :func:`near_max_pose`, every joint enabled, none homed."""
+    with make_backend(request.param, initial_qpos=near_max_pose(load_config())) as backend:
+        yield ready_arm(backend)
+
+
+@dataclass
+class HomingRun:
+    """One joint homed in the MuJoCo arm from 2 % of its range inside the end stop.
+
+    Attributes:
+        backend: The ``sim`` backend, left as homing left it.
+        name: The joint homed.
+        direction: +1 homed to ``max``, -1 to ``min``.
+        limit: The end stop homed to (rad or m).
+        start: True position when homing started.
+        elapsed_s: Simulated time ``home`` took (start, wait while BUSY, post).
+        times: Simulated time of each 10 ms poll while BUSY, from the start.
+        qpos: True joint position at each poll.
+    """
+
+    backend: Backend
+    name: str
+    direction: int
+    limit: float
+    start: float
+    elapsed_s: float
+    times: np.ndarray
+    qpos: np.ndarray
+
+
+@pytest.fixture(
+    scope="module",
+    params=[(n, d) for n in ("j1", "j2", "j3", "j4") for d in (1, -1)],
+    ids=lambda p: f"{p[0]}-{'max' if p[1] > 0 else 'min'}",
+)
+def homing_run(request: pytest.FixtureRequest) -> HomingRun:
+    """Each joint homed to each end stop in physics, recorded poll by poll.
+
+    The arm powers up at :meth:`ArmSim.parked_pose` of a configuration whose
+    homing speeds all point the chosen way, i.e. 2 % of each range inside the
+    end stop homing drives to; every joint is enabled (so the others hold).
+    Homing is ``BaseJoint.home`` spelled out so every poll can be recorded.
+    """
+    name, direction = request.param
+    config = homing_config(direction)
+    backend = ready_arm(make_backend("sim", config))
+    sim: ArmSim = backend.sim  # type: ignore[assignment]
+    joint, j = backend.joints[name], config.joint(name)
+    qadr = sim.model.joint(name).qposadr[0]
+    start, t0 = float(sim.data.qpos[qadr]), backend.clock.now()
+    times, qpos = [], []
+    joint.start_homing(j.homing.speed, j.homing.threshold, j.homing.current)
+    while joint.get_flags() & Flag.BUSY:
+        times.append(backend.clock.now() - t0)
+        qpos.append(float(sim.data.qpos[qadr]))
+        backend.clock.sleep(BUSY_POLL_S)
+    joint.post_homing()
+    return HomingRun(
+        backend=backend,
+        name=name,
+        direction=direction,
+        limit=j.max if direction > 0 else j.min,
+        start=start,
+        elapsed_s=backend.clock.now() - t0,
+        times=np.array(times),
+        qpos=np.array(qpos),
+    )

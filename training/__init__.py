@@ -1,0 +1,1 @@
+"""Training, evaluation and deployment of policies for the Bioscara tasks (``bioscara`` CLI)."""

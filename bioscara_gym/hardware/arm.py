@@ -158,8 +158,12 @@ class Arm:
     def deactivate(self) -> None:
         """Disable every joint (back-drivable) and the gripper; state keeps updating."""
         self._require(Lifecycle.ACTIVE, action="deactivate")
-        self._disable_all()
-        self.state = Lifecycle.INACTIVE
+
+        def body() -> None:
+            self._disable_all()
+            self.state = Lifecycle.INACTIVE
+
+        self._transition(body)
 
     def _disable_all(self) -> None:
         """Best effort: try every device even if one fails, then raise the first error."""
@@ -235,7 +239,11 @@ class Arm:
                 already active on the joint (release it first).
             NotHomedError: Position or velocity on an unhomed joint.
         """
-        mode = CommandMode(mode)
+        try:
+            mode = CommandMode(mode)
+        except ValueError:
+            modes = ", ".join(m.value for m in CommandMode if m is not CommandMode.NONE)
+            raise InvalidArgumentError(f"{name}: unknown command mode {mode!r}; expected {modes}") from None
         self._require(Lifecycle.ACTIVE, action=f"claim {mode.value} on {name}")
         current = self._mode(name)
         if current is mode:
@@ -266,9 +274,13 @@ class Arm:
         mode = self._mode(name)
         if mode is CommandMode.HOME and name in self._homing:
             raise ArmStateError(f"{name}: homing is running; abort it (home command 0) before releasing")
-        if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE:
-            self.joints[name].set_velocity(0.0)
         self.modes[name] = CommandMode.NONE
+        if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE:
+            try:
+                self.joints[name].set_velocity(0.0)
+            except JointError:
+                self._fail()
+                raise
 
     def _mode(self, name: str) -> CommandMode:
         try:
@@ -339,6 +351,8 @@ class Arm:
             self.commands[name] = 0.0
             try:
                 joint.post_homing()
+            except NotHomedError:
+                pass  # aborted or failed: the state says not homed; home() reports it
             finally:
                 cfg = self.config.joint(name)
                 joint.set_max_acceleration(cfg.max_acceleration)
@@ -414,7 +428,10 @@ class Arm:
             ArmStateError: Not active, or the timeout passed (homing stopped).
         """
         self._require(Lifecycle.ACTIVE, action="home")
-        todo = [n for n in (names or self.names) if not (only_unhomed and self.joints[n].is_homed())]
+        names = self.names if names is None else list(names)
+        for name in names:
+            self._mode(name)  # unknown names: InvalidArgumentError listing the joints
+        todo = [n for n in names if not (only_unhomed and self.joints[n].is_homed())]
         previous = {n: self.modes[n] for n in todo}
         for name in todo:
             if self.modes[name] is not CommandMode.HOME:

@@ -38,6 +38,19 @@ def default_state_dir() -> Path:
     return Path(base) / "bioscara"
 
 
+def gripper_state_file(config: ArmConfig, option: str | Path | None, default: bool) -> Path | None:
+    """Where the gripper keeps its last width: the option, else the config, else a default.
+
+    The default (``default_state_dir()/gripper.json``) applies to the real arm
+    only; simulated backends keep no state unless asked to.
+    """
+    if option is not None:
+        return Path(option)
+    if config.gripper.state_file:
+        return Path(config.gripper.state_file).expanduser()
+    return default_state_dir() / "gripper.json" if default else None
+
+
 class Backend:
     """Joints, gripper and clock of one arm.
 
@@ -98,7 +111,11 @@ class SimBackend(Backend):
 
         sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
         super().__init__(
-            config, make_sim_joints(sim), SimGripper(config.gripper, sim, state_file), sim.clock, sim
+            config,
+            make_sim_joints(sim),
+            SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False)),
+            sim.clock,
+            sim,
         )
 
     def step(self, dt: float) -> None:
@@ -139,7 +156,8 @@ class EmulatedBackend(Backend):
             j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, sim.clock)
             for j in config.joints
         }
-        super().__init__(config, joints, SimGripper(config.gripper, sim, state_file), sim.clock, sim)
+        gripper = SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False))
+        super().__init__(config, joints, gripper, sim.clock, sim)
 
     def step(self, dt: float) -> None:
         """Advance physics and firmware by ``dt`` seconds."""
@@ -168,7 +186,14 @@ class MockBackend(Backend):
             j.name: MockJoint(j.name, j.reduction, j.min, j.max, clock, homing_time_s) for j in config.joints
         }
         g = config.gripper
-        gripper = MockGripper(g.reduction, g.offset, g.min, g.max, g.backup_init_pos, state_file=state_file)
+        gripper = MockGripper(
+            g.reduction,
+            g.offset,
+            g.min,
+            g.max,
+            g.backup_init_pos,
+            state_file=gripper_state_file(config, state_file, default=False),
+        )
         super().__init__(config, joints, gripper, clock)
 
 
@@ -203,7 +228,7 @@ class I2CBackend(Backend):
             g.min,
             g.max,
             g.backup_init_pos,
-            state_file=state_file,
+            state_file=gripper_state_file(config, state_file, default=True),
             pwm_chip=g.pwm_chip,
             pwm_channel=g.pwm_channel,
             sysfs_root=sysfs_root,

@@ -116,6 +116,12 @@ class BaseJoint(abc.ABC):
         if self._flags & _NOT_HOMED:
             raise NotHomedError(f"{self.name}: joint not homed; home it before moving")
 
+    def _require_no_blocking(self) -> None:
+        if self._current_b_cmd is not Reg.NONE and self._flags & _BUSY:
+            raise IncorrectStateError(
+                f"{self.name}: {self._current_b_cmd.name} is still running; stop it first"
+            )
+
     def _send(self, reg: Reg, value: float | int) -> int:
         self._require_init()
         self._flags = self._command(reg, value)
@@ -265,10 +271,7 @@ class BaseJoint(abc.ABC):
             raise InvalidArgumentError(f"{self.name}: homing sensitivity {sensitivity!r} must be 0-255")
         self._check_percent(self.name, "homing current", current)
         self._require_enabled()
-        if self._current_b_cmd is not Reg.NONE and self._flags & _BUSY:
-            raise IncorrectStateError(
-                f"{self.name}: {self._current_b_cmd.name} is still running; stop it first"
-            )
+        self._require_no_blocking()
         direction = 1 if rpm > 0 else 0
         self._homing_offset = self.max if velocity > 0 else self.min
         self._current_b_cmd = Reg.HOME
@@ -382,10 +385,12 @@ class BaseJoint(abc.ABC):
         """Turn the motor ``angle`` degrees and back to check its wiring (blocking).
 
         Raises:
-            IncorrectStateError: Still busy after ``timeout_s`` (stopped).
+            IncorrectStateError: Another blocking command runs, or still busy
+                after ``timeout_s`` (stopped).
         """
         angle = self._check_finite("orientation angle", angle)
         self._require_enabled()
+        self._require_no_blocking()
         self._current_b_cmd = Reg.CHECKORIENTATION
         try:
             self._send(Reg.CHECKORIENTATION, angle)

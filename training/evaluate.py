@@ -1,0 +1,197 @@
+"""Evaluation of a policy or the scripted expert: success, distance, return, stalls."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from training.metadata import atomic_write_text, check_metadata, read_metadata
+
+Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
+
+
+@dataclass(frozen=True)
+class EvalStats:
+    """Aggregate results over ``episodes`` evaluation episodes."""
+
+    episodes: int
+    success_rate: float
+    mean_final_distance: float
+    mean_return: float
+    std_return: float
+    mean_length: float
+    stalls: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        """Plain dict for JSON."""
+        return asdict(self)
+
+
+def run_episodes(
+    env: gym.Env,
+    policy: Policy,
+    episodes: int,
+    seed: int = 0,
+    on_reset: Callable[[], None] | None = None,
+    frames: list[np.ndarray] | None = None,
+) -> EvalStats:
+    """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...).
+
+    Args:
+        env: The env (``render_mode="rgb_array"`` if ``frames`` is given).
+        policy: Maps an observation to an action.
+        episodes: How many episodes.
+        seed: Seed of the first episode.
+        on_reset: Called after each reset (e.g. to reset a stateful expert).
+        frames: If given, rendered frames of every step are appended.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    successes, distances, returns, lengths, stalls = 0, [], [], [], 0
+    for ep in range(episodes):
+        obs, info = env.reset(seed=seed + ep)
+        if on_reset is not None:
+            on_reset()
+        if frames is not None:
+            frames.append(env.render())
+        total, steps, done = 0.0, 0, False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(policy(obs))
+            total += float(reward)
+            steps += 1
+            done = terminated or truncated
+            if frames is not None:
+                frames.append(env.render())
+        successes += bool(info.get("is_success", False))
+        stalls += bool(info.get("stalled", False))
+        distances.append(float(info.get("distance", math.nan)))
+        returns.append(total)
+        lengths.append(steps)
+    return EvalStats(
+        episodes=episodes,
+        success_rate=successes / episodes,
+        mean_final_distance=float(np.mean(distances)),
+        mean_return=float(np.mean(returns)),
+        std_return=float(np.std(returns)),
+        mean_length=float(np.mean(lengths)),
+        stalls=stalls,
+    )
+
+
+def sb3_policy(model: Any) -> Policy:
+    """Deterministic actions of a stable-baselines3 model."""
+
+    def act(obs: dict[str, np.ndarray]) -> np.ndarray:
+        action, _ = model.predict(obs, deterministic=True)
+        return action
+
+    return act
+
+
+def load_model(path: Path, env: gym.Env | None = None) -> tuple[Any, dict[str, Any]]:
+    """Load a trained ``model.zip`` and its metadata (the algorithm is in the metadata).
+
+    Raises:
+        MetadataError: No or unreadable metadata.
+        FileNotFoundError: No model file.
+    """
+    from training.train import ALGOS
+
+    path = Path(path)
+    model_file = path / "model.zip" if path.is_dir() else path
+    metadata = read_metadata(model_file)
+    if not model_file.exists():
+        raise FileNotFoundError(f"no model at {model_file}")
+    algo = ALGOS[metadata.get("algo", "sac")]
+    model = algo.load(model_file, env=env, device="cpu")
+    return model, metadata
+
+
+def make_eval_env(
+    metadata: dict[str, Any], backend: str | None = None, render: bool = False, **overrides: Any
+) -> gym.Env:
+    """The env a policy was trained on, optionally on another backend."""
+    kwargs = dict(metadata.get("env_kwargs", {}))
+    if backend is not None:
+        kwargs["backend"] = backend
+    if render:
+        kwargs["render_mode"] = "rgb_array"
+    kwargs.update(overrides)
+    return gym.make(metadata["env_id"], **kwargs)
+
+
+def evaluate_model(
+    model_path: Path,
+    episodes: int = 100,
+    backend: str | None = None,
+    video: Path | None = None,
+    seed: int = 10_000,
+) -> EvalStats:
+    """Evaluate a trained policy on its env (refusing a metadata mismatch)."""
+    from training.train import ALGOS  # noqa: F401 - fail early if SB3 is broken
+
+    metadata = read_metadata(Path(model_path))
+    env = make_eval_env(metadata, backend, render=video is not None)
+    try:
+        check_metadata(metadata, env, metadata["env_id"])
+        model, _ = load_model(Path(model_path))
+        frames: list[np.ndarray] | None = [] if video is not None else None
+        stats = run_episodes(env, sb3_policy(model), episodes, seed=seed, frames=frames)
+        if video is not None and frames:
+            write_video(video, frames, fps=int(env.metadata.get("render_fps", 25)))
+        return stats
+    finally:
+        env.close()
+
+
+def evaluate_expert(
+    env_id: str,
+    episodes: int = 100,
+    backend: str = "sim",
+    video: Path | None = None,
+    seed: int = 10_000,
+    **env_kwargs: Any,
+) -> EvalStats:
+    """Evaluate the scripted expert of ``env_id``."""
+    from bioscara_gym.experts import expert_for
+
+    env = gym.make(env_id, backend=backend, render_mode="rgb_array" if video else None, **env_kwargs)
+    try:
+        expert = expert_for(env.unwrapped)
+        frames: list[np.ndarray] | None = [] if video is not None else None
+        stats = run_episodes(env, expert, episodes, seed=seed, on_reset=expert.reset, frames=frames)
+        if video is not None and frames:
+            write_video(video, frames, fps=int(env.metadata.get("render_fps", 25)))
+        return stats
+    finally:
+        env.close()
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
+    """Write an MP4 (or GIF by suffix) through imageio, atomically."""
+    import imageio.v2 as imageio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        imageio.mimsave(tmp, frames, fps=fps)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, stats: EvalStats, **extra: Any) -> None:
+    """Write the stats (plus ``extra``) as JSON, atomically."""
+    atomic_write_text(Path(path), json.dumps({**stats.as_dict(), **extra}, indent=2) + "\n")
