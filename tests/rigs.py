@@ -16,19 +16,26 @@ file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import mujoco
+import numpy as np
+
+from bioscara_gym.hardware.backends import Backend, EmulatedBackend, make_backend
 from bioscara_gym.hardware.base_joint import BaseJoint
-from bioscara_gym.hardware.clock import ManualClock
-from bioscara_gym.hardware.config import HomingConfig, JointConfig
+from bioscara_gym.hardware.clock import Clock, ManualClock
+from bioscara_gym.hardware.codec import pack_bytes
+from bioscara_gym.hardware.config import ArmConfig, HomingConfig, JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
 from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.sim import ArmSim, SimJoint
 
 #: Features a rig may have; tests that need one skip rigs without it.
 FEATURES = frozenset(
@@ -89,7 +96,8 @@ class JointRig:
         name: Rig id (used as the pytest parameter id).
         joint: The joint under test, created but not ``init()``-ed.
         params: The joint's parameters (limits, currents, homing, stall threshold).
-        clock: The rig's manual clock (``now()``, ``sleep(dt)``); the joint
+        clock: The rig's clock (``now()``, ``sleep(dt)``): a manual clock, or
+            the simulation's clock whose ``sleep`` steps physics; the joint
             waits on it.
         advance: ``advance(dt)`` lets ``dt`` seconds pass with no host
             traffic while the device keeps running its main loop.
@@ -101,12 +109,17 @@ class JointRig:
         block: Hold the joint so it cannot move (feature ``"stall"``).
         unblock: Release it again (feature ``"stall"``).
         power_cycle: Cut and restore the joint's power (feature ``"power_cycle"``).
+        power_up_at: Optional. Cut the power and restore it with the joint at
+            ``q`` (rad or m): a fresh device at another pose. Rigs whose homing
+            runs in simulated physics at the homing speed provide it, so a test
+            that homes to ``min`` can start near ``min`` instead of spending
+            minutes of simulated time travelling there.
     """
 
     name: str
     joint: BaseJoint
     params: JointConfig
-    clock: ManualClock
+    clock: Clock
     advance: Callable[[float], None]
     device_flags: Callable[[], Flag]
     restart_host: Callable[[], BaseJoint] = field(default=_unsupported("host_restart"))
@@ -114,6 +127,7 @@ class JointRig:
     block: Callable[[], None] = field(default=_unsupported("block"))
     unblock: Callable[[], None] = field(default=_unsupported("unblock"))
     power_cycle: Callable[[], None] = field(default=_unsupported("power_cycle"))
+    power_up_at: Callable[[float], None] | None = None
 
     def __post_init__(self) -> None:
         """Reject unknown feature names (a typo would silently skip tests)."""
@@ -250,9 +264,172 @@ def mock_j1() -> JointRig:
     )
 
 
+# ------------------------------------------------------------------ MuJoCo
+
+#: Power-up pose of the MuJoCo rigs. The joints under test (j1, j2) start a
+#: short homing run inside their ``max`` end stop (j1 0.047 rad = 1.6 s at
+#: 0.03 rad/s, j2 5 mm = 1.7 s at 3 mm/s); j3 and j4 are as in the model's
+#: ``home`` keyframe, the elbow bent so that the forearm stays clear of where
+#: :func:`place_obstacle` puts the obstacle for j1 and j2. With j1 near +-pi the
+#: arm reaches over the empty back of the table, away from the block.
+SIM_POSE = {"j1": 3.0, "j2": 0.333, "j3": 1.2, "j4": -0.6}
+
+#: The geom :func:`place_obstacle` puts the obstacle against, per joint: a part
+#: of the link that joint moves with nothing else of the arm beside it
+#: (j1 swings the elbow sideways, j2 lowers the upper arm onto the obstacle).
+OBSTACLE_TARGETS = {"j1": "elbow_housing", "j2": "upper_arm", "j3": "wrist_boss", "j4": "gripper_housing"}
+#: Where the scene parks the obstacle (under the floor).
+OBSTACLE_PARKED = (0.0, 0.0, -2.0)
+#: Free gap left between the link and the obstacle, m.
+OBSTACLE_GAP_M = 0.0005
+
+
+def _support(geom_type: int, size: np.ndarray, xmat: np.ndarray, u: np.ndarray) -> float:
+    """Half-extent of a box or cylinder along the unit vector ``u`` (its support function)."""
+    local = xmat.reshape(3, 3).T @ u
+    if geom_type == mujoco.mjtGeom.mjGEOM_BOX:
+        return float(np.abs(local) @ size[:3])
+    if geom_type == mujoco.mjtGeom.mjGEOM_CYLINDER:
+        return float(size[0] * math.hypot(local[0], local[1]) + size[1] * abs(local[2]))
+    raise ValueError(f"geom type {geom_type} has no support function here")
+
+
+def place_obstacle(sim: ArmSim, joint: str, direction: int = -1, gap: float = OBSTACLE_GAP_M) -> None:
+    """Move the scene's mocap obstacle into ``joint``'s way.
+
+    The obstacle (a 0.06 x 0.06 x 0.2 m box that collides with the arm's
+    links) is put ``gap`` ahead of the link in :data:`OBSTACLE_TARGETS`, in
+    the direction that link moves when ``joint`` turns (or slides) with the
+    sign of ``direction``, a face square to that motion. With the default
+    gap a joint moving at a fraction of its max velocity touches it within
+    tens of milliseconds and is then held by contact.
+
+    Args:
+        sim: The simulated arm.
+        joint: Joint name.
+        direction: +1 or -1, the sign of the joint velocity to block.
+        gap: Free gap between link and obstacle, m.
+    """
+    m, d = sim.model, sim.data
+    mujoco.mj_kinematics(m, d)
+    geom = m.geom(OBSTACLE_TARGETS[joint])
+    p = d.geom_xpos[geom.id].copy()
+    jacp = np.zeros((3, m.nv))
+    mujoco.mj_jac(m, d, jacp, None, p, int(geom.bodyid[0]))
+    v = direction * jacp[:, m.joint(joint).dofadr[0]]
+    u = v / np.linalg.norm(v)
+    yaw = math.atan2(u[1], u[0]) if math.hypot(u[0], u[1]) > 1e-9 else 0.0
+    quat = np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+    obstacle_mat = np.zeros(9)
+    mujoco.mju_quat2Mat(obstacle_mat, quat)
+    obstacle = m.geom("obstacle")
+    reach = _support(int(geom.type[0]), geom.size, d.geom_xmat[geom.id], u)
+    reach += _support(int(obstacle.type[0]), obstacle.size, obstacle_mat, -u) + gap
+    mocap = m.body("obstacle").mocapid[0]
+    d.mocap_pos[mocap] = p + reach * u
+    d.mocap_quat[mocap] = quat
+    mujoco.mj_forward(m, d)
+
+
+def park_obstacle(sim: ArmSim) -> None:
+    """Move the obstacle back under the floor."""
+    mocap = sim.model.body("obstacle").mocapid[0]
+    sim.data.mocap_pos[mocap] = OBSTACLE_PARKED
+    sim.data.mocap_quat[mocap] = (1.0, 0.0, 0.0, 0.0)
+    mujoco.mj_forward(sim.model, sim.data)
+
+
+@functools.cache
+def _packaged_config() -> ArmConfig:
+    """The packaged configuration (SPEC.md's numbers), loaded once: it is frozen."""
+    return load_config()
+
+
+def _hold_other_joints(sim: ArmSim, joint_name: str, now: float) -> None:
+    """Enable every joint but ``joint_name`` with its configured currents, so it holds its pose.
+
+    As under the arm layer, the rest of the arm is powered: an unpowered
+    elbow would swing when the shoulder accelerates, and its reaction would
+    show in the shoulder's velocity.
+    """
+    for name, core in sim.cores.items():
+        if name != joint_name:
+            j = sim.config.joint(name)
+            core.write(Reg.SETUP, pack_bytes(j.drive_current, j.hold_current), now)
+
+
+def _mujoco_rig(name: str, backend_name: str, joint_name: str) -> JointRig:
+    """One joint of the MuJoCo arm under test, powered up at :data:`SIM_POSE`.
+
+    ``advance`` steps physics and every firmware core; ``block`` puts the
+    scene's obstacle in the way of the joint's link (:func:`place_obstacle`),
+    ``unblock`` parks it again. The other joints are enabled and hold their
+    pose; ``power_cycle`` cuts only the joint under test.
+    """
+    backend: Backend = make_backend(backend_name, _packaged_config(), initial_qpos=SIM_POSE)
+    sim: ArmSim = backend.sim  # type: ignore[assignment]
+    core = sim.cores[joint_name]
+    params = backend.config.joint(joint_name)
+    clock = backend.clock
+    _hold_other_joints(sim, joint_name, clock.now())
+
+    def new_joint() -> BaseJoint:
+        if isinstance(backend, EmulatedBackend):
+            p = params
+            return Joint(p.name, p.address, p.reduction, p.min, p.max, backend.bus, clock=clock)
+        return SimJoint(params, core, clock)
+
+    def block() -> None:
+        qvel = sim.data.qvel[sim.model.joint(joint_name).dofadr[0]]
+        place_obstacle(sim, joint_name, direction=1 if qvel > 0 else -1)
+
+    def power_up_at(q: float) -> None:
+        sim.reset({**SIM_POSE, joint_name: q})
+        _hold_other_joints(sim, joint_name, clock.now())
+
+    return JointRig(
+        name=name,
+        joint=backend.joints[joint_name],
+        params=params,
+        clock=clock,
+        advance=backend.step,
+        device_flags=lambda: Flag(core.flags),
+        restart_host=new_joint,
+        features=frozenset({"stall", "deadman", "power_cycle", "host_restart", "physics"}),
+        block=block,
+        unblock=lambda: park_obstacle(sim),
+        power_cycle=lambda: core.power_cycle(clock.now()),
+        power_up_at=power_up_at,
+    )
+
+
+def sim_j1() -> JointRig:
+    """j1 as a :class:`SimJoint` of the MuJoCo arm (firmware core, no bytes)."""
+    return _mujoco_rig("sim_j1", "sim", "j1")
+
+
+def sim_j2() -> JointRig:
+    """j2, the lift, as a :class:`SimJoint` of the MuJoCo arm."""
+    return _mujoco_rig("sim_j2", "sim", "j2")
+
+
+def emulated_mujoco_j1() -> JointRig:
+    """j1: the real :class:`Joint` over the ``emulated`` backend's bus, MuJoCo behind."""
+    return _mujoco_rig("emulated_mujoco_j1", "emulated", "j1")
+
+
+def emulated_mujoco_j2() -> JointRig:
+    """j2: the real :class:`Joint` over the ``emulated`` backend's bus, MuJoCo behind."""
+    return _mujoco_rig("emulated_mujoco_j2", "emulated", "j2")
+
+
 #: Every rig the conformance suite runs on, by id.
 RIG_FACTORIES: dict[str, Callable[[], JointRig]] = {
     "mock_j1": mock_j1,
     "emulated_kinematic_j1": emulated_kinematic_j1,
     "emulated_kinematic_j2": emulated_kinematic_j2,
+    "sim_j1": sim_j1,
+    "sim_j2": sim_j2,
+    "emulated_mujoco_j1": emulated_mujoco_j1,
+    "emulated_mujoco_j2": emulated_mujoco_j2,
 }

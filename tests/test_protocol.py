@@ -203,7 +203,7 @@ def test_init_fails_when_ping_does_not_answer_ack(
 ) -> None:
     joint = make_joint("j1", retries=2)
     scripted_bus.queue(reply, reply, reply)
-    with pytest.raises(CommError, match="j1.*PING answered"):
+    with pytest.raises(CommError, match=r"j1.*PING answered"):
         joint.init()
     assert not joint.initialized
     assert len(scripted_bus.log) == 3  # a wrong ack is retried like any bad reply

@@ -161,6 +161,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._latency: deque[np.ndarray] = deque()
         self._latency_steps = 0
         self._nominal: dict[str, np.ndarray] | None = None
+        self._snapshot: Any = None
+        self._noise_rng = np.random.default_rng(0)
         self._render_size = (int(height), int(width))
         self._renderer: mujoco.Renderer | None = None
         self._viewer: Any = None
@@ -211,7 +213,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._width = self.arm.gripper.get_position()
         noise = self.randomization.sensor_noise
         if noise:
-            self._q = self._q + self.np_random.normal(0.0, noise, size=self._q.shape)
+            self._q = self._q + self._noise_rng.normal(0.0, noise, size=self._q.shape)
 
     def tcp_position(self) -> np.ndarray:
         """TCP position (m) from the measured joints, as on the real arm."""
@@ -227,11 +229,15 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def _velocity_commands(self, a: np.ndarray) -> np.ndarray:
         """Scale actions to velocities, braking before the end stops (soft limits)."""
         v = a[: len(self.joint_names)] * self._vmax
-        room_up = np.maximum(self._cmd_hi - self._q, 0.0)
-        room_down = np.maximum(self._q - self._cmd_lo, 0.0)
-        v_up = np.sqrt(2.0 * self._amax * room_up) * 0.9
-        v_down = np.sqrt(2.0 * self._amax * room_down) * 0.9
-        return np.clip(v, -v_down, v_up)
+        return np.clip(v, -self._stop_speed(self._q - self._cmd_lo), self._stop_speed(self._cmd_hi - self._q))
+
+    def _stop_speed(self, room: np.ndarray) -> np.ndarray:
+        """Fastest speed that can be held for one control period and still brake within ``room``.
+
+        Solves ``v*dt + v^2/(2a) = room`` for ``v``.
+        """
+        a, dt = self._amax, self.dt
+        return a * (np.sqrt(dt * dt + 2.0 * np.maximum(room, 0.0) / a) - dt)
 
     def _position_commands(self, a: np.ndarray) -> np.ndarray:
         """Map actions in [-1, 1] onto each joint's commandable range."""
@@ -242,10 +248,9 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         a = np.clip(action, -1.0, 1.0)
         if self._latency_steps:
             self._latency.append(a)
-            a = self._latency.popleft() if len(self._latency) > self._latency_steps else np.zeros_like(a)
-            if self.control_mode == "position" and not a.any():
-                a = self._last_action
-        self._last_action = a
+            # Until the first command has come through the delay line, hold the arm.
+            ready = len(self._latency) > self._latency_steps
+            a = self._latency.popleft() if ready else self._neutral_action()
         cmds = self._velocity_commands(a) if self.control_mode == "velocity" else self._position_commands(a)
         for name, value in zip(self.joint_names, cmds, strict=True):
             self.arm.set_command(name, float(value))
@@ -320,26 +325,37 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Start an episode: bring the arm up (homing the first time), pose it, sample a goal."""
+        """Start an episode: bring the arm up (homing the first time), pose it, sample a goal.
+
+        In simulation every episode starts from the same snapshot of physics
+        and firmware taken right after homing (the arm at rest, nothing left
+        over from the previous episode), then the joints are placed at the
+        episode's start pose; so a seed always gives the same episode.
+        """
         super().reset(seed=seed)
-        self._randomize_physics()
-        r = self.randomization
-        self._latency_steps = int(self.np_random.integers(0, r.latency_steps + 1)) if r.latency_steps else 0
+        # Independent streams, so turning noise or latency on does not change the tasks.
+        self._noise_rng = np.random.default_rng(self.np_random.integers(2**63))
+        latency_draw = int(self.np_random.integers(0, self.randomization.latency_steps + 1))
+        self._latency_steps = latency_draw if self.randomization.latency_steps else 0
         self._latency.clear()
+        self._randomize_physics()
         if self.arm.state is not Lifecycle.ACTIVE or not all(
             self.arm.joints[n].is_homed() for n in self.joint_names
         ):
             self._bring_up()
-        elif self.control_mode == "velocity":
-            for name in self.joint_names:
-                self.arm.set_command(name, 0.0)
         if self.sim is not None:
-            self.sim.data.qvel[:] = 0.0
+            if self._snapshot is None:
+                self._snapshot = self.sim.snapshot()
+            self.sim.restore(self._snapshot)
+        for name in self.joint_names:
+            self.arm.set_command(name, 0.0 if self.control_mode == "velocity" else self.arm.commands[name])
+        width0 = self.config.gripper.backup_init_pos
+        self.arm.set_gripper(width0)
+        self.arm.gripper.set_position(width0)
         self._move_to(self._random_pose())
         self.arm.read()
         self._measure()
         self._reset_task()
-        self._last_action = self._neutral_action()
         self._steps = 0
         obs = self._get_obs()
         return obs, self._get_info(obs, stalled=False)
@@ -357,6 +373,10 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise ValueError(f"action shape {action.shape} != expected {self.action_space.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action {action} holds NaN or infinity")
+        if self.arm.state is not Lifecycle.ACTIVE:
+            raise gym.error.ResetNeeded(
+                f"the arm is {self.arm.state.value} (the episode ended on a stall); call reset()"
+            )
         stalled_joint = None
         try:
             self._apply_action(action)

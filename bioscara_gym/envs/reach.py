@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from bioscara_gym import kinematics
 from bioscara_gym.envs.base import BioscaraEnv
 
-#: Episode length when the env is not made through ``gym.make`` (2 s at 25 Hz).
+#: Registered episode length (2 s at 25 Hz).
 DEFAULT_EPISODE_STEPS = 50
+#: Goals are reachable within this fraction of the default episode.
+GOAL_HORIZON_FRACTION = 0.6
 
 
 def reachable_travel(v_max: np.ndarray, a_max: np.ndarray, t: float) -> np.ndarray:
@@ -39,14 +43,14 @@ class BioscaraReachEnv(BioscaraEnv):
 
     | idx | joint | velocity mode (default)      | position mode                   |
     |-----|-------|------------------------------|---------------------------------|
-    | 0   | j1    | × 1.0 rad/s                  | [-3.04647, 3.04647] rad         |
-    | 1   | j2    | × 0.03 m/s                   | [-0.0016, 0.338] m              |
-    | 2   | j3    | × 5.0 rad/s                  | [-2.62672, 2.62672] rad         |
-    | 3   | j4    | × 10.0 rad/s                 | [-3.01069, 3.01069] rad         |
+    | 0   | j1    | × 1.0 rad/s                  | [-3.01647, 3.01647] rad         |
+    | 1   | j2    | × 0.03 m/s                   | [0.0004, 0.336] m               |
+    | 2   | j3    | × 5.0 rad/s                  | [-2.59672, 2.59672] rad         |
+    | 3   | j4    | × 10.0 rad/s                 | [-2.98069, 2.98069] rad         |
 
-    Position targets stay 0.03 rad (2 mm for j2) inside the end stops; velocity
-    commands are braked so a joint stops before its end stop (soft limits), so
-    only obstacles and overloads stall a joint.
+    Position targets span each joint's limits minus 0.03 rad (2 mm for j2),
+    as in the table; velocity commands are braked so a joint stops before its
+    end stop (soft limits), so only obstacles and overloads stall a joint.
 
     ## Observation space
     ``Dict`` with:
@@ -89,23 +93,29 @@ class BioscaraReachEnv(BioscaraEnv):
     | config             | None       | ArmConfig or YAML path (default: the packaged SPEC values)    |
     | backend_options    | None       | dict passed to the backend (e.g. ``faults`` for "emulated")   |
     | width, height      | 480, 480   | rendered image size in pixels                                 |
+    | goal_horizon_s     | None       | goals are reachable within this many seconds; None: 60 % of   |
+    |                    |            | 50 control periods (1.2 s at 25 Hz). Lower it with a shorter  |
+    |                    |            | max_episode_steps                                             |
 
-    ``max_episode_steps`` is ``gym.make``'s argument (default 50).
+    ``max_episode_steps`` is ``gym.make``'s argument (default 50). The env
+    cannot see it (Gymnasium applies it as a wrapper), hence ``goal_horizon_s``.
 
     ## Version history
     * v0: initial release.
     """
 
-    def _obs_size(self) -> int:
-        return 2 * len(self.joint_names) + 1 + 3
-
-    def _episode_seconds(self) -> float:
-        steps = self.spec.max_episode_steps if self.spec and self.spec.max_episode_steps else None
-        return (steps or DEFAULT_EPISODE_STEPS) * self.dt
+    def __init__(self, *args: Any, goal_horizon_s: float | None = None, **kwargs: Any) -> None:
+        """See the class docstring for the arguments."""
+        super().__init__(*args, **kwargs)
+        if goal_horizon_s is None:
+            goal_horizon_s = GOAL_HORIZON_FRACTION * DEFAULT_EPISODE_STEPS * self.dt
+        if not goal_horizon_s > 0:
+            raise ValueError(f"goal_horizon_s {goal_horizon_s} must be > 0 (seconds)")
+        self.goal_horizon_s = float(goal_horizon_s)
 
     def _reset_task(self) -> None:
-        """Sample a goal the arm can reach in ~60 % of the episode from here."""
-        travel = reachable_travel(self._vmax, self._amax, 0.6 * self._episode_seconds())
+        """Sample a goal the arm can reach from here within ``goal_horizon_s``."""
+        travel = reachable_travel(self._vmax, self._amax, self.goal_horizon_s)
         lo = np.maximum(self._cmd_lo, self._q - travel)
         hi = np.minimum(self._cmd_hi, self._q + travel)
         self.goal_joints = self.np_random.uniform(lo, hi)

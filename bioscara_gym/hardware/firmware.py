@@ -158,6 +158,16 @@ class FirmwareCore:
         self.motor.command(0.0, 0.0)
         self.motor.hold_here()
 
+    def snapshot(self) -> dict[str, object]:
+        """The firmware's state (everything but the motor), for :meth:`restore`."""
+        return {k: v for k, v in vars(self).items() if k != "motor"}
+
+    def restore(self, snapshot: dict[str, object]) -> None:
+        """Return to a :meth:`snapshot` and re-send the motor its set point and torque."""
+        self.__dict__.update(snapshot)
+        self._sent = (math.nan, math.nan)
+        self._apply()
+
     def has(self, flag: Flag | int) -> bool:
         """Whether ``flag`` is set."""
         return bool(self.flags & flag)

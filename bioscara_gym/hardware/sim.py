@@ -208,6 +208,22 @@ class ArmSim:
             core.power_cycle(0.0)
         self._pending = 0.0
 
+    def snapshot(self) -> tuple[np.ndarray, dict[str, dict[str, object]]]:
+        """Physics and firmware state, for :meth:`restore` (e.g. a homed arm at rest)."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        state = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, state, spec)
+        return state, {name: core.snapshot() for name, core in self.cores.items()}
+
+    def restore(self, snapshot: tuple[np.ndarray, dict[str, dict[str, object]]]) -> None:
+        """Return physics and every firmware core to a :meth:`snapshot`."""
+        state, cores = snapshot
+        mujoco.mj_setState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
+        for name, core in self.cores.items():
+            core.restore(cores[name])
+        self._pending = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
     def set_joint_state(self, qpos: Mapping[str, float]) -> None:
         """Teleport joints (firmware state kept; encoders see the jump)."""
         for name, q in qpos.items():

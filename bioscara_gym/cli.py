@@ -1,0 +1,189 @@
+"""The ``bioscara`` command: train, eval, deploy, export, and the operator console.
+
+Every subcommand prints a one-line error and exits non-zero on bad input
+(unknown env, algorithm or joint, unreadable file, mismatched policy); it
+never leaves the arm enabled behind it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def _console() -> Console:
+    return Console(highlight=False)
+
+
+class CliError(Exception):
+    """An error to print as one line, with the exit code to use."""
+
+    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
+        """Store the message and exit code."""
+        super().__init__(message)
+        self.code = code
+
+
+# ----------------------------------------------------------------- train
+def cmd_train(args: argparse.Namespace) -> int:
+    """``bioscara train``."""
+    from training.train import TrainArgs, train
+
+    result = train(
+        TrainArgs(
+            env=args.env,
+            algo=args.algo,
+            config=args.config,
+            timesteps=args.timesteps,
+            seed=args.seed,
+            out=args.out,
+            resume=args.resume,
+            progress=not args.no_progress,
+            threads=args.threads,
+        )
+    )
+    con = _console()
+    final = result.final_eval
+    if result.target_reached_at is not None:
+        con.print(
+            f"target reached after {result.target_reached_at} steps, "
+            f"{result.target_reached_after_s:.0f} s"
+        )
+    if final is not None:
+        con.print(f"final success rate {final.success_rate:.1%} over {final.episodes} episodes")
+    con.print(f"model     {result.model_path}")
+    con.print(f"metadata  {result.metadata_path}")
+    con.print(f"logs      {Path(args.out) / 'tb'}  (tensorboard --logdir {Path(args.out) / 'tb'})")
+    return 0
+
+
+# ------------------------------------------------------------------ eval
+def _stats_table(title: str, stats: object) -> Table:
+    table = Table(title=title)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    s = stats
+    table.add_row("episodes", str(s.episodes))  # type: ignore[attr-defined]
+    table.add_row("success rate", f"{s.success_rate:.1%}")  # type: ignore[attr-defined]
+    table.add_row("mean final distance", f"{s.mean_final_distance * 1000:.1f} mm")  # type: ignore[attr-defined]
+    table.add_row("mean return", f"{s.mean_return:.2f} ± {s.std_return:.2f}")  # type: ignore[attr-defined]
+    table.add_row("mean length", f"{s.mean_length:.1f} steps")  # type: ignore[attr-defined]
+    table.add_row("stalls", str(s.stalls))  # type: ignore[attr-defined]
+    return table
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """``bioscara eval``."""
+    from training.evaluate import evaluate_expert, evaluate_model, write_json
+
+    if args.expert:
+        from training.train import resolve_env_id
+
+        env_id = resolve_env_id(args.env)
+        stats = evaluate_expert(env_id, args.episodes, args.backend or "sim", args.video, seed=args.seed)
+        title, source = f"scripted expert on {env_id} ({args.backend or 'sim'})", "expert"
+    else:
+        if args.model is None:
+            raise CliError("eval needs --model PATH (or --expert --env ID)")
+        stats = evaluate_model(args.model, args.episodes, args.backend, args.video, seed=args.seed)
+        title, source = f"{args.model} ({args.backend or 'as trained'})", str(args.model)
+    con = _console()
+    con.print(_stats_table(title, stats))
+    if args.video:
+        con.print(f"video     {args.video}")
+    if args.json:
+        write_json(args.json, stats, source=source, backend=args.backend or "sim")
+        con.print(f"json      {args.json}")
+    return 0
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    """The ``bioscara`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="bioscara", description="Bioscara SCARA arm: train, evaluate and deploy policies."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
+    p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
+    p.add_argument("--algo", default="sac", help="sac, td3 or ppo (default: sac)")
+    p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
+    p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("runs/reach"), help="output directory")
+    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default 1)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a trained policy or the scripted expert")
+    p.add_argument("--model", type=Path, help="model.zip (its metadata.json must sit beside it)")
+    p.add_argument("--expert", action="store_true", help="evaluate the scripted expert instead")
+    p.add_argument("--env", default="Bioscara-Reach", help="env id for --expert")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--backend", choices=("sim", "emulated", "mock"), help="default: as trained (sim)")
+    p.add_argument("--video", type=Path, help="write an MP4 of the episodes")
+    p.add_argument("--json", type=Path, help="write the results as JSON")
+    p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
+    p.set_defaults(func=cmd_eval)
+
+    for register in _EXTRA_COMMANDS:
+        register(sub)
+    return parser
+
+
+#: Subcommand registrars added by other modules (deploy, console).
+_EXTRA_COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = []
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``bioscara`` console script."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    _load_extra_commands()
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    err = Console(stderr=True, highlight=False)
+    try:
+        return int(args.func(args) or 0)
+    except CliError as e:
+        err.print(f"bioscara {args.command}: error: {e}")
+        return e.code
+    except KeyboardInterrupt:
+        err.print(f"bioscara {args.command}: interrupted")
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as e:
+        err.print(f"bioscara {args.command}: error: {e}")
+        return EXIT_ERROR
+    except Exception as e:  # a driver error (JointError) and the like: one line, non-zero
+        from bioscara_gym.hardware.errors import JointError
+
+        if isinstance(e, JointError):
+            err.print(f"bioscara {args.command}: error: {e}")
+            return EXIT_ERROR
+        raise
+
+
+def _load_extra_commands() -> None:
+    """Import the modules that add subcommands (kept out of the import of this one)."""
+    import importlib
+
+    for module in ("training.deploy", "bioscara_gym.console"):
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            if e.name != module:
+                raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,673 @@
+"""The Gymnasium tasks: registration, API conformance, episodes on every backend, safety, rendering.
+
+Headless rendering needs ``MUJOCO_GL=egl`` before mujoco is imported; ``conftest.py``
+sets it.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import math
+import re
+import subprocess
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import imageio.v3 as iio
+import mujoco
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+import bioscara_gym
+from bioscara_gym import kinematics
+from bioscara_gym.envs import TASKS, BioscaraEnv, BioscaraReachEnv, register_envs
+from bioscara_gym.envs.reach import reachable_travel
+from bioscara_gym.hardware.arm import Lifecycle
+from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.sim import scene_path
+
+REACH = "Bioscara-Reach-v0"
+PICK = "Bioscara-PickPlace-v0"
+TASK_IDS = (REACH, PICK)
+BACKENDS = ("sim", "mock", "emulated")
+SIM_BACKENDS = ("sim", "emulated")
+JOINTS = ("j1", "j2", "j3", "j4")
+
+MakeEnv = Callable[..., gym.Env]
+
+# --------------------------------------------------------------------- helpers
+
+
+def _rollout(env: gym.Env, seed: int, actions: Sequence[np.ndarray]) -> list[tuple[Any, ...]]:
+    """Reset with ``seed`` and play ``actions``; the reset and each step as a tuple."""
+    obs, info = env.reset(seed=seed)
+    out: list[tuple[Any, ...]] = [(obs, info)]
+    for action in actions:
+        obs, reward, terminated, truncated, info = env.step(action)
+        out.append((obs, reward, terminated, truncated, info))
+        if terminated or truncated:
+            break
+    return out
+
+
+def _assert_same_rollouts(a: list[tuple[Any, ...]], b: list[tuple[Any, ...]]) -> None:
+    assert len(a) == len(b)
+    for i, (ra, rb) in enumerate(zip(a, b, strict=True)):
+        for key in ra[0]:
+            np.testing.assert_array_equal(ra[0][key], rb[0][key], err_msg=f"step {i} obs[{key!r}]")
+        assert ra[1:] == rb[1:], f"step {i}: reward/terminated/truncated/info differ"
+
+
+def _random_actions(env: gym.Env, n: int, seed: int = 0, scale: float = 1.0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    shape = env.action_space.shape
+    return [(scale * rng.uniform(-1.0, 1.0, shape)).astype(np.float32) for _ in range(n)]
+
+
+def _true_joints(env: gym.Env) -> np.ndarray:
+    """j1..j4 from the MuJoCo state (not from the firmware or the observation)."""
+    return env.unwrapped.sim.joint_positions()[:4]
+
+
+def _measured_joints(env: gym.Env, obs: dict[str, np.ndarray]) -> np.ndarray:
+    """j1..j4 as the policy sees them: the observation's normalized positions, scaled back."""
+    cfg = env.unwrapped.config
+    lo = np.array([cfg.joint(n).min for n in JOINTS])
+    hi = np.array([cfg.joint(n).max for n in JOINTS])
+    return lo + (obs["observation"][:4] + 1.0) * 0.5 * (hi - lo)
+
+
+def _obstacle_mocap(env: gym.Env) -> int:
+    sim = env.unwrapped.sim
+    return int(sim.model.body("obstacle").mocapid[0])
+
+
+def _put_obstacle_ahead_of_j1(env: gym.Env, angle: float = 0.35) -> None:
+    """Put the obstacle where the tool will be after j1 turns by ``angle`` rad."""
+    tcp = kinematics.forward(_true_joints(env))
+    c, s = math.cos(angle), math.sin(angle)
+    x, y = c * tcp[0] - s * tcp[1], s * tcp[0] + c * tcp[1]
+    env.unwrapped.sim.data.mocap_pos[_obstacle_mocap(env)] = (x, y, tcp[2] + 0.06)
+
+
+def _park_obstacle(env: gym.Env) -> None:
+    env.unwrapped.sim.data.mocap_pos[_obstacle_mocap(env)] = (0.0, 0.0, -2.0)
+
+
+@pytest.fixture(scope="module")
+def reach_env() -> gym.Env:
+    """A Reach env on sim shared by tests that only reset it or feed it invalid actions."""
+    env = gym.make(REACH)
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+# ---------------------------------------------------------------- registration
+
+
+def test_import_registers_both_tasks() -> None:
+    assert bioscara_gym.__version__
+    for env_id, (entry_point, _) in TASKS.items():
+        assert gym.spec(env_id).entry_point == entry_point
+    assert set(TASK_IDS) <= set(gym.registry)
+
+
+def test_register_envs_is_idempotent() -> None:
+    register_envs()
+    register_envs()
+    assert gym.spec(REACH).max_episode_steps == 50
+
+
+@pytest.mark.parametrize(("env_id", "steps"), [(REACH, 50), (PICK, 200)])
+def test_max_episode_steps_defaults(env_id: str, steps: int) -> None:
+    assert gym.spec(env_id).max_episode_steps == steps
+    assert TASKS[env_id][1] == steps
+
+
+@pytest.mark.parametrize(("env_id", "steps"), [(REACH, 50), (PICK, 200)])
+def test_episode_truncates_after_max_episode_steps(make_env: MakeEnv, env_id: str, steps: int) -> None:
+    env = make_env(env_id, backend="mock")
+    env.reset(seed=0)
+    hold = env.unwrapped._neutral_action()
+    for i in range(steps):
+        _, _, terminated, truncated, _ = env.step(hold)
+        assert not terminated
+        assert truncated == (i == steps - 1)
+
+
+# pytest resets warning filters per test; see test_unversioned_make_emits_no_warning.
+@pytest.mark.filterwarnings("ignore:.*Using the latest versioned environment:UserWarning")
+def test_unversioned_name_makes_latest_version(make_env: MakeEnv) -> None:
+    env = make_env("Bioscara-Reach")
+    assert env.spec.id == REACH
+    assert env.spec.max_episode_steps == 50
+
+
+def test_unversioned_make_emits_no_warning() -> None:
+    # A fresh interpreter, as a user runs it: pytest's own warning capture replaces the
+    # process-wide filter that bioscara_gym installs for its unversioned alias.
+    code = (
+        "import gymnasium as gym, bioscara_gym\n"
+        "env = gym.make('Bioscara-Reach', backend='mock')\n"
+        "env.reset(seed=0)\n"
+        "env.step(env.action_space.sample())\n"
+        "env.close()\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-W", "default", "-c", code], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+
+
+def test_versioned_make_emits_no_warning(make_env: MakeEnv) -> None:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env = make_env(REACH)
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+    assert [str(w.message) for w in caught] == []
+
+
+def test_module_prefixed_id_makes_env(make_env: MakeEnv) -> None:
+    env = make_env("bioscara_gym:Bioscara-Reach-v0")
+    assert isinstance(env.unwrapped, BioscaraReachEnv)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+
+
+def _documented_kwargs(doc: str) -> dict[str, object]:
+    """The ``| kwarg | default | meaning |`` rows of a docstring's Arguments table."""
+    section = doc.split("## Arguments", 1)[1].split("##", 1)[0]
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) < 3 or not cells[0] or set(cells[0]) <= {"-"} or cells[0] == "kwarg":
+            continue
+        names = [n.strip() for n in cells[0].split(",")]
+        values = [v.strip() for v in cells[1].split(",")] if len(names) > 1 else [cells[1]]
+        for name, value in zip(names, values, strict=True):
+            rows[name] = ast.literal_eval(value)
+    return rows
+
+
+def test_documented_kwarg_defaults_match_the_code() -> None:
+    documented = _documented_kwargs(BioscaraReachEnv.__doc__)
+    params = {
+        **inspect.signature(BioscaraEnv.__init__).parameters,
+        **inspect.signature(BioscaraReachEnv.__init__).parameters,
+    }
+    actual = {n: p.default for n, p in params.items() if n not in ("self", "args", "kwargs")}
+    assert documented == actual
+
+
+@pytest.mark.parametrize("env_id", TASK_IDS)
+def test_documented_observation_size_matches_the_space(make_env: MakeEnv, env_id: str) -> None:
+    env = make_env(env_id, backend="mock")
+    size = int(re.search(r"\| observation\s*\| \((\d+),\)", type(env.unwrapped).__doc__).group(1))
+    assert env.observation_space["observation"].shape == (size,)
+
+
+# ----------------------------------------------------------------- API checks
+
+
+@pytest.mark.filterwarnings("ignore:.*A Box observation space (minimum|maximum) value is:UserWarning")
+@pytest.mark.parametrize(
+    "env_id",
+    [
+        pytest.param(REACH),
+        pytest.param(PICK),
+    ],
+)
+def test_gymnasium_check_env_passes(make_env: MakeEnv, env_id: str) -> None:
+    gym_check_env(make_env(env_id).unwrapped, skip_render_check=True)
+
+
+@pytest.mark.parametrize("env_id", TASK_IDS)
+def test_sb3_check_env_passes(make_env: MakeEnv, env_id: str) -> None:
+    sb3_check_env(make_env(env_id).unwrapped, warn=True)
+
+
+def test_async_vector_env_resets_and_steps() -> None:
+    envs = gym.make_vec(REACH, num_envs=2, vectorization_mode="async")
+    try:
+        obs, info = envs.reset(seed=0)
+        assert obs["observation"].shape == (2, 12)
+        assert not np.array_equal(obs["desired_goal"][0], obs["desired_goal"][1])
+        for _ in range(3):
+            obs, reward, terminated, truncated, info = envs.step(envs.action_space.sample())
+        assert reward.shape == (2,)
+        assert np.all(np.isfinite(reward))
+        assert not terminated.any()
+        assert not truncated.any()
+        assert "is_success" in info
+    finally:
+        envs.close()
+
+
+# ---------------------------------------------------------------- determinism
+
+
+@pytest.mark.parametrize("env_id", TASK_IDS)
+def test_same_seed_gives_same_episode_in_fresh_envs(make_env: MakeEnv, env_id: str) -> None:
+    a, b = make_env(env_id), make_env(env_id)
+    actions = _random_actions(a, 15, scale=0.5)
+    _assert_same_rollouts(_rollout(a, 7, actions), _rollout(b, 7, actions))
+
+
+@pytest.mark.parametrize("env_id", TASK_IDS)
+def test_different_seeds_give_different_episodes(make_env: MakeEnv, env_id: str) -> None:
+    a, b = make_env(env_id), make_env(env_id)
+    actions = _random_actions(a, 5, scale=0.5)
+    ra, rb = _rollout(a, 1, actions), _rollout(b, 2, actions)
+    assert not np.allclose(ra[0][0]["desired_goal"], rb[0][0]["desired_goal"])
+    assert not np.allclose(ra[0][0]["observation"], rb[0][0]["observation"])
+    assert [r[1] for r in ra[1:]] != [r[1] for r in rb[1:]]
+
+
+@pytest.mark.parametrize(
+    ("env_id", "backend"),
+    [
+        pytest.param(REACH, "mock"),
+        pytest.param(PICK, "mock"),
+        pytest.param(REACH, "sim"),
+        pytest.param(PICK, "sim"),
+    ],
+)
+def test_reset_with_same_seed_repeats_episode(make_env: MakeEnv, env_id: str, backend: str) -> None:
+    env = make_env(env_id, backend=backend)
+    actions = _random_actions(env, 10, scale=0.5)
+    first = _rollout(env, 42, actions)
+    _assert_same_rollouts(first, _rollout(env, 42, actions))
+
+
+@pytest.mark.parametrize("backend", SIM_BACKENDS)
+@pytest.mark.parametrize("control_mode", ["velocity", "position"])
+def test_episode_after_a_truncated_one_does_not_stall(
+    make_env: MakeEnv, backend: str, control_mode: str
+) -> None:
+    env = make_env(REACH, backend=backend, control_mode=control_mode, max_episode_steps=5)
+    env.reset(seed=0)
+    sweep = env.unwrapped._neutral_action()
+    sweep[:] = 0.5 if control_mode == "velocity" else 0.9
+    for _ in range(5):  # truncated with the joints still moving
+        env.step(sweep)
+    env.reset(seed=1)
+    for _ in range(5):
+        _, _, terminated, _, info = env.step(env.unwrapped._neutral_action())
+        assert not terminated, f"spurious stall of {info.get('stalled_joint')} after reset"
+
+
+# ------------------------------------------------------- episodes on backends
+
+
+@pytest.mark.parametrize("control_mode", ["velocity", "position"])
+@pytest.mark.parametrize("env_id", TASK_IDS)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_short_episode_runs(make_env: MakeEnv, backend: str, env_id: str, control_mode: str) -> None:
+    env = make_env(env_id, backend=backend, control_mode=control_mode)
+    obs, info = env.reset(seed=3)
+    assert env.observation_space.contains(obs)
+    for action in _random_actions(env, 10, seed=3, scale=0.5):
+        obs, reward, terminated, truncated, info = env.step(action)
+        assert env.observation_space.contains(obs)
+        assert isinstance(reward, float)
+        assert math.isfinite(reward)
+        assert not terminated
+        assert not truncated
+        assert isinstance(info["is_success"], bool)
+        assert info["distance"] == pytest.approx(np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"]))
+        assert info["stalled"] is False
+        assert set(info["flags"]) == set(JOINTS)
+        assert all(isinstance(f, int) and not f & Flag.STALL for f in info["flags"].values())
+    assert ("bus" in info) == (backend == "emulated")
+
+
+def test_emulated_info_counts_bus_transactions_per_joint(make_env: MakeEnv) -> None:
+    env = make_env(REACH, backend="emulated")
+    _, info = env.reset(seed=0)
+    before = info["bus"]
+    _, _, _, _, info = env.step(np.zeros(4, dtype=np.float32))
+    after = info["bus"]
+    assert set(before) == set(after) == set(JOINTS)
+    for name in JOINTS:
+        assert after[name]["transactions"] > before[name]["transactions"]
+        assert after[name]["errors"] == 0
+        assert after[name]["error_rate"] == 0.0
+
+
+def test_control_freq_at_the_deadman_floor_keeps_joints_enabled(make_env: MakeEnv) -> None:
+    env = make_env(REACH, control_freq=20.0)
+    env.reset(seed=0)
+    for _ in range(10):
+        _, _, terminated, _, info = env.step(np.full(4, 0.3, dtype=np.float32))
+        assert not terminated
+        assert all(not f & Flag.NOT_ENABLED for f in info["flags"].values())
+
+
+# ---------------------------------------------------------- action validation
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_action_raises(reach_env: gym.Env, bad: float) -> None:
+    action = np.array([0.0, bad, 0.0, 0.0])
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        reach_env.step(action)
+
+
+@pytest.mark.parametrize("shape", [(3,), (5,), (1, 4), ()])
+def test_wrong_shape_action_raises(reach_env: gym.Env, shape: tuple[int, ...]) -> None:
+    with pytest.raises(ValueError, match=r"action shape .* != expected \(4,\)"):
+        reach_env.step(np.zeros(shape))
+
+
+def test_out_of_range_action_is_clipped(make_env: MakeEnv) -> None:
+    wild, clipped = make_env(REACH), make_env(REACH)
+    big = np.array([5.0, -7.0, 100.0, -1e9])
+    unit = np.clip(big, -1.0, 1.0)
+    _assert_same_rollouts(_rollout(wild, 4, [big] * 5), _rollout(clipped, 4, [unit] * 5))
+
+
+# ----------------------------------------------------- constructor validation
+
+
+@pytest.mark.parametrize("freq", [19.9, 10.0, 0.0, math.nan])
+def test_control_freq_below_deadman_floor_raises(freq: float) -> None:
+    with pytest.raises(ValueError, match="deadman"):
+        gym.make(REACH, control_freq=freq)
+
+
+@pytest.mark.parametrize(
+    ("kwarg", "value"), [("backend", "usb"), ("control_mode", "torque"), ("reward_type", "shaped")]
+)
+def test_unknown_option_raises_naming_it(kwarg: str, value: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(repr(value))):
+        gym.make(REACH, **{kwarg: value})
+
+
+# ---------------------------------------------------------------------- stall
+
+
+@pytest.mark.parametrize(
+    ("backend", "control_mode"), [("sim", "velocity"), ("sim", "position"), ("emulated", "velocity")]
+)
+def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str, control_mode: str) -> None:
+    env = make_env(REACH, backend=backend, control_mode=control_mode)
+    env.reset(seed=3)
+    _put_obstacle_ahead_of_j1(env)
+    push = env.unwrapped._neutral_action()
+    push[0] = 1.0 if control_mode == "velocity" else min(1.0, push[0] + 0.3)
+    for _ in range(50):
+        obs, reward, terminated, truncated, info = env.step(push)
+        if terminated:
+            break
+    assert terminated, "j1 drove through the obstacle without stalling"
+    assert not truncated
+    assert info["stalled"] is True
+    assert info["stalled_joint"] == "j1"
+    assert info["flags"]["j1"] & Flag.STALL
+    distance_reward = env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+    assert reward == pytest.approx(distance_reward + BioscaraEnv.stall_penalty)
+    assert reward < -10.0
+    assert env.unwrapped.arm.state is Lifecycle.INACTIVE
+
+    _park_obstacle(env)
+    obs, info = env.reset(seed=4)
+    arm = env.unwrapped.arm
+    assert arm.state is Lifecycle.ACTIVE
+    assert all(arm.joints[n].is_homed() for n in JOINTS)
+    assert info["stalled"] is False
+    for _ in range(10):
+        obs, _, terminated, _, info = env.step(env.unwrapped._neutral_action())
+        assert not terminated
+        assert all(f == 0 for f in info["flags"].values())
+
+
+# ------------------------------------------------------- reward and success
+
+
+@pytest.mark.parametrize("reward_type", ["dense", "sparse"])
+def test_compute_reward_is_vectorized_and_matches_definition(reward_type: str) -> None:
+    env = BioscaraReachEnv(backend="mock", reward_type=reward_type, distance_threshold=0.05)
+    try:
+        rng = np.random.default_rng(0)
+        achieved = rng.uniform(-0.1, 0.1, (256, 3))
+        desired = achieved + rng.normal(0.0, 0.04, (256, 3))
+        desired[0] = achieved[0] + (0.05, 0.0, 0.0)  # exactly at the threshold: not a success
+        infos = [{}] * 256
+        batch = env.compute_reward(achieved, desired, infos)
+        single = np.array([env.compute_reward(a, d, {}) for a, d in zip(achieved, desired, strict=True)])
+        assert batch.shape == (256,)
+        np.testing.assert_array_equal(batch, single)
+        d = np.linalg.norm(achieved - desired, axis=-1)
+        expected = -d if reward_type == "dense" else -(d >= 0.05).astype(float)
+        np.testing.assert_array_equal(batch, expected)
+        if reward_type == "sparse":
+            assert set(np.unique(batch)) == {-1.0, 0.0}
+            assert batch[0] == -1.0
+        grid = env.compute_reward(achieved.reshape(16, 16, 3), desired.reshape(16, 16, 3), None)
+        np.testing.assert_array_equal(grid.ravel(), batch)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("reward_type", ["dense", "sparse"])
+@pytest.mark.parametrize("env_id", TASK_IDS)
+def test_step_reward_and_success_agree_with_compute_reward(
+    make_env: MakeEnv, env_id: str, reward_type: str
+) -> None:
+    env = make_env(env_id, reward_type=reward_type, distance_threshold=0.05)
+    u = env.unwrapped
+    obs, info = env.reset(seed=11)
+    assert info["is_success"] == (info["distance"] < 0.05)
+    for action in _random_actions(env, 20, seed=11, scale=0.5):
+        obs, reward, terminated, _, info = env.step(action)
+        assert not terminated
+        assert reward == u.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        assert info["distance"] == pytest.approx(np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"]))
+        assert info["is_success"] == (info["distance"] < 0.05)
+
+
+def test_success_is_reported_at_the_goal(make_env: MakeEnv) -> None:
+    env = make_env(REACH, backend="mock", control_mode="position", reward_type="sparse")
+    env.reset(seed=5)
+    u = env.unwrapped
+    target = u._neutral_action()
+    target[:3] = (2.0 * (u.goal_joints - u._cmd_lo) / (u._cmd_hi - u._cmd_lo) - 1.0)[:3]
+    _, reward, _, _, info = env.step(target)  # the mock reaches a position command at once
+    assert info["is_success"] is True
+    assert info["distance"] < 1e-5
+    assert reward == 0.0
+
+
+# ---------------------------------------------------------- goal reachability
+
+
+def test_reach_goals_are_reachable_within_the_episode(reach_env: gym.Env) -> None:
+    u = reach_env.unwrapped
+    cfgs = [u.config.joint(n) for n in JOINTS]
+    vmax = np.array([c.max_velocity for c in cfgs])
+    amax = np.array([c.max_acceleration for c in cfgs])
+    travel = reachable_travel(vmax, amax, reach_env.spec.max_episode_steps / u.control_freq)
+    for seed in range(100):
+        obs, _ = reach_env.reset(seed=seed)
+        start = _true_joints(reach_env)
+        goal = u.goal_joints
+        assert np.all(np.abs(goal - start) <= travel + 1e-6), f"seed {seed}: goal out of reach"
+        assert np.all(goal >= u._cmd_lo), f"seed {seed}: goal below the commandable range"
+        assert np.all(goal <= u._cmd_hi), f"seed {seed}: goal above the commandable range"
+        np.testing.assert_allclose(obs["desired_goal"], kinematics.forward(goal))
+
+
+def test_reach_goals_follow_goal_horizon_s(make_env: MakeEnv) -> None:
+    env = make_env(REACH, backend="mock", max_episode_steps=10, goal_horizon_s=0.4)
+    u = env.unwrapped
+    cfgs = [u.config.joint(n) for n in JOINTS]
+    vmax = np.array([c.max_velocity for c in cfgs])
+    amax = np.array([c.max_acceleration for c in cfgs])
+    travel = reachable_travel(vmax, amax, 0.4)
+    for seed in range(20):
+        obs, _ = env.reset(seed=seed)
+        start = _measured_joints(env, obs)
+        assert np.all(np.abs(u.goal_joints - start) <= travel + 1e-6), f"seed {seed}: goal out of reach"
+
+
+def test_position_policy_reaches_reach_goals(make_env: MakeEnv) -> None:
+    env = make_env(REACH, control_mode="position")
+    u = env.unwrapped
+    span = u._cmd_hi - u._cmd_lo
+    for seed in range(4):
+        env.reset(seed=seed)
+        action = u._neutral_action()
+        action[:3] = (2.0 * (u.goal_joints - u._cmd_lo) / span - 1.0)[:3]
+        for _ in range(env.spec.max_episode_steps):
+            _, _, terminated, truncated, info = env.step(action)
+            assert not terminated
+            if truncated:
+                break
+        assert info["is_success"], f"seed {seed}: {info['distance']:.4f} m from the goal at the end"
+
+
+# ----------------------------------------------------------------- soft limits
+
+
+def _soft_limit_cases() -> list[Any]:
+    cases = []
+    for name in JOINTS:
+        for direction in (1.0, -1.0):
+            sign = "+" if direction > 0 else "-"
+            cases.append(pytest.param(name, direction, id=f"{name}{sign}"))
+    return cases
+
+
+@pytest.mark.parametrize(("joint", "direction"), _soft_limit_cases())
+def test_full_speed_toward_end_stop_brakes_before_it(make_env: MakeEnv, joint: str, direction: float) -> None:
+    probe = BioscaraReachEnv(backend="mock")
+    cfg = probe.config.joint(joint)
+    probe.close()
+    steps = math.ceil((cfg.max - cfg.min) / cfg.max_velocity * 25.0) + 25  # time to cross the range
+    env = make_env(REACH, max_episode_steps=steps)
+    env.reset(seed=JOINTS.index(joint))
+    idx = JOINTS.index(joint)
+    push = np.zeros(4, dtype=np.float32)
+    push[idx] = direction
+    for i in range(steps):
+        _, _, terminated, truncated, info = env.step(push)
+        q = _true_joints(env)[idx]
+        assert not terminated, f"step {i}: {info.get('stalled_joint')} stalled"
+        assert cfg.min < q < cfg.max, f"step {i}: {joint} at {q} reached its end stop"
+    assert truncated
+    stop = cfg.max if direction > 0 else cfg.min
+    assert abs(stop - q) < 0.05 * (cfg.max - cfg.min), f"{joint} stopped at {q}, far from {stop}"
+
+
+# -------------------------------------------------------- domain randomization
+
+
+def _nominal_model() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_path(str(scene_path()))
+
+
+def test_randomization_draws_masses_from_the_seed(make_env: MakeEnv) -> None:
+    env = make_env(REACH, randomization=True)
+    model = env.unwrapped.sim.model
+    nominal = _nominal_model().body_mass
+    env.reset(seed=1)
+    m1 = model.body_mass.copy()
+    env.reset(seed=2)
+    m2 = model.body_mass.copy()
+    env.reset(seed=1)
+    m1_again = model.body_mass.copy()
+    assert not np.allclose(m1, m2)
+    np.testing.assert_array_equal(m1, m1_again)
+    moving = nominal > 0
+    ratio = m1[moving] / nominal[moving]
+    assert np.all((ratio >= 0.8) & (ratio <= 1.2))
+    assert not np.allclose(ratio, 1.0)
+
+
+def test_randomization_off_keeps_the_model_nominal(make_env: MakeEnv) -> None:
+    env = make_env(REACH)
+    model, nominal = env.unwrapped.sim.model, _nominal_model()
+    for seed in range(3):
+        env.reset(seed=seed)
+    np.testing.assert_array_equal(model.body_mass, nominal.body_mass)
+    np.testing.assert_array_equal(model.body_inertia, nominal.body_inertia)
+    np.testing.assert_array_equal(model.geom_friction, nominal.geom_friction)
+    np.testing.assert_array_equal(model.dof_damping, nominal.dof_damping)
+
+
+def test_sensor_noise_changes_observations_not_the_true_state(make_env: MakeEnv) -> None:
+    clean = make_env(REACH)
+    noisy = make_env(REACH, randomization={"sensor_noise": 0.01})
+    obs_c, _ = clean.reset(seed=5)
+    obs_n, _ = noisy.reset(seed=5)
+    hold = np.zeros(4, dtype=np.float32)
+    for _ in range(3):
+        np.testing.assert_array_equal(_true_joints(clean), _true_joints(noisy))
+        noise = _measured_joints(noisy, obs_n) - _measured_joints(clean, obs_c)
+        assert np.all(np.abs(noise) < 0.05)
+        assert np.all(np.abs(noise) > 0.0)
+        obs_c, *_ = clean.step(hold)
+        obs_n, *_ = noisy.step(hold)
+
+
+# ------------------------------------------------------------------- rendering
+
+
+@pytest.mark.parametrize("backend", ["sim", "mock"])
+def test_render_rgb_array_shows_the_arm(make_env: MakeEnv, backend: str) -> None:
+    env = make_env(PICK, backend=backend, render_mode="rgb_array", width=160, height=120)
+    env.reset(seed=0)
+    first = env.render()
+    assert first.shape == (120, 160, 3)
+    assert first.dtype == np.uint8
+    assert first.std() > 20.0
+    env.reset(seed=1)  # another pose: the drawn arm (sim state or mirrored joints) moves
+    second = env.render()
+    assert np.abs(first.astype(int) - second.astype(int)).mean() > 1.0
+
+
+def test_render_writes_a_viewable_png(make_env: MakeEnv) -> None:
+    env = make_env(PICK, render_mode="rgb_array")
+    env.reset(seed=0)
+    for action in _random_actions(env, 5, scale=0.5):
+        env.step(action)
+    image = env.render()
+    assert image.shape == (480, 480, 3)
+    iio.imwrite("/tmp/bioscara_env.png", image)
+    np.testing.assert_array_equal(iio.imread("/tmp/bioscara_env.png"), image)
+
+
+def test_render_without_render_mode_warns_and_returns_none(reach_env: gym.Env) -> None:
+    with pytest.warns(UserWarning, match="render_mode"):
+        assert reach_env.unwrapped.render() is None
+
+
+# ----------------------------------------------------------------------- close
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_close_finalizes_the_arm_with_joints_disabled(backend: str) -> None:
+    env = gym.make(PICK, backend=backend)
+    env.reset(seed=0)
+    env.step(np.full(5, 0.2, dtype=np.float32))
+    env.close()
+    u = env.unwrapped
+    assert u.arm.state is Lifecycle.FINALIZED
+    assert not u.arm.gripper.is_enabled
+    for name in JOINTS:
+        joint = u.arm.joints[name]
+        assert not joint.initialized
+        assert joint.flags & Flag.NOT_ENABLED
+        device = u.sim.cores[name].flags if u.sim is not None else joint.device_flags
+        assert device & Flag.NOT_ENABLED, f"{name} is still enabled on the device"
+    env.close()  # idempotent
+    assert u.arm.state is Lifecycle.FINALIZED
