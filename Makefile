@@ -6,6 +6,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 
 .PHONY: setup test test-slow lint train bench clean
+RUN ?= runs/reach
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +24,16 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
+
+# The main job: train Reach with the default config, evaluate it, say where everything is.
+train: $(STAMP)
+	$(VENV)/bin/bioscara train --env Bioscara-Reach --out $(RUN)
+	$(VENV)/bin/bioscara eval --model $(RUN)/model.zip --episodes 100 \
+		--video $(RUN)/reach.mp4 --json $(RUN)/eval.json
+	@echo "model:    $(RUN)/model.zip (+ metadata.json)"
+	@echo "logs:     $(RUN)/tb   (tensorboard --logdir $(RUN)/tb)"
+	@echo "video:    $(RUN)/reach.mp4"
+	@echo "results:  $(RUN)/eval.json"
 
 lint: $(STAMP)
 	$(PY) -m ruff check bioscara_gym training tests benchmarks

@@ -8,9 +8,10 @@ never leaves the arm enabled behind it.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 from rich.console import Console
@@ -137,19 +138,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.set_defaults(func=cmd_eval)
 
-    for register in _EXTRA_COMMANDS:
-        register(sub)
+    for module in EXTRA_COMMAND_MODULES:
+        importlib.import_module(module).register(sub)
     return parser
 
 
-#: Subcommand registrars added by other modules (deploy, console).
-_EXTRA_COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = []
+#: Modules that add subcommands: each has ``register(subparsers)`` and sets ``func``.
+EXTRA_COMMAND_MODULES = ("training.deploy", "bioscara_gym.console")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``bioscara`` console script."""
     os.environ.setdefault("MUJOCO_GL", "egl")
-    _load_extra_commands()
     parser = build_parser()
     args = parser.parse_args(argv)
     err = Console(stderr=True, highlight=False)
@@ -171,18 +171,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             err.print(f"bioscara {args.command}: error: {e}")
             return EXIT_ERROR
         raise
-
-
-def _load_extra_commands() -> None:
-    """Import the modules that add subcommands (kept out of the import of this one)."""
-    import importlib
-
-    for module in ("training.deploy", "bioscara_gym.console"):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            if e.name != module:
-                raise
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from bioscara_gym import kinematics
-from bioscara_gym.envs.base import BioscaraEnv
+from bioscara_gym.envs.base import CARTESIAN_STEP, CARTESIAN_STEP_Z, WRIST_STEP, BioscaraEnv
 from bioscara_gym.envs.pick_place import BLOCK_SIZE
 
 #: Fraction of the braking-limited speed the controller asks for (the firmware
@@ -56,6 +56,12 @@ class JointSpaceController:
             [self.vmax, BRAKE_MARGIN * np.sqrt(2.0 * self.amax * np.abs(e)), GAIN * np.abs(e)]
         )
         return np.clip(np.sign(e) * speed / self.vmax, -1.0, 1.0)
+
+    def cartesian_action(self, tcp: np.ndarray, xyz: np.ndarray, q4: float, q4_target: float) -> np.ndarray:
+        """Cartesian-mode action moving the TCP to ``xyz`` and the wrist to ``q4_target``."""
+        steps = np.array([CARTESIAN_STEP, CARTESIAN_STEP, CARTESIAN_STEP_Z])
+        a = np.append((xyz - tcp) / steps, (q4_target - q4) / WRIST_STEP)
+        return np.clip(a, -1.0, 1.0)
 
     def solve(self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None) -> np.ndarray | None:
         """IK for the TCP at ``xyz`` within the commandable range.
@@ -105,6 +111,8 @@ class ReachExpert:
         """Action for ``obs``."""
         q = self.ctrl.joints(obs["observation"])
         goal = obs["desired_goal"]
+        if self.ctrl.env.control_mode == "cartesian":
+            return self.ctrl.cartesian_action(obs["achieved_goal"], goal, q[3], q[3]).astype(np.float32)
         if self._goal is None or not np.array_equal(goal, self._goal):
             first = self.ctrl.solve(goal, q)
             self._elbow = None if first is None else (1.0 if first[2] >= 0 else -1.0)
@@ -182,6 +190,10 @@ class PickPlaceExpert:
             width = self.CLOSED
             xyz = goal - self._grip_offset
             xyz[2] = max(xyz[2], self.GRASP_Z)
+        if self.env.control_mode == "cartesian":
+            q4_target = self._wrist_for(q, yaw) if self.phase in ("approach", "descend") else q[3]
+            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target)
+            return np.append(a, self._width_action(width)).astype(np.float32)
         if self.phase != self._elbow_phase:  # pick the elbow once per phase, then keep it
             first = self.ctrl.solve(xyz, q)
             self._elbow = None if first is None else (1.0 if first[2] >= 0 else -1.0)

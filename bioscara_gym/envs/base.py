@@ -28,7 +28,20 @@ from bioscara_gym.hardware.sim import scene_path
 
 #: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor.
 MIN_CONTROL_FREQ = 20.0
-CONTROL_MODES = ("velocity", "position")
+CONTROL_MODES = ("velocity", "position", "cartesian")
+#: Joint command interface each control mode uses.
+JOINT_MODE = {
+    "velocity": CommandMode.VELOCITY,
+    "position": CommandMode.POSITION,
+    "cartesian": CommandMode.POSITION,
+}
+#: Cartesian mode: TCP displacement per control step at action 1, m (x, y) and m (z).
+CARTESIAN_STEP = 0.02
+CARTESIAN_STEP_Z = 0.01
+#: Cartesian mode: wrist displacement per control step at action 1, rad.
+WRIST_STEP = 0.1
+#: TCP targets are kept this far inside the planar workspace's rims, m.
+REACH_MARGIN = 0.005
 REWARD_TYPES = ("dense", "sparse")
 
 
@@ -163,6 +176,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._nominal: dict[str, np.ndarray] | None = None
         self._snapshot: Any = None
         self._noise_rng = np.random.default_rng(0)
+        self._elbow = 1.0  # sign of j3 that cartesian mode's IK keeps
         self._render_size = (int(height), int(width))
         self._renderer: mujoco.Renderer | None = None
         self._viewer: Any = None
@@ -198,7 +212,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if arm.state is Lifecycle.INACTIVE:
             arm.activate()
         arm.home()
-        mode = CommandMode(self.control_mode)
+        mode = JOINT_MODE[self.control_mode]
         for name in self.joint_names:
             if arm.modes[name] is not mode:
                 arm.modes[name] = CommandMode.NONE
@@ -231,6 +245,35 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         v = a[: len(self.joint_names)] * self._vmax
         return np.clip(v, -self._stop_speed(self._q - self._cmd_lo), self._stop_speed(self._cmd_hi - self._q))
 
+    def _cartesian_commands(self, a: np.ndarray) -> np.ndarray:
+        """TCP displacement (x, y, z) and wrist step to joint position targets.
+
+        The target is the measured TCP plus ``a[0:3]`` times ``CARTESIAN_STEP``
+        (``CARTESIAN_STEP_Z`` for z), kept inside the planar workspace and
+        turned into joints by analytic IK with the current elbow (the other
+        one only if the current cannot reach); ``a[3]`` turns the wrist by up
+        to ``WRIST_STEP``. The firmware then moves each joint there under its
+        own speed and acceleration limits, as in position mode.
+        """
+        q = self._q
+        target = kinematics.forward(q) + a[:3] * np.array([CARTESIAN_STEP, CARTESIAN_STEP, CARTESIAN_STEP_Z])
+        r = float(np.hypot(target[0], target[1]))
+        r_min = abs(kinematics.L1 - kinematics.L2) + REACH_MARGIN
+        r_max = kinematics.L1 + kinematics.L2 - REACH_MARGIN
+        if r > 1e-9 and not r_min <= r <= r_max:
+            target[:2] *= min(max(r, r_min), r_max) / r
+        cmd = q.copy()
+        for elbow in (self._elbow, -self._elbow):
+            sol = kinematics.inverse(target, elbow)
+            if sol is None:
+                continue
+            cand = np.array([sol[0], sol[1], sol[2], q[3]])
+            if np.all(cand[:3] >= self._cmd_lo[:3]) and np.all(cand[:3] <= self._cmd_hi[:3]):
+                cmd, self._elbow = cand, elbow
+                break
+        cmd[3] = q[3] + a[3] * WRIST_STEP
+        return np.clip(cmd, self._cmd_lo, self._cmd_hi)
+
     def _stop_speed(self, room: np.ndarray) -> np.ndarray:
         """Fastest speed that can be held for one control period and still brake within ``room``.
 
@@ -251,7 +294,12 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             # Until the first command has come through the delay line, hold the arm.
             ready = len(self._latency) > self._latency_steps
             a = self._latency.popleft() if ready else self._neutral_action()
-        cmds = self._velocity_commands(a) if self.control_mode == "velocity" else self._position_commands(a)
+        if self.control_mode == "velocity":
+            cmds = self._velocity_commands(a)
+        elif self.control_mode == "cartesian":
+            cmds = self._cartesian_commands(a)
+        else:
+            cmds = self._position_commands(a)
         for name, value in zip(self.joint_names, cmds, strict=True):
             self.arm.set_command(name, float(value))
         if self.uses_gripper:
@@ -260,7 +308,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     def _neutral_action(self) -> np.ndarray:
         """The action that holds the arm where it is."""
-        a = np.zeros(self.action_space.shape, dtype=np.float32)
+        a = np.zeros(self.action_space.shape, dtype=np.float32)  # velocity and cartesian: stay
         if self.control_mode == "position":
             span = self._cmd_hi - self._cmd_lo
             a[: len(self.joint_names)] = np.clip(2.0 * (self._q - self._cmd_lo) / span - 1.0, -1, 1)
@@ -313,7 +361,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 break
             if self.backend.clock.now() > deadline:
                 raise RuntimeError(f"arm did not reach the start pose {np.round(pose, 3)} within 30 s")
-        mode = CommandMode(self.control_mode)
+        mode = JOINT_MODE[self.control_mode]
         for name in self.joint_names:
             arm.release(name)
             arm.claim(name, mode)
@@ -348,13 +396,15 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 self._snapshot = self.sim.snapshot()
             self.sim.restore(self._snapshot)
         for name in self.joint_names:
-            self.arm.set_command(name, 0.0 if self.control_mode == "velocity" else self.arm.commands[name])
+            hold = 0.0 if JOINT_MODE[self.control_mode] is CommandMode.VELOCITY else self.arm.commands[name]
+            self.arm.set_command(name, hold)
         width0 = self.config.gripper.backup_init_pos
         self.arm.set_gripper(width0)
         self.arm.gripper.set_position(width0)
         self._move_to(self._random_pose())
         self.arm.read()
         self._measure()
+        self._elbow = 1.0 if self._q[2] >= 0 else -1.0
         self._reset_task()
         self._steps = 0
         obs = self._get_obs()

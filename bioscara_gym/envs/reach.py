@@ -34,9 +34,9 @@ class BioscaraReachEnv(BioscaraEnv):
     The policy commands the four joints of the Bioscara SCARA arm through the
     joint driver API (``set_velocity`` or ``set_position`` on each joint), on a
     simulated arm (``backend="sim"``) or on the real one (``backend="i2c"``)
-    without a change. Goals are sampled where the arm can reach them within
-    the episode under its joint speed and acceleration limits (the lift j2
-    moves at only 0.03 m/s).
+    without a change. Goals lie within ``goal_radius`` (15 cm) of the start
+    TCP position, where the arm can reach them within the episode under its
+    joint speed and acceleration limits (the lift j2 moves at only 0.03 m/s).
 
     ## Action space
     ``Box(-1, 1, (4,), float32)``; one entry per joint, scaled to the joint:
@@ -93,6 +93,7 @@ class BioscaraReachEnv(BioscaraEnv):
     | config             | None       | ArmConfig or YAML path (default: the packaged SPEC values)    |
     | backend_options    | None       | dict passed to the backend (e.g. ``faults`` for "emulated")   |
     | width, height      | 480, 480   | rendered image size in pixels                                 |
+    | goal_radius        | 0.15       | goals lie within this distance (m) of the start TCP           |
     | goal_horizon_s     | None       | goals are reachable within this many seconds; None: 60 % of   |
     |                    |            | 50 control periods (1.2 s at 25 Hz). Lower it with a shorter  |
     |                    |            | max_episode_steps                                             |
@@ -104,22 +105,44 @@ class BioscaraReachEnv(BioscaraEnv):
     * v0: initial release.
     """
 
-    def __init__(self, *args: Any, goal_horizon_s: float | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        *args: Any,
+        goal_horizon_s: float | None = None,
+        goal_radius: float = 0.15,
+        **kwargs: Any,
+    ) -> None:
         """See the class docstring for the arguments."""
         super().__init__(*args, **kwargs)
         if goal_horizon_s is None:
             goal_horizon_s = GOAL_HORIZON_FRACTION * DEFAULT_EPISODE_STEPS * self.dt
         if not goal_horizon_s > 0:
             raise ValueError(f"goal_horizon_s {goal_horizon_s} must be > 0 (seconds)")
+        if not goal_radius > 0:
+            raise ValueError(f"goal_radius {goal_radius} must be > 0 (m)")
         self.goal_horizon_s = float(goal_horizon_s)
+        self.goal_radius = float(goal_radius)
 
     def _reset_task(self) -> None:
-        """Sample a goal the arm can reach from here within ``goal_horizon_s``."""
+        """Sample a goal within ``goal_radius`` of the TCP, reachable within ``goal_horizon_s``.
+
+        Goals are drawn in joint space (so they are reachable under every
+        joint's speed and acceleration limits) and kept if their TCP position
+        lies within ``goal_radius`` of the start; after 100 rejections the
+        draw is shrunk toward the start pose, which always succeeds.
+        """
         travel = reachable_travel(self._vmax, self._amax, self.goal_horizon_s)
         lo = np.maximum(self._cmd_lo, self._q - travel)
         hi = np.minimum(self._cmd_hi, self._q + travel)
-        self.goal_joints = self.np_random.uniform(lo, hi)
-        self.goal = kinematics.forward(self.goal_joints)
+        tcp = self.tcp_position()
+        scale = 1.0
+        while True:
+            for _ in range(100):
+                q = self._q + scale * (self.np_random.uniform(lo, hi) - self._q)
+                if np.linalg.norm(kinematics.forward(q) - tcp) <= self.goal_radius:
+                    self.goal_joints, self.goal = q, kinematics.forward(q)
+                    return
+            scale *= 0.5
 
     def _get_obs(self) -> dict[str, np.ndarray]:
         tcp = self.tcp_position()
