@@ -77,8 +77,10 @@ class Hyperparams:
             target_success=self.target_success,
             noise_type=self.noise_type,
             noise_std=self.noise_std,
-            algo_kwargs={k: v if isinstance(v, int | float | str | bool | list | dict | None) else str(v)
-                         for k, v in self.algo_kwargs.items()},
+            algo_kwargs={
+                k: v if isinstance(v, int | float | str | bool | list | dict | None) else str(v)
+                for k, v in self.algo_kwargs.items()
+            },
         )
         return out
 

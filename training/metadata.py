@@ -32,8 +32,13 @@ def space_description(space: gym.Space) -> Any:
     if isinstance(space, gym.spaces.Dict):
         return {k: space_description(s) for k, s in space.spaces.items()}
     if isinstance(space, gym.spaces.Box):
-        return {"type": "Box", "shape": list(space.shape), "dtype": str(space.dtype),
-                "low": float(space.low.min()), "high": float(space.high.max())}
+        return {
+            "type": "Box",
+            "shape": list(space.shape),
+            "dtype": str(space.dtype),
+            "low": float(space.low.min()),
+            "high": float(space.high.max()),
+        }
     return {"type": type(space).__name__, "repr": repr(space)}
 
 
@@ -52,9 +57,7 @@ def atomic_write_text(path: Path, text: str) -> None:
         raise
 
 
-def build_metadata(
-    env: gym.Env, env_id: str, env_kwargs: dict[str, Any], **extra: Any
-) -> dict[str, Any]:
+def build_metadata(env: gym.Env, env_id: str, env_kwargs: dict[str, Any], **extra: Any) -> dict[str, Any]:
     """Describe the env a policy was trained on (plus ``extra`` facts)."""
     unwrapped = env.unwrapped
     kwargs = dict(env_kwargs)

@@ -263,8 +263,10 @@ def train(args: TrainArgs) -> TrainResult:
                 f"{out} holds a {state['algo']} run on {state['env_id']}, not {args.algo} on {env_id}"
             )
         args.seed, total = state["seed"], int(state["total_timesteps"])
-        hp = load_run_hyperparams(args, env_id) if not state.get("config") else load_hyperparams(
-            Path(state["config"]), env_id
+        hp = (
+            load_run_hyperparams(args, env_id)
+            if not state.get("config")
+            else load_hyperparams(Path(state["config"]), env_id)
         )
     else:
         hp = load_run_hyperparams(args, env_id)
@@ -275,8 +277,16 @@ def train(args: TrainArgs) -> TrainResult:
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
         state_path,
-        json.dumps({"env_id": env_id, "algo": args.algo, "seed": args.seed, "total_timesteps": total,
-                    "config": str(args.config) if args.config else None}, indent=2),
+        json.dumps(
+            {
+                "env_id": env_id,
+                "algo": args.algo,
+                "seed": args.seed,
+                "total_timesteps": total,
+                "config": str(args.config) if args.config else None,
+            },
+            indent=2,
+        ),
     )
 
     env = make_vec_env(env_id, n_envs=hp.n_envs, seed=args.seed, env_kwargs=hp.env_kwargs)
@@ -293,11 +303,20 @@ def train(args: TrainArgs) -> TrainResult:
             model.load_replay_buffer(replay)
     else:
         model = algo_cls(
-            hp.policy, env, seed=args.seed, device="cpu", tensorboard_log=str(out / "tb"),
-            verbose=0, **_algo_kwargs(hp, env, args.algo),
+            hp.policy,
+            env,
+            seed=args.seed,
+            device="cpu",
+            tensorboard_log=str(out / "tb"),
+            verbose=0,
+            **_algo_kwargs(hp, env, args.algo),
         )
     evaluator = SuccessEvalCallback(
-        eval_env, hp.eval_freq, hp.eval_episodes, hp.target_success, seed=args.seed + 10_000,
+        eval_env,
+        hp.eval_freq,
+        hp.eval_episodes,
+        hp.target_success,
+        seed=args.seed + 10_000,
         verbose=args.verbose,
     )
     callbacks = CallbackList([evaluator, CheckpointEvery(ckpt_dir, args.checkpoint_freq)])
@@ -319,8 +338,14 @@ def train(args: TrainArgs) -> TrainResult:
     metadata_path = write_metadata(
         out,
         build_metadata(
-            eval_env, env_id, hp.env_kwargs, algo=args.algo, seed=args.seed, timesteps=model.num_timesteps,
-            config=hp.as_dict(), final_eval=final.as_dict() if final else None,
+            eval_env,
+            env_id,
+            hp.env_kwargs,
+            algo=args.algo,
+            seed=args.seed,
+            timesteps=model.num_timesteps,
+            config=hp.as_dict(),
+            final_eval=final.as_dict() if final else None,
         ),
     )
     env.close()
