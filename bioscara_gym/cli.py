@@ -152,7 +152,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     parser = build_parser()
     args = parser.parse_args(argv)
-    err = Console(stderr=True, highlight=False)
+    # One line per error whatever the width, and the text printed as is (no markup).
+    err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
     try:
         return int(args.func(args) or 0)
     except CliError as e:

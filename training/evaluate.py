@@ -14,7 +14,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from training.metadata import atomic_write_text, check_metadata, read_metadata
+from training.metadata import MetadataError, atomic_write_text, check_metadata, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -126,7 +126,10 @@ def make_eval_env(
     if render:
         kwargs["render_mode"] = "rgb_array"
     kwargs.update(overrides)
-    return gym.make(metadata["env_id"], **kwargs)
+    try:
+        return gym.make(metadata["env_id"], **kwargs)
+    except gym.error.Error as e:
+        raise MetadataError(f"policy's env {metadata.get('env_id')!r} cannot be made: {e}") from e
 
 
 def evaluate_model(
@@ -143,7 +146,7 @@ def evaluate_model(
     env = make_eval_env(metadata, backend, render=video is not None)
     try:
         check_metadata(metadata, env, metadata["env_id"])
-        model, _ = load_model(Path(model_path))
+        model, _ = load_model(Path(model_path), env)
         frames: list[np.ndarray] | None = [] if video is not None else None
         stats = run_episodes(env, sb3_policy(model), episodes, seed=seed, frames=frames)
         if video is not None and frames:

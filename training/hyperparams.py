@@ -97,7 +97,13 @@ def parse_literal_call(text: str, where: str) -> Any:
         raise HyperparamError(f"{where}: {text!r} is not a Python literal or dict(...)") from e
 
     def convert(n: ast.AST) -> Any:
-        if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == "dict" and not n.args:
+        if (
+            isinstance(n, ast.Call)
+            and isinstance(n.func, ast.Name)
+            and n.func.id == "dict"
+            and not n.args
+            and all(kw.arg is not None for kw in n.keywords)  # no **mapping
+        ):
             return {kw.arg: convert(kw.value) for kw in n.keywords}
         if isinstance(n, ast.List):
             return [convert(e) for e in n.elts]
@@ -133,7 +139,10 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
     except OSError as e:
         raise HyperparamError(f"cannot read config {path}: {e.strerror or e}") from e
     except yaml.YAMLError as e:
-        raise HyperparamError(f"config {path} is not valid YAML: {e}") from e
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or type(e).__name__
+        raise HyperparamError(f"config {path} is not valid YAML{where}: {problem}") from e
     if not isinstance(data, dict):
         raise HyperparamError(f"config {path}: expected a mapping of env ids, got {type(data).__name__}")
     if env_id not in data:

@@ -254,6 +254,7 @@ def train(args: TrainArgs) -> TrainResult:
     env_id = resolve_env_id(args.env)
     out = Path(args.out)
     state_path = out / STATE_NAME
+    state: dict[str, Any] = {}
     if args.resume:
         if not state_path.exists():
             raise TrainingError(f"nothing to resume in {out}: no {STATE_NAME}")
@@ -283,7 +284,7 @@ def train(args: TrainArgs) -> TrainResult:
                 "algo": args.algo,
                 "seed": args.seed,
                 "total_timesteps": total,
-                "config": str(args.config) if args.config else None,
+                "config": str(args.config) if args.config else (state.get("config") if args.resume else None),
             },
             indent=2,
         ),
@@ -332,6 +333,8 @@ def train(args: TrainArgs) -> TrainResult:
     except KeyboardInterrupt:
         save_checkpoint(model, ckpt_dir)  # `bioscara train --resume` continues from here
         raise
+    finally:
+        env.close()
     final = evaluator.last if evaluator.reached_at is not None else evaluator.evaluate(hp.eval_episodes)
     model_path = out / "model.zip"
     model.save(model_path)
@@ -348,7 +351,6 @@ def train(args: TrainArgs) -> TrainResult:
             final_eval=final.as_dict() if final else None,
         ),
     )
-    env.close()
     eval_env.close()
     return TrainResult(
         model_path=model_path,

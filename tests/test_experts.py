@@ -1,0 +1,50 @@
+"""The scripted experts prove the tasks solvable: success rates over seeded episodes."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+
+import bioscara_gym  # noqa: F401 - registers the tasks
+from bioscara_gym.experts import PickPlaceExpert, ReachExpert, expert_for
+from training.evaluate import run_episodes
+
+
+def _success_rate(env_id: str, episodes: int, **kwargs: object) -> float:
+    env = gym.make(env_id, **kwargs)
+    try:
+        expert = expert_for(env.unwrapped)
+        return run_episodes(env, expert, episodes, seed=0, on_reset=expert.reset).success_rate
+    finally:
+        env.close()
+
+
+def test_expert_for_picks_the_task_expert() -> None:
+    reach, pick = gym.make("Bioscara-Reach-v0"), gym.make("Bioscara-PickPlace-v0")
+    assert isinstance(expert_for(reach.unwrapped), ReachExpert)
+    assert isinstance(expert_for(pick.unwrapped), PickPlaceExpert)
+    reach.close()
+    pick.close()
+
+
+def test_reach_expert_succeeds_in_99_percent_of_200_episodes() -> None:
+    assert _success_rate("Bioscara-Reach-v0", 200) >= 0.99
+
+
+@pytest.mark.parametrize("mode", ["position", "cartesian"])
+def test_reach_expert_succeeds_in_other_control_modes(mode: str) -> None:
+    assert _success_rate("Bioscara-Reach-v0", 40, control_mode=mode) >= 0.95
+
+
+def test_pick_place_expert_succeeds_in_most_of_40_episodes() -> None:
+    assert _success_rate("Bioscara-PickPlace-v0", 40) >= 0.9
+
+
+@pytest.mark.slow
+def test_pick_place_expert_succeeds_in_90_percent_of_200_episodes() -> None:
+    assert _success_rate("Bioscara-PickPlace-v0", 200) >= 0.9
+
+
+@pytest.mark.parametrize("backend", ["mock", "emulated"])
+def test_reach_expert_works_on_other_backends(backend: str) -> None:
+    assert _success_rate("Bioscara-Reach-v0", 5, backend=backend) >= 0.8

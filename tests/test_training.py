@@ -1,0 +1,654 @@
+"""``bioscara train`` / ``bioscara eval`` and the ``training`` package behind them.
+
+Every training run here is tiny (a few hundred env steps, 16x16 networks, two
+evaluation episodes) from a config file written to a temporary directory, so
+the module stays well under a minute on a shared CPU. Runs reused by several
+tests are module-scoped fixtures; tests that edit a run work on a copy.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
+
+from bioscara_gym.cli import EXIT_INTERRUPTED, main
+from training.hyperparams import (
+    EXTRA_KEYS,
+    HyperparamError,
+    Hyperparams,
+    default_config_path,
+    load_hyperparams,
+    parse_literal_call,
+)
+from training.metadata import (
+    METADATA_NAME,
+    MetadataError,
+    build_metadata,
+    check_metadata,
+    read_metadata,
+    write_metadata,
+)
+from training.train import (
+    ALGOS,
+    STATE_NAME,
+    SuccessEvalCallback,
+    TrainingError,
+    _algo_kwargs,
+    resolve_env_id,
+)
+
+# Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
+pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")
+
+REACH = "Bioscara-Reach-v0"
+PICK = "Bioscara-PickPlace-v0"
+TOTAL = 300  # env steps of every tiny off-policy run
+INTERRUPT_AT = 170  # mid-episode (episodes are 50 steps), after learning_starts
+REACH_KWARGS = {"control_mode": "cartesian", "reward_type": "dense"}
+
+#: A tiny SAC/TD3 + HER entry: learns from step 100, evaluates at 200 and at the end.
+TINY_OFF_POLICY: dict[str, Any] = {
+    "n_timesteps": TOTAL,
+    "policy": "MultiInputPolicy",
+    "buffer_size": 1000,
+    "batch_size": 32,
+    "learning_starts": 100,
+    "replay_buffer_class": "HerReplayBuffer",
+    "replay_buffer_kwargs": "dict(goal_selection_strategy='future', n_sampled_goal=4)",
+    "policy_kwargs": "dict(net_arch=[16, 16])",
+    "env_kwargs": "dict(control_mode='cartesian', reward_type='dense')",
+    "eval_freq": 200,
+    "eval_episodes": 2,
+}
+TINY: dict[str, dict[str, Any]] = {
+    "sac": TINY_OFF_POLICY,
+    "td3": {**TINY_OFF_POLICY, "noise_type": "normal", "noise_std": 0.2},
+    "ppo": {
+        "n_timesteps": 128,
+        "policy": "MultiInputPolicy",
+        "n_steps": 64,
+        "batch_size": 32,
+        "n_epochs": 1,
+        "policy_kwargs": "dict(net_arch=[16, 16])",
+        "env_kwargs": "dict(reward_type='dense')",
+        "eval_freq": 200,
+        "eval_episodes": 2,
+    },
+}
+
+
+def write_config(path: Path, entries: dict[str, dict[str, Any]]) -> Path:
+    """Write an rl-zoo3 style hyperparameter file ``{env_id: entry}`` and return its path."""
+    path.write_text(yaml.safe_dump(entries, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def train_argv(out: Path, config: Path, *extra: str) -> list[str]:
+    """``bioscara train`` arguments of a tiny run into ``out``."""
+    return ["train", "--out", str(out), "--config", str(config), "--no-progress", *extra]
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    """The single line on stderr, checked to be ``bioscara COMMAND: error: ...``."""
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, f"expected a one-line error, got {len(lines)} lines:\n{err}"
+    assert lines[0].startswith(f"bioscara {command}: error: "), lines[0]
+    return lines[0]
+
+
+def edit_metadata(run: Path, tmp_path: Path, **changes: Any) -> Path:
+    """A copy of ``run`` in ``tmp_path`` whose metadata has ``changes`` (dotted keys: ``a.b``)."""
+    copy = Path(shutil.copytree(run, tmp_path / "edited"))
+    path = copy / METADATA_NAME
+    metadata = json.loads(path.read_text(encoding="utf-8"))
+    for key, value in changes.items():
+        *parents, leaf = key.split(".")
+        node = metadata
+        for p in parents:
+            node = node[p]
+        node[leaf] = value
+    path.write_text(json.dumps(metadata), encoding="utf-8")
+    return copy / "model.zip"
+
+
+def saved_num_timesteps(model_zip: Path) -> int:
+    """``num_timesteps`` recorded in a saved SB3 model, read without rebuilding the model."""
+    data, _, _ = load_from_zip_file(model_zip, device="cpu")
+    return int(data["num_timesteps"])
+
+
+@pytest.fixture(scope="module")
+def sac_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The output directory of a finished tiny SAC + HER run on Reach (300 steps)."""
+    root = tmp_path_factory.mktemp("sac")
+    config = write_config(root / "cfg.yaml", {REACH: TINY["sac"]})
+    rc = main(train_argv(root / "run", config))
+    assert rc == 0
+    return root / "run"
+
+
+@pytest.fixture
+def reach_env() -> Iterator[gym.Env]:
+    """Reach with the tiny runs' env kwargs, closed at teardown."""
+    env = gym.make(REACH, **REACH_KWARGS)
+    yield env
+    env.close()
+
+
+# ------------------------------------------------------- end-to-end train/eval
+
+
+def test_train_writes_a_model_that_loads_with_the_trained_step_count(
+    sac_run: Path, reach_env: gym.Env
+) -> None:
+    model = SAC.load(sac_run / "model.zip", env=reach_env, device="cpu")
+    assert model.num_timesteps == TOTAL
+
+
+def test_train_writes_metadata_describing_the_run(sac_run: Path, reach_env: gym.Env) -> None:
+    metadata = read_metadata(sac_run / "model.zip")
+    assert metadata["env_id"] == REACH
+    assert metadata["algo"] == "sac"
+    assert metadata["timesteps"] == TOTAL
+    assert metadata["env_kwargs"]["control_mode"] == "cartesian"
+    assert metadata["final_eval"]["episodes"] == TINY["sac"]["eval_episodes"]
+    check_metadata(metadata, reach_env, REACH)  # matches the env it was trained on
+
+
+def test_train_prints_where_the_model_and_metadata_went(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: {**TINY["sac"], "n_timesteps": 100}})
+    assert main(train_argv(tmp_path / "run", config)) == 0
+    out = capsys.readouterr().out
+    assert "final success rate" in out
+    assert "model.zip" in out
+    assert METADATA_NAME in out
+
+
+def test_eval_of_trained_model_writes_json_with_the_results(sac_run: Path, tmp_path: Path) -> None:
+    report = tmp_path / "eval.json"
+    rc = main(["eval", "--model", str(sac_run / "model.zip"), "--episodes", "3", "--json", str(report)])
+    assert rc == 0
+    results = json.loads(report.read_text(encoding="utf-8"))
+    assert results["episodes"] == 3
+    assert 0.0 <= results["success_rate"] <= 1.0
+    assert np.isfinite(results["mean_final_distance"])
+
+
+def test_eval_of_trained_model_prints_a_table(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rc = main(["eval", "--model", str(sac_run / "model.zip"), "--episodes", "3"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    for metric in ("episodes", "success rate", "mean final distance", "mean return", "stalls"):
+        assert metric in out
+
+
+@pytest.mark.parametrize("algo", ["td3", "ppo"])
+def test_algo_trains_a_tiny_run_into_a_loadable_model(algo: str, tmp_path: Path) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY[algo]})
+    assert main(train_argv(tmp_path / "run", config, "--algo", algo)) == 0
+    metadata = read_metadata(tmp_path / "run" / "model.zip")
+    assert metadata["algo"] == algo
+    env = gym.make(REACH, **metadata["env_kwargs"])
+    try:
+        model = ALGOS[algo].load(tmp_path / "run" / "model.zip", env=env, device="cpu")
+    finally:
+        env.close()
+    assert isinstance(model, TD3 if algo == "td3" else PPO)
+    assert model.num_timesteps >= TINY[algo]["n_timesteps"]
+
+
+# ------------------------------------------------------------ interrupt/resume
+
+
+@dataclass
+class InterruptedRun:
+    """A tiny SAC run stopped by Ctrl-C at :data:`INTERRUPT_AT` steps."""
+
+    out: Path
+    config: Path
+    exit_code: int
+    stderr: str
+
+
+@dataclass
+class ResumedRun:
+    """A copy of :class:`InterruptedRun` continued with ``--resume``."""
+
+    out: Path
+    config: Path
+    exit_code: int
+    loaded_replay_sizes: list[int]
+
+
+@pytest.fixture(scope="module")
+def interrupted_run(tmp_path_factory: pytest.TempPathFactory) -> InterruptedRun:
+    """Ctrl-C simulated by the evaluation callback raising ``KeyboardInterrupt`` mid-episode."""
+    root = tmp_path_factory.mktemp("interrupted")
+    config = write_config(root / "cfg.yaml", {REACH: TINY["sac"]})
+    original = SuccessEvalCallback._on_step
+
+    def interrupt(self: SuccessEvalCallback) -> bool:
+        if self.num_timesteps >= INTERRUPT_AT:
+            raise KeyboardInterrupt
+        return original(self)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(SuccessEvalCallback, "_on_step", interrupt)
+        stderr: list[str] = []
+        mp.setattr("sys.stderr", _Recorder(stderr))
+        rc = main(train_argv(root / "run", config))
+    return InterruptedRun(out=root / "run", config=config, exit_code=rc, stderr="".join(stderr))
+
+
+class _Recorder:
+    """A text stream appending everything written to a list."""
+
+    def __init__(self, sink: list[str]) -> None:
+        self.sink = sink
+
+    def write(self, text: str) -> int:
+        self.sink.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+
+@pytest.fixture(scope="module")
+def resumed_run(interrupted_run: InterruptedRun, tmp_path_factory: pytest.TempPathFactory) -> ResumedRun:
+    """``bioscara train --resume`` on a copy of the interrupted run, recording the loaded replay buffer."""
+    out = Path(shutil.copytree(interrupted_run.out, tmp_path_factory.mktemp("resumed") / "run"))
+    sizes: list[int] = []
+    original = OffPolicyAlgorithm.load_replay_buffer
+
+    def spy(self: OffPolicyAlgorithm, path: Any, truncate_last_traj: bool = True) -> None:
+        original(self, path, truncate_last_traj)
+        sizes.append(self.replay_buffer.size())
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(OffPolicyAlgorithm, "load_replay_buffer", spy)
+        rc = main(["train", "--resume", "--out", str(out), "--no-progress"])
+    return ResumedRun(out=out, config=interrupted_run.config, exit_code=rc, loaded_replay_sizes=sizes)
+
+
+def test_interrupted_train_exits_130_with_one_line(interrupted_run: InterruptedRun) -> None:
+    assert interrupted_run.exit_code == EXIT_INTERRUPTED == 130
+    assert interrupted_run.stderr.strip() == "bioscara train: interrupted"
+
+
+def test_interrupted_train_leaves_a_checkpoint_and_its_replay_buffer(interrupted_run: InterruptedRun) -> None:
+    checkpoints = interrupted_run.out / "checkpoints"
+    assert (checkpoints / f"ckpt_{INTERRUPT_AT}_steps.zip").is_file()
+    assert (checkpoints / f"ckpt_{INTERRUPT_AT}_steps_replay.pkl").is_file()
+    assert saved_num_timesteps(checkpoints / f"ckpt_{INTERRUPT_AT}_steps.zip") == INTERRUPT_AT
+
+
+def test_interrupted_train_writes_no_final_model(interrupted_run: InterruptedRun) -> None:
+    assert not (interrupted_run.out / "model.zip").exists()
+
+
+def test_resume_trains_up_to_the_original_total(resumed_run: ResumedRun) -> None:
+    assert resumed_run.exit_code == 0
+    assert saved_num_timesteps(resumed_run.out / "model.zip") == TOTAL
+
+
+def test_resume_loads_the_checkpoint_replay_buffer(resumed_run: ResumedRun) -> None:
+    saved = load_from_pkl(resumed_run.out / "checkpoints" / f"ckpt_{INTERRUPT_AT}_steps_replay.pkl")
+    assert isinstance(saved, HerReplayBuffer)
+    assert saved.size() > 0
+    assert resumed_run.loaded_replay_sizes == [saved.size()]
+
+
+def test_resume_writes_metadata_with_the_total_timesteps(resumed_run: ResumedRun) -> None:
+    assert read_metadata(resumed_run.out / "model.zip")["timesteps"] == TOTAL
+
+
+def test_resume_keeps_the_run_config_for_a_later_resume(resumed_run: ResumedRun) -> None:
+    # A second Ctrl-C then --resume must still use the run's config (its env_kwargs), not the packaged one.
+    state = json.loads((resumed_run.out / STATE_NAME).read_text(encoding="utf-8"))
+    assert state["config"] == str(resumed_run.config)
+
+
+def test_resume_with_nothing_to_resume_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["train", "--resume", "--out", str(tmp_path / "empty"), "--no-progress"])
+    assert rc != 0
+    assert "nothing to resume" in one_line_error(capsys, "train")
+
+
+# --------------------------------------------------------------- expert eval
+
+
+def test_eval_expert_on_reach_succeeds_every_episode(tmp_path: Path) -> None:
+    report = tmp_path / "expert.json"
+    rc = main(["eval", "--expert", "--env", "Bioscara-Reach", "--episodes", "5", "--json", str(report)])
+    assert rc == 0
+    results = json.loads(report.read_text(encoding="utf-8"))
+    assert results["episodes"] == 5
+    assert results["success_rate"] == 1.0
+    assert results["source"] == "expert"
+
+
+def test_eval_expert_on_pick_place_reports_its_success_rate(tmp_path: Path) -> None:
+    report = tmp_path / "expert.json"
+    rc = main(["eval", "--expert", "--env", "Bioscara-PickPlace", "--episodes", "2", "--json", str(report)])
+    assert rc == 0
+    results = json.loads(report.read_text(encoding="utf-8"))
+    assert results["episodes"] == 2
+    assert results["success_rate"] == 1.0
+
+
+# ----------------------------------------------------------------- bad input
+
+
+def test_train_unknown_env_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["train", "--env", "Bioscara-Nope", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert rc != 0
+    line = one_line_error(capsys, "train")
+    assert "Bioscara-Nope" in line
+    assert REACH in line  # names what is registered
+
+
+def test_train_error_prints_user_input_verbatim(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # "[/x]" is a closing tag to Rich's markup parser: it must be printed, not parsed.
+    rc = main(["train", "--env", "[/x]", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert rc != 0
+    assert "'[/x]'" in one_line_error(capsys, "train")
+
+
+def test_train_unknown_algo_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["train", "--algo", "a2c", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert rc != 0
+    line = one_line_error(capsys, "train")
+    assert "a2c" in line
+    assert "sac" in line
+
+
+def test_train_missing_config_is_a_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(train_argv(tmp_path / "run", tmp_path / "missing.yaml"))
+    assert rc != 0
+    assert "missing.yaml" in one_line_error(capsys, "train")
+
+
+def test_train_config_that_is_not_yaml_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "cfg.yaml"
+    config.write_text(f"{REACH}: [1, 2\n", encoding="utf-8")
+    rc = main(train_argv(tmp_path / "run", config))
+    assert rc != 0
+    assert "not valid YAML" in one_line_error(capsys, "train")
+
+
+def test_train_config_without_an_entry_for_the_env_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {PICK: TINY["sac"]})
+    rc = main(train_argv(tmp_path / "run", config))
+    assert rc != 0
+    line = one_line_error(capsys, "train")
+    assert f"no entry for {REACH}" in line
+
+
+def test_train_config_with_a_code_string_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    entry = {**TINY["sac"], "policy_kwargs": "__import__('os')"}
+    config = write_config(tmp_path / "cfg.yaml", {REACH: entry})
+    rc = main(train_argv(tmp_path / "run", config))
+    assert rc != 0
+    line = one_line_error(capsys, "train")
+    assert "policy_kwargs" in line
+    assert not (tmp_path / "run" / "model.zip").exists()
+
+
+def test_train_bad_input_leaves_no_output_directory(tmp_path: Path) -> None:
+    main(["train", "--algo", "a2c", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_without_model_or_expert_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "--episodes", "1"]) != 0
+    assert "--model" in one_line_error(capsys, "eval")
+
+
+def test_eval_expert_on_unknown_env_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "--expert", "--env", "Bioscara-Nope", "--episodes", "1"]) != 0
+    assert "Bioscara-Nope" in one_line_error(capsys, "eval")
+
+
+def test_eval_model_without_metadata_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    shutil.copy(sac_run / "model.zip", tmp_path / "model.zip")
+    assert main(["eval", "--model", str(tmp_path / "model.zip"), "--episodes", "1"]) != 0
+    assert METADATA_NAME in one_line_error(capsys, "eval")
+
+
+def test_eval_model_whose_metadata_names_another_task_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = edit_metadata(sac_run, tmp_path, env_id=PICK)
+    assert main(["eval", "--model", str(model), "--episodes", "1"]) != 0
+    assert "differs" in one_line_error(capsys, "eval")
+
+
+def test_eval_model_whose_metadata_names_an_unregistered_env_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = edit_metadata(sac_run, tmp_path, env_id="Bioscara-Nope-v0")
+    assert main(["eval", "--model", str(model), "--episodes", "1"]) != 0
+    assert "Bioscara-Nope" in one_line_error(capsys, "eval")
+
+
+def test_eval_model_whose_metadata_action_space_differs_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = edit_metadata(sac_run, tmp_path, **{"action_space.shape": [5]})
+    assert main(["eval", "--model", str(model), "--episodes", "1"]) != 0
+    assert "action_space differs" in one_line_error(capsys, "eval")
+
+
+def test_eval_model_whose_metadata_control_mode_is_invalid_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # eval builds the env from the metadata, so a *valid* other control mode cannot be told apart
+    # from the truth there; check_metadata's refusal of a mismatch is tested below.
+    model = edit_metadata(sac_run, tmp_path, **{"env_kwargs.control_mode": "joint"})
+    assert main(["eval", "--model", str(model), "--episodes", "1"]) != 0
+    assert "control_mode" in one_line_error(capsys, "eval")
+
+
+# --------------------------------------------------------------- hyperparams
+
+
+def test_parse_literal_call_parses_nested_dict_calls_and_lists() -> None:
+    parsed = parse_literal_call("dict(net_arch=dict(pi=[128, 128], vf=[64]), log_std_init=-2.5)", "here")
+    assert parsed == {"net_arch": {"pi": [128, 128], "vf": [64]}, "log_std_init": -2.5}
+
+
+def test_parse_literal_call_parses_plain_literals() -> None:
+    assert parse_literal_call("[(1, 'a'), {'k': None}, True]", "here") == [(1, "a"), {"k": None}, True]
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "__import__('os')",
+        "os",
+        "dict(a=os)",
+        "os.system('true')",
+        "dict([('a', 1)])",
+        "dict(**{'a': 1})",
+        "list([1])",
+        "[1, 2] + [3]",
+        "lambda: 0",
+    ],
+)
+def test_parse_literal_call_refuses_names_and_calls(text: str) -> None:
+    with pytest.raises(HyperparamError, match=r"^where: "):
+        parse_literal_call(text, "where")
+
+
+def test_parse_literal_call_refuses_invalid_syntax() -> None:
+    with pytest.raises(HyperparamError, match="not a Python literal"):
+        parse_literal_call("dict(a=1", "where")
+
+
+def test_load_hyperparams_splits_extras_from_algorithm_arguments(tmp_path: Path) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: {**TINY["td3"], "n_timesteps": "3e4"}})
+    hp = load_hyperparams(config, REACH)
+    assert hp.source == str(config)
+    assert hp.n_timesteps == 30_000
+    assert (hp.eval_freq, hp.eval_episodes, hp.noise_type, hp.noise_std) == (200, 2, "normal", 0.2)
+    assert hp.env_kwargs == REACH_KWARGS
+    assert hp.algo_kwargs["policy_kwargs"] == {"net_arch": [16, 16]}
+    her = {"goal_selection_strategy": "future", "n_sampled_goal": 4}
+    assert hp.algo_kwargs["replay_buffer_kwargs"] == her
+    assert not set(EXTRA_KEYS) & set(hp.algo_kwargs)
+
+
+def test_config_replay_buffer_class_her_maps_to_the_sb3_class(tmp_path: Path, reach_env: gym.Env) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["sac"]})
+    hp = load_hyperparams(config, REACH)
+    assert hp.algo_kwargs["replay_buffer_class"] == "HerReplayBuffer"
+    assert _algo_kwargs(hp, reach_env, "sac")["replay_buffer_class"] is HerReplayBuffer
+
+
+def test_config_unknown_replay_buffer_class_is_refused(reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"replay_buffer_class": "Nope"})
+    with pytest.raises(TrainingError, match="replay_buffer_class 'Nope'"):
+        _algo_kwargs(hp, reach_env, "sac")
+
+
+def test_config_noise_type_becomes_action_noise(reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, noise_type="normal", noise_std=0.3)
+    noise = _algo_kwargs(hp, reach_env, "td3")["action_noise"]
+    assert noise._sigma.tolist() == pytest.approx([0.3] * reach_env.action_space.shape[0])
+
+
+def test_load_hyperparams_requires_n_timesteps(tmp_path: Path) -> None:
+    entry = {k: v for k, v in TINY["sac"].items() if k != "n_timesteps"}
+    config = write_config(tmp_path / "cfg.yaml", {REACH: entry})
+    with pytest.raises(HyperparamError, match="n_timesteps is missing"):
+        load_hyperparams(config, REACH)
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+@pytest.mark.parametrize("env_id", [REACH, PICK])
+def test_packaged_config_loads_for_every_algo_and_task(algo: str, env_id: str) -> None:
+    hp = load_hyperparams(default_config_path(algo), env_id)
+    assert hp.n_timesteps > 0
+    assert hp.eval_episodes > 0
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_off_policy_on_goal_env_gets_her_when_config_omits_it(algo: str, reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"learning_starts": 10})
+    model = ALGOS[algo]("MultiInputPolicy", reach_env, device="cpu", **_algo_kwargs(hp, reach_env, algo))
+    assert isinstance(model.replay_buffer, HerReplayBuffer)
+
+
+def test_off_policy_keeps_the_replay_buffer_the_config_names(reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"replay_buffer_class": DictReplayBuffer})
+    model = SAC("MultiInputPolicy", reach_env, device="cpu", **_algo_kwargs(hp, reach_env, "sac"))
+    assert type(model.replay_buffer) is DictReplayBuffer
+
+
+def test_on_policy_gets_no_replay_buffer(reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1)
+    assert "replay_buffer_class" not in _algo_kwargs(hp, reach_env, "ppo")
+
+
+# ------------------------------------------------------------------- env ids
+
+
+@pytest.mark.parametrize("given", ["Bioscara-Reach", REACH])
+def test_resolve_env_id_returns_the_versioned_id(given: str) -> None:
+    assert resolve_env_id(given) == REACH
+
+
+@pytest.mark.parametrize("given", ["Bioscara-Nope", "Bioscara-Reach-v9"])
+def test_resolve_env_id_refuses_unknown_ids_naming_the_registered_ones(given: str) -> None:
+    with pytest.raises(TrainingError, match=f"unknown env '{given}'.*{REACH}"):
+        resolve_env_id(given)
+
+
+# ------------------------------------------------------------------ metadata
+
+
+def test_metadata_round_trips_through_its_file(tmp_path: Path, reach_env: gym.Env) -> None:
+    metadata = build_metadata(reach_env, REACH, REACH_KWARGS, algo="sac", seed=3, timesteps=TOTAL)
+    path = write_metadata(tmp_path, metadata)
+    assert path == tmp_path / METADATA_NAME
+    assert read_metadata(tmp_path / "model.zip") == metadata
+    assert read_metadata(tmp_path) == metadata
+
+
+def test_metadata_records_the_behaviour_kwargs_even_when_defaulted(reach_env: gym.Env) -> None:
+    metadata = build_metadata(reach_env, REACH, {})
+    assert metadata["env_kwargs"]["control_mode"] == reach_env.unwrapped.control_mode
+    assert metadata["env_kwargs"]["control_freq"] == reach_env.unwrapped.control_freq
+
+
+def test_check_metadata_accepts_the_env_it_was_built_from(tmp_path: Path, reach_env: gym.Env) -> None:
+    write_metadata(tmp_path, build_metadata(reach_env, REACH, REACH_KWARGS))
+    check_metadata(read_metadata(tmp_path), reach_env, REACH)
+
+
+def test_check_metadata_refuses_another_env_id(reach_env: gym.Env) -> None:
+    metadata = build_metadata(reach_env, PICK, REACH_KWARGS)
+    with pytest.raises(MetadataError, match=f"trained on {PICK}, not {REACH}"):
+        check_metadata(metadata, reach_env, REACH)
+
+
+def test_check_metadata_refuses_another_control_mode(reach_env: gym.Env) -> None:
+    metadata = build_metadata(reach_env, REACH, {**REACH_KWARGS, "control_mode": "velocity"})
+    with pytest.raises(MetadataError, match="control_mode='velocity'"):
+        check_metadata(metadata, reach_env, REACH)
+
+
+def test_check_metadata_refuses_another_action_space(reach_env: gym.Env) -> None:
+    metadata = build_metadata(reach_env, REACH, REACH_KWARGS)
+    metadata["action_space"]["shape"] = [5]
+    with pytest.raises(MetadataError, match="action_space differs"):
+        check_metadata(metadata, reach_env, REACH)
+
+
+def test_check_metadata_refuses_another_observation_space(
+    reach_env: gym.Env, make_env: Callable[..., gym.Env]
+) -> None:
+    metadata = build_metadata(make_env(PICK), REACH, REACH_KWARGS)
+    with pytest.raises(MetadataError, match="observation_space differs"):
+        check_metadata(metadata, reach_env, REACH)
+
+
+def test_read_metadata_refuses_a_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(MetadataError, match=f"no {METADATA_NAME} next to"):
+        read_metadata(tmp_path / "model.zip")
+
+
+def test_read_metadata_refuses_a_file_that_is_not_json(tmp_path: Path) -> None:
+    (tmp_path / METADATA_NAME).write_text("{not json", encoding="utf-8")
+    with pytest.raises(MetadataError, match="cannot read"):
+        read_metadata(tmp_path / "model.zip")
