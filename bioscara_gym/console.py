@@ -1,4 +1,4 @@
-"""Operator console: ``bioscara status``, ``ping``, ``enable``, ``disable``, ``home``, ``move``, ``gripper``, ``monitor``.
+"""Operator console: ``bioscara status|ping|enable|disable|home|move|gripper|monitor``.
 
 What the RViz panel of the original stack (arm and gripper up and down, joint
 states, homing) and MH5's terminal dashboard (per-joint bars, communication
@@ -94,7 +94,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.dashboard import flags_text, format_position, joint_unit
+from bioscara_gym.dashboard import flags_text, format_position, format_velocity, joint_unit
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig, load_config
@@ -293,7 +293,7 @@ def _decode(saved: object, like: object, where: str) -> object:
     if isinstance(like, tuple):
         if not isinstance(saved, list) or len(saved) != len(like):
             raise StateFileError(f"{where}: {saved!r} is not a list of {len(like)}")
-        return tuple(_decode(s, l, where) for s, l in zip(saved, like, strict=True))
+        return tuple(_decode(s, ref, where) for s, ref in zip(saved, like, strict=True))
     if isinstance(like, bool):
         if not isinstance(saved, bool):
             raise StateFileError(f"{where}: {saved!r} is not true or false")
@@ -356,7 +356,8 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
     enabled = gripper.get("enabled") if isinstance(gripper, dict) else None
     width = gripper.get("width_m") if isinstance(gripper, dict) else None
     if not isinstance(enabled, bool) or not (
-        width is None or (isinstance(width, (int, float)) and not isinstance(width, bool) and math.isfinite(width))
+        width is None
+        or (isinstance(width, (int, float)) and not isinstance(width, bool) and math.isfinite(width))
     ):
         raise StateFileError(f"{where}: host.gripper must be {{'enabled': bool, 'width_m': number}}")
     names = set(names)
@@ -369,7 +370,10 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
     stats = host.get("stats", {})
     counters = {f.name for f in dataclasses.fields(CommStats)}
     if not isinstance(stats, dict) or not all(
-        n in names and isinstance(c, dict) and set(c) == counters and all(isinstance(v, int) for v in c.values())
+        n in names
+        and isinstance(c, dict)
+        and set(c) == counters
+        and all(isinstance(v, int) for v in c.values())
         for n, c in stats.items()
     ):
         raise StateFileError(f"{where}: host.stats must map joint names to {sorted(counters)}")
@@ -391,7 +395,9 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
         raise StateFileError(f"{where} is not a bioscara console state file; delete it or pick another")
     if doc.get("version") != STATE_VERSION:
-        raise StateFileError(f"{where} has version {doc.get('version')!r}; this console reads {STATE_VERSION}")
+        raise StateFileError(
+            f"{where} has version {doc.get('version')!r}; this console reads {STATE_VERSION}"
+        )
     if doc.get("backend") != backend.name:
         raise StateFileError(
             f"{where} was saved by the {doc.get('backend')} backend; use --backend {doc.get('backend')} "
@@ -405,7 +411,11 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     sim = backend.sim
     fresh_state, fresh_cores = sim.snapshot()  # type: ignore[union-attr]
     mj = doc.get("mujoco")
-    if not isinstance(mj, list) or len(mj) != len(fresh_state) or not all(isinstance(x, (int, float)) for x in mj):
+    if (
+        not isinstance(mj, list)
+        or len(mj) != len(fresh_state)
+        or not all(isinstance(x, (int, float)) for x in mj)
+    ):
         raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} numbers")
     saved_cores = doc.get("firmware")
     if not isinstance(saved_cores, dict) or set(saved_cores) != set(fresh_cores):
@@ -491,7 +501,9 @@ class Session:
         if o.backend not in BACKENDS:
             raise ConsoleUsageError(f"unknown backend {o.backend!r}; expected one of {', '.join(BACKENDS)}")
         if o.state is not None and o.backend not in PERSISTENT_BACKENDS:
-            reason = "mock state does not persist" if o.backend == "mock" else "the real arm keeps its own state"
+            reason = (
+                "mock state does not persist" if o.backend == "mock" else "the real arm keeps its own state"
+            )
             raise ConsoleUsageError(
                 f"--state works with the {' and '.join(PERSISTENT_BACKENDS)} backends; {reason}"
             )
@@ -499,6 +511,7 @@ class Session:
         if o.bus is not None:
             config = dataclasses.replace(config, bus=o.bus)
         self.backend = make_backend(o.backend, config)
+        self.arm = Arm(self.backend)  # sends nothing before configure()
         self._opened = True
         if o.state is not None and o.state.exists():
             self.facts = load_state(o.state, self.backend)
@@ -506,7 +519,6 @@ class Session:
         for name, stats in self.backend.comm_stats().items():
             for key, value in self.facts.stats.get(name, {}).items():
                 setattr(stats, key, value)
-        self.arm = Arm(self.backend)
         if self._configure:
             self.arm.configure()
             self._attached = True
@@ -517,15 +529,14 @@ class Session:
     def _close(self, exc: BaseException | None) -> None:
         if not self._opened:
             return
-        arm = self.arm if hasattr(self, "arm") else None
         try:
-            if exc is not None and arm is not None:
+            if exc is not None:
                 self._remember_gripper()
-                arm.recover()
+                self.arm.recover()
         finally:
             try:
                 if self._save and self.options.state is not None:
-                    self._collect_facts()
+                    self._collect_facts(failed=exc is not None)
                     try:
                         save_state(self.options.state, self.backend, self.facts)
                     except OSError:
@@ -536,12 +547,11 @@ class Session:
 
     def _detach(self) -> None:
         """Release the connections; enabled joints and an enabled gripper stay so."""
-        if hasattr(self, "arm"):
-            for joint in self.arm.joints.values():
-                joint.deinit()
-            gripper = self.backend.gripper
-            if gripper.is_initialized and not gripper.is_enabled:
-                gripper.deinit()
+        for joint in self.arm.joints.values():
+            joint.deinit()
+        gripper = self.backend.gripper
+        if gripper.is_initialized and not gripper.is_enabled:
+            gripper.deinit()
         self.backend.close()
 
     def _remember_gripper(self) -> None:
@@ -549,9 +559,13 @@ class Session:
         if gripper.is_initialized and gripper.is_enabled:
             self.facts.gripper_width_m = gripper.get_position()
 
-    def _collect_facts(self) -> None:
+    def _collect_facts(self, failed: bool) -> None:
         arm = self.arm
         self.facts.stats = {n: dataclasses.asdict(s) for n, s in self.backend.comm_stats().items()}
+        if failed:  # the on-error transition disabled everything
+            self.facts.gripper_enabled = False
+            self.facts.homing = {}
+            return
         if not self._attached:
             return  # never configured (ping): what was loaded still holds
         self._remember_gripper()
@@ -630,15 +644,20 @@ class Session:
             raise NotHomedError(f"{name}: not homed; run `bioscara home {name}` first")
 
     # ------------------------------------------------------------ commands
-    def cycle(self, dt: float) -> None:
-        """One control cycle: write (when active), let ``dt`` pass, read, finish homings."""
+    def cycle(self, dt: float) -> dict[str, bool]:
+        """One control cycle: write (when active), let ``dt`` pass, read, finish homings.
+
+        Returns:
+            The homings that ended: joint name to homed.
+        """
         arm = self.arm
         if arm.state is Lifecycle.ACTIVE:
             arm.write()
         self.backend.step(dt)
-        if arm.state in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
-            arm.read()
-            self.finish_homings()
+        if arm.state not in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
+            return {}
+        arm.read()
+        return self.finish_homings()
 
     def enable(self, target: Target, *, skip_busy: bool = False) -> list[str]:
         """Enable joints (drive/hold current, stall detection, limits) and the gripper.
@@ -824,7 +843,9 @@ class Session:
         while any(self.arm.joint_states[n].homing for n in speeds):
             if clock.now() - start > timeout_s:
                 self.abort_homing(speeds)
-                raise ArmStateError(f"homing {', '.join(speeds)} did not finish within {timeout_s:g} s; aborted")
+                raise ArmStateError(
+                    f"homing {', '.join(speeds)} did not finish within {timeout_s:g} s; aborted"
+                )
             self.cycle(CYCLE_S)
         failed = [n for n in speeds if not self.arm.joint_states[n].homed]
         if failed:
@@ -865,8 +886,7 @@ class Session:
                 break
             if clock.now() - start > timeout_s:
                 raise ArmStateError(
-                    f"{name}: not at {value:g} {unit} within {timeout_s:g} s "
-                    f"(at {state.position:.4f} {unit})"
+                    f"{name}: not at {value:g} {unit} within {timeout_s:g} s (at {state.position:.4f} {unit})"
                 )
         arm.release(name)
         return arm.joint_states[name].position
@@ -976,7 +996,7 @@ def status_table(session: Session) -> Table:
     """The ``bioscara status`` table: one row per joint and the gripper."""
     arm = session.arm
     stats = session.backend.comm_stats()
-    table = Table(box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     for title, justify in (
         ("joint", "left"),
         ("position", "right"),
@@ -997,7 +1017,7 @@ def status_table(session: Session) -> Table:
         table.add_row(
             cfg.name,
             format_position(st.position if st.homed else None, unit),
-            f"{st.velocity:+.4f} {unit}/s",
+            format_velocity(st.velocity, unit),
             "yes" if joint.is_enabled() else "no",
             homed,
             flags_text(st.flags),
@@ -1040,7 +1060,7 @@ def cmd_ping(args: argparse.Namespace) -> int:
     con = make_console()
     with Session(ConsoleOptions.from_args(args), configure=False) as session:
         results = session.ping()
-    table = Table(box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     for title in ("device", "address", "reply", "flags"):
         table.add_column(title)
     for name, address, reply, flags in results:
@@ -1082,7 +1102,9 @@ def cmd_home(args: argparse.Namespace) -> int:
         arm = session.arm
         if args.abort:
             aborted = session.abort_homing(_joint_names(session, args.target))
-            con.print(f"aborted homing of {', '.join(aborted)} (not homed)" if aborted else "no homing is running")
+            con.print(
+                f"aborted homing of {', '.join(aborted)} (not homed)" if aborted else "no homing is running"
+            )
             return 0
         names = _joint_names(session, args.target)
         if args.target is None:
@@ -1116,7 +1138,8 @@ def cmd_move(args: argparse.Namespace) -> int:
         start = clock.now()
         position = session.move(args.joint, args.value, args.timeout)
         unit = joint_unit(session.config.joint(args.joint).joint_type)
-        con.print(f"{args.joint} at {position:+.4f} {unit} (target {args.value:+.4f}) after {clock.now() - start:.2f} s")
+        took = clock.now() - start
+        con.print(f"{args.joint} at {position:+.4f} {unit} (target {args.value:+.4f}) after {took:.2f} s")
     return 0
 
 
@@ -1137,7 +1160,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
         raise ConsoleUsageError(f"--rate {args.rate:g} must be a positive number of refreshes per second")
     if args.duration is not None and not args.duration > 0:
         raise ConsoleUsageError(f"--duration {args.duration:g} must be positive")
-    con = Console(highlight=False)
+    con = make_console()
     with key_source() as keys:
         if keys is None and args.duration is None:
             raise ConsoleUsageError("monitor reads keys from a terminal; without one pass --duration S")
@@ -1155,10 +1178,17 @@ def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--backend", choices=BACKENDS, default="emulated", help="arm backend (default: emulated)"
     )
-    parser.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
-    parser.add_argument("--bus", type=int, help="I2C bus number for --backend i2c (default: the config's)")
     parser.add_argument(
-        "--state", type=Path, help="keep the simulated arm's state in this file between commands"
+        "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
+    )
+    parser.add_argument(
+        "--bus", type=int, metavar="N", help="I2C bus number for --backend i2c (default: the config's)"
+    )
+    parser.add_argument(
+        "--state",
+        type=Path,
+        metavar="FILE",
+        help="keep the simulated arm's state in FILE between commands (emulated, sim)",
     )
 
 
@@ -1179,22 +1209,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.set_defaults(func=cmd_enable if name == "enable" else cmd_disable)
 
     p = sub.add_parser("home", help="home joints with the configured homing parameters")
-    p.add_argument(
-        "target", nargs="?", metavar="JOINT|GROUP", help="default: every joint not yet homed"
-    )
+    p.add_argument("target", nargs="?", metavar="JOINT|GROUP", help="default: every joint not yet homed")
     p.add_argument(
         "--direction", choices=("+", "-"), help="+ homes to the max end stop, - to min (default: configured)"
     )
     p.add_argument("--abort", action="store_true", help="abort a running homing instead")
     p.add_argument("--no-wait", action="store_true", help="start homing and return (needs --state)")
-    p.add_argument("--timeout", type=float, help="seconds (default: the whole range at homing speed)")
+    p.add_argument(
+        "--timeout", type=float, metavar="S", help="seconds (default: the whole range at homing speed)"
+    )
     _common(p)
     p.set_defaults(func=cmd_home)
 
     p = sub.add_parser("move", help="move a homed, enabled joint to a position and wait")
     p.add_argument("joint", metavar="JOINT")
     p.add_argument("value", type=float, metavar="VALUE", help="rad (m for the prismatic j2)")
-    p.add_argument("--timeout", type=float, help="seconds (default: from the joint's limits)")
+    p.add_argument("--timeout", type=float, metavar="S", help="seconds (default: from the joint's limits)")
     _common(p)
     p.set_defaults(func=cmd_move)
 
@@ -1204,7 +1234,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_gripper)
 
     p = sub.add_parser("monitor", help="live dashboard; keys e/d enable/disable, h home, a abort, q quit")
-    p.add_argument("--rate", type=float, default=10.0, help="refreshes per second (default: 10)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (needed without a terminal)")
+    p.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="refreshes per second (default: 10)"
+    )
+    p.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (needed without a terminal)"
+    )
     _common(p)
     p.set_defaults(func=cmd_monitor)

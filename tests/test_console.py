@@ -1,0 +1,528 @@
+"""The operator console: ``bioscara status|ping|enable|disable|home|move|gripper|monitor``.
+
+Subcommands run through ``bioscara_gym.cli.main`` on the emulated backend
+(one test through a real subprocess); the dashboard is rendered to a
+recording console and driven key by key without a terminal.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from bioscara_gym.cli import main
+from bioscara_gym.console import (
+    STATE_FORMAT,
+    ConsoleOptions,
+    Session,
+    resolve_target,
+)
+from bioscara_gym.dashboard import (
+    BusView,
+    DashboardSnapshot,
+    JointView,
+    MonitorApp,
+    flags_text,
+    handle_key,
+    position_bar,
+    render_dashboard,
+)
+from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.registers import Flag
+
+CONFIG = load_config()
+LIMITS = {j.name: (j.min, j.max) for j in CONFIG.joints}
+ROW = re.compile(r"^\s*(j\d|gripper)\s+(.*)$")
+#: ``bioscara ARGS`` -> exit code, stdout, stderr (whitespace joined).
+Run = Callable[..., tuple[int, str, str]]
+
+
+@pytest.fixture
+def state(tmp_path: Path) -> Path:
+    """A state file path (not yet created)."""
+    return tmp_path / "arm.json"
+
+
+@pytest.fixture
+def bioscara(capsys: pytest.CaptureFixture[str]) -> Run:
+    """Run ``bioscara ARGS``; return the exit code, stdout and stderr (whitespace joined)."""
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        code = main(list(argv))
+        out, err = capsys.readouterr()
+        return code, out, " ".join(err.split())
+
+    return run
+
+
+def rows(out: str) -> dict[str, list[str]]:
+    """The status table's rows: device name to its cells (split on runs of spaces)."""
+    table = {}
+    for line in out.splitlines():
+        m = ROW.match(line)
+        if m:
+            table[m.group(1)] = re.split(r"\s{2,}", m.group(2).strip())
+    return table
+
+
+def status(bioscara: Run, state: Path) -> dict[str, list[str]]:
+    code, out, _ = bioscara("status", "--state", str(state))
+    assert code == 0
+    return rows(out)
+
+
+def enabled(table: dict[str, list[str]], name: str) -> str:
+    """The ``enabled`` cell of a status row (the gripper row has no velocity)."""
+    cells = table[name]
+    return cells[2] if name != "gripper" else cells[1]
+
+
+@pytest.fixture
+def session() -> Iterator[Session]:
+    """An open emulated session without a state file."""
+    with Session(ConsoleOptions()) as s:
+        yield s
+
+
+# ------------------------------------------------------------------ status
+def test_status_shows_a_powered_up_arm(bioscara: Run) -> None:
+    code, out, _ = bioscara("status")
+    assert code == 0
+    assert "arm inactive · backend emulated" in out
+    table = rows(out)
+    for name in CONFIG.names:
+        assert table[name][0] == "-"  # position unknown until homed
+        assert table[name][2:5] == ["no", "no", "NOT_HOMED NOT_ENABLED"]
+    assert table["gripper"] == ["0.0800 m", "no"]
+
+
+def test_status_runs_as_a_subprocess(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym.cli", "status"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+        env={"PATH": "/usr/bin:/bin", "COLUMNS": "120", "MUJOCO_GL": "egl"},
+    )
+    assert result.returncode == 0, result.stderr
+    assert "arm inactive" in result.stdout
+    assert re.search(r"j4\s+-\s+\+0\.0000 rad/s\s+no\s+no\s+NOT_HOMED NOT_ENABLED", result.stdout)
+
+
+def test_status_counts_bus_transactions(bioscara: Run) -> None:
+    _, out, _ = bioscara("status")
+    # configure: PING, then one read of position and velocity per joint
+    assert rows(out)["j1"][-2:] == ["3", "0"]
+
+
+# -------------------------------------------------------------------- ping
+def test_ping_lists_every_joint_ok(bioscara: Run) -> None:
+    code, out, _ = bioscara("ping")
+    assert code == 0
+    table = rows(out)
+    for joint in CONFIG.joints:
+        assert table[joint.name][:2] == [f"0x{joint.address:02X}", "OK"]
+    assert table["gripper"][:2] == ["-", "OK"]
+    assert "all 5 devices answered" in out
+
+
+def test_ping_reports_a_joint_that_does_not_answer() -> None:
+    with Session(ConsoleOptions(), configure=False) as s:
+        del s.backend.bus.devices[0x13]  # j3 unplugged
+        results = {name: reply for name, _, reply, _ in s.ping()}
+        assert s.backend.comm_stats()["j3"].total_errors == 3  # the try and two retries
+    assert results["j3"].startswith("j3 (0x13): PING failed after 3 attempts")
+    assert [results[n] for n in ("j1", "j2", "j4")] == ["OK"] * 3
+
+
+# ---------------------------------------------------------- enable/disable
+def test_enable_joint_then_status_shows_it_enabled(bioscara: Run, state: Path) -> None:
+    code, out, _ = bioscara("enable", "j1", "--state", str(state))
+    assert code == 0
+    assert "enabled j1; holding still · arm active" in out
+    table = status(bioscara, state)
+    assert enabled(table, "j1") == "yes"
+    assert [enabled(table, n) for n in ("j2", "j3", "j4", "gripper")] == ["no"] * 4
+
+
+def test_without_state_each_command_starts_powered_up(bioscara: Run) -> None:
+    bioscara("enable")
+    _, out, _ = bioscara("status")
+    assert "arm inactive" in out
+    assert enabled(rows(out), "j1") == "no"
+
+
+def test_disable_group_leaves_the_rest_enabled(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, out, _ = bioscara("disable", "arm", "--state", str(state))
+    assert code == 0
+    assert "disabled j1, j2, j3, j4 · arm active" in out
+    table = status(bioscara, state)
+    assert [enabled(table, n) for n in CONFIG.names] == ["no"] * 4
+    assert enabled(table, "gripper") == "yes"
+
+
+def test_disable_all_makes_the_arm_inactive(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, out, _ = bioscara("disable", "--state", str(state))
+    assert code == 0
+    assert "arm inactive" in out
+
+
+def test_groups_come_from_the_configuration() -> None:
+    assert resolve_target(CONFIG, "arm").joints == ("j1", "j2", "j3", "j4")
+    assert not resolve_target(CONFIG, "arm").gripper
+    assert resolve_target(CONFIG, None).gripper
+    assert resolve_target(CONFIG, "gripper").joints == ()
+
+
+# -------------------------------------------------------------------- home
+def test_enable_home_status_homes_every_joint_at_its_limit(bioscara: Run, state: Path) -> None:
+    assert bioscara("enable", "--state", str(state))[0] == 0
+    code, out, _ = bioscara("home", "--state", str(state))
+    assert code == 0
+    assert "j1 homed at max: +3.0464 rad" in out
+    table = status(bioscara, state)
+    for name, (_, high) in LIMITS.items():
+        position = float(table[name][0].split()[0])
+        assert position == pytest.approx(high, abs=1e-3)
+        assert table[name][3:5] == ["yes", "OK"]
+
+
+def test_home_without_enable_is_refused(bioscara: Run) -> None:
+    code, _, err = bioscara("home", "j1")
+    assert code == 2
+    assert "j1: not enabled; run `bioscara enable j1` first" in err
+
+
+def test_home_direction_minus_homes_to_min() -> None:
+    with Session(ConsoleOptions(backend="mock")) as s:
+        s.enable(resolve_target(s.config, "j1"))
+        s.home(["j1"], direction="-")
+        assert s.arm.joint_states["j1"].position == pytest.approx(LIMITS["j1"][0])
+
+
+def test_home_no_wait_leaves_the_homing_running(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, out, _ = bioscara("home", "j4", "--no-wait", "--state", str(state))
+    assert code == 0
+    assert "j4 homing toward max at 0.1 rad/s (left running)" in out
+    assert status(bioscara, state)["j4"][3:5] == ["homing…", "BUSY NOT_HOMED"]
+
+
+def test_homing_left_running_is_finished_by_a_later_command(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j4", "--no-wait", "--state", str(state))
+    with Session(ConsoleOptions(state=state)) as s:
+        while s.homing():
+            s.cycle(0.04)
+    table = status(bioscara, state)
+    assert float(table["j4"][0].split()[0]) == pytest.approx(LIMITS["j4"][1], abs=1e-3)
+
+
+def test_home_abort_stops_a_running_homing(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j1", "--no-wait", "--state", str(state))
+    code, out, _ = bioscara("home", "--abort", "--state", str(state))
+    assert code == 0
+    assert "aborted homing of j1 (not homed)" in out
+    assert status(bioscara, state)["j1"][2:5] == ["yes", "no", "NOT_HOMED"]
+
+
+def test_home_no_wait_needs_state(bioscara: Run) -> None:
+    code, _, err = bioscara("home", "--no-wait")
+    assert code == 2
+    assert "--no-wait needs --state FILE" in err
+
+
+# -------------------------------------------------------------------- move
+def test_move_waits_until_the_joint_is_there(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j4", "--state", str(state))
+    code, out, _ = bioscara("move", "j4", "1.0", "--state", str(state))
+    assert code == 0
+    assert out.startswith("j4 at +1.0000 rad (target +1.0000)")
+    table = status(bioscara, state)
+    assert table["j4"][:2] == ["+1.0000 rad", "+0.0000 rad/s"]
+    assert enabled(table, "j4") == "yes"
+
+
+def test_move_on_an_unhomed_joint_is_refused(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, _, err = bioscara("move", "j1", "1.0", "--state", str(state))
+    assert code == 2
+    assert "j1: not homed; run `bioscara home j1` first" in err
+
+
+# ----------------------------------------------------------------- gripper
+def test_gripper_width_is_set_and_shown(bioscara: Run, state: Path) -> None:
+    code, out, _ = bioscara("gripper", "0.05", "--state", str(state))
+    assert code == 0
+    assert "gripper at 0.0500 m (servo driven)" in out
+    assert status(bioscara, state)["gripper"] == ["0.0500 m", "yes"]
+
+
+def test_gripper_width_survives_disable_and_enable(bioscara: Run, state: Path) -> None:
+    bioscara("gripper", "0.05", "--state", str(state))
+    bioscara("disable", "gripper", "--state", str(state))
+    bioscara("enable", "--state", str(state))
+    assert status(bioscara, state)["gripper"] == ["0.0500 m", "yes"]
+
+
+# --------------------------------------------------------------- bad input
+def all_disabled(table: dict[str, list[str]]) -> bool:
+    return all(enabled(table, n) == "no" for n in (*CONFIG.names, "gripper"))
+
+
+def test_unknown_joint_is_refused_and_the_arm_disabled(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, _, err = bioscara("move", "j9", "1.0", "--state", str(state))
+    assert code == 2
+    assert err == "bioscara move: error: unknown joint 'j9'; known joints: j1, j2, j3, j4"
+    assert all_disabled(status(bioscara, state))
+
+
+def test_unknown_group_is_refused_and_the_arm_disabled(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, _, err = bioscara("disable", "legs", "--state", str(state))
+    assert code == 2
+    assert "unknown joint or group 'legs'; joints: j1, j2, j3, j4, gripper; groups: all, arm, gripper" in err
+    assert all_disabled(status(bioscara, state))
+
+
+def test_move_outside_the_limits_is_refused_and_nothing_moves(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j4", "--state", str(state))
+    code, _, err = bioscara("move", "j4", "4", "--state", str(state))
+    assert code == 2
+    assert "j4: 4 rad is outside the joint limits [-3.01069, 3.01069] rad" in err
+    table = status(bioscara, state)
+    assert all_disabled(table)
+    assert table["j4"][0] == "+3.0103 rad"
+
+
+def test_gripper_width_outside_the_limits_is_refused(bioscara: Run) -> None:
+    code, _, err = bioscara("gripper", "0.2")
+    assert code == 2
+    assert "gripper: width 0.2 m is outside the limits [0.04, 0.12] m" in err
+
+
+def test_home_on_a_busy_joint_is_refused_and_the_homing_stopped(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j1", "--no-wait", "--state", str(state))
+    code, _, err = bioscara("home", "j1", "--state", str(state))
+    assert code == 2
+    assert "j1: busy (a homing is running)" in err
+    table = status(bioscara, state)
+    assert all_disabled(table)
+    assert table["j1"][3:5] == ["no", "NOT_HOMED NOT_ENABLED"]
+
+
+def test_interrupt_disables_every_joint(state: Path, bioscara: Run) -> None:
+    with pytest.raises(KeyboardInterrupt), Session(ConsoleOptions(state=state)) as s:
+        s.enable(resolve_target(s.config, None))
+        raise KeyboardInterrupt
+    assert all_disabled(status(bioscara, state))
+
+
+# -------------------------------------------------------------- state file
+def test_state_file_is_the_documented_json(bioscara: Run, state: Path) -> None:
+    bioscara("gripper", "0.06", "--state", str(state))
+    doc = json.loads(state.read_text())
+    assert doc["format"] == STATE_FORMAT
+    assert doc["backend"] == "emulated"
+    assert set(doc) >= {"version", "config", "time_s", "mujoco", "firmware", "host"}
+    assert doc["host"]["gripper"] == {"enabled": True, "width_m": 0.06}
+
+
+def test_state_from_another_backend_is_refused_and_kept(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    saved = state.read_text()
+    code, _, err = bioscara("status", "--backend", "sim", "--state", str(state))
+    assert code == 2
+    assert "was saved by the emulated backend; use --backend emulated or another file" in err
+    assert state.read_text() == saved
+
+
+def test_corrupt_state_file_is_refused_and_kept(bioscara: Run, state: Path) -> None:
+    state.write_text('{"format": "bioscara-console-state", "version": 1')
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert f"state file {state} cannot be read" in err
+    assert state.read_text() == '{"format": "bioscara-console-state", "version": 1'
+
+
+def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:
+    code, _, err = bioscara("status", "--backend", "mock", "--state", str(state))
+    assert code == 2
+    assert "mock state does not persist" in err
+
+
+def test_sim_backend_keeps_state_too(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "j2", "--backend", "sim", "--state", str(state))
+    code, out, _ = bioscara("status", "--backend", "sim", "--state", str(state))
+    assert code == 0
+    assert enabled(rows(out), "j2") == "yes"
+
+
+# --------------------------------------------------------------- dashboard
+def known_snapshot() -> DashboardSnapshot:
+    flags = Flag(0)
+    return DashboardSnapshot(
+        backend="emulated",
+        lifecycle="active",
+        time_s=12.5,
+        joints=(
+            JointView("j1", "rad", -3.0, 3.0, 3.0, 0.0, flags),
+            JointView("j2", "m", 0.0, 0.3, None, 0.0, Flag.NOT_HOMED),
+            JointView("j3", "rad", -2.0, 2.0, None, 0.05, Flag.BUSY | Flag.NOT_HOMED, True, 2.5),
+            JointView("j4", "rad", -3.0, 3.0, -3.0, 0.0, Flag.STALL),
+        ),
+        gripper_enabled=True,
+        gripper_width=0.08,
+        gripper_min=0.04,
+        gripper_max=0.12,
+        bus=(BusView("j1", 100, 2, 400, 3, 75.0, 0.5),),
+        message="homing j3",
+    )
+
+
+def rendered(snapshot: DashboardSnapshot) -> str:
+    console = Console(record=True, width=120)
+    console.print(render_dashboard(snapshot))
+    return console.export_text()
+
+
+def test_dashboard_shows_lifecycle_backend_and_time() -> None:
+    assert "lifecycle ACTIVE   backend emulated   t 12.50 s" in rendered(known_snapshot())
+
+
+def test_dashboard_draws_position_bars_within_the_limits() -> None:
+    text = rendered(known_snapshot())
+    assert re.search(r"j1\s+\+3\.0000 rad\s+├─+●┤", text)
+    assert re.search(r"j4\s+-3\.0000 rad\s+├●─+┤", text)
+    assert re.search(r"j2\s+-\s+├┄+┤", text)
+
+
+def test_dashboard_shows_flags_and_homing_progress() -> None:
+    text = rendered(known_snapshot())
+    assert re.search(r"j3 .* BUSY NOT_HOMED\s+[⠋-⣿] homing… 2\.5 s", text)
+    assert re.search(r"j4 .* STALL\s+homed", text)
+    assert re.search(r"j1 .* OK\s+homed", text)
+
+
+def test_dashboard_shows_bus_statistics_and_rates() -> None:
+    assert re.search(r"j1\s+100\s+2\s+400\s+3\s+75\s+0\.5", rendered(known_snapshot()))
+
+
+def test_dashboard_shows_the_message_and_keys() -> None:
+    text = rendered(known_snapshot())
+    assert "homing j3" in text
+    assert "e enable all   d disable all   h home unhomed   a abort homing" in text
+
+
+def test_flags_are_coloured() -> None:
+    text = flags_text(Flag.STALL | Flag.BUSY | Flag.NOT_HOMED | Flag.NOT_ENABLED)
+    styles = {text.plain[s.start : s.end]: str(s.style) for s in text.spans}
+    assert styles == {"STALL": "bold red", "BUSY": "yellow", "NOT_HOMED": "magenta", "NOT_ENABLED": "dim"}
+
+
+def test_position_bar_marks_the_middle() -> None:
+    assert position_bar(0.0, -1.0, 1.0, width=7).plain == "├──●──┤"
+
+
+def test_dashboard_renders_an_arm_homed_in_the_session(session: Session) -> None:
+    session.enable(resolve_target(session.config, None))
+    session.home(["j4"])
+    text = rendered(MonitorApp(session).snapshot())
+    assert re.search(r"j4\s+\+3\.0103 rad\s+├─+●┤\s+\S+ rad/s\s+OK\s+homed", text)
+    assert re.search(r"gripper\s+0\.0800 m\s+├─+●─+┤\s+ENABLED", text)
+
+
+# -------------------------------------------------------------------- keys
+def test_key_e_enables_the_arm(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "e")
+    assert session.arm.state.value == "active"
+    assert all(j.is_enabled() for j in session.arm.joints.values())
+    assert app.message == "enabled j1, j2, j3, j4, gripper"
+
+
+def test_key_d_disables_the_arm(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "e")
+    handle_key(app, "d")
+    assert session.arm.state.value == "inactive"
+    assert not any(j.is_enabled() for j in session.arm.joints.values())
+
+
+def test_key_h_homes_every_unhomed_joint(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "e")
+    handle_key(app, "h")
+    assert app.message == "homing j1, j2, j3, j4"
+    for _ in range(70):
+        app.step(0.1)
+    assert all(session.arm.joint_states[n].homed for n in session.arm.names)
+    assert not session.homing()
+    assert app.message.endswith(" homed")
+
+
+def test_key_h_without_enabled_joints_only_says_so(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "h")
+    assert app.message == "nothing to home (enable the arm first: e)"
+
+
+def test_key_a_aborts_homing(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "e")
+    handle_key(app, "h")
+    app.step(0.2)
+    handle_key(app, "a")
+    assert app.message == "aborted homing of j1, j2, j3, j4"
+    assert not session.homing()
+    assert not any(j.is_homed() or j.is_busy() for j in session.arm.joints.values())
+
+
+def test_key_q_quits(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "Q")
+    assert not app.running
+
+
+def test_bus_rates_are_stats_deltas_over_time(session: Session) -> None:
+    app = MonitorApp(session)
+    before = session.backend.comm_stats()["j1"].total_transactions
+    app.step(0.2)
+    after = session.backend.comm_stats()["j1"].total_transactions
+    assert app.rates["j1"] == pytest.approx(((after - before) / 0.2, 0.0))
+
+
+def test_leaving_the_monitor_aborts_a_running_homing(session: Session) -> None:
+    app = MonitorApp(session)
+    handle_key(app, "e")
+    handle_key(app, "h")
+    app.close()
+    assert not session.homing()
+
+
+def test_monitor_runs_for_a_duration_without_a_terminal(bioscara: Run) -> None:
+    code, out, _ = bioscara("monitor", "--duration", "0.2", "--rate", "20")
+    assert code == 0
+    assert "bioscara monitor" in out
+    assert "lifecycle INACTIVE   backend emulated" in out
+
+
+def test_monitor_without_a_terminal_needs_a_duration(bioscara: Run) -> None:
+    code, _, err = bioscara("monitor")
+    assert code == 2
+    assert "without one pass --duration S" in err
