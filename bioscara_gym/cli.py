@@ -22,7 +22,7 @@ EXIT_INTERRUPTED = 130
 
 
 def _console() -> Console:
-    return Console(highlight=False)
+    return Console(highlight=False, soft_wrap=True)  # paths stay on one line
 
 
 class CliError(Exception):

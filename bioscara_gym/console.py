@@ -40,37 +40,19 @@ Safe-state policy (what each command leaves behind):
   (a running homing is stopped), then the command exits non-zero with one
   line naming the problem.
 
-Joints enabled by an earlier command are adopted as they are: the console
-marks the arm ``active`` when any joint or the gripper is enabled, without
-re-sending SETUP (which would stop a running homing).
+Joints enabled by an earlier command are adopted as they are
+(:meth:`~bioscara_gym.hardware.arm.Arm.attach`): the arm is ``active`` when
+any joint or the gripper is enabled, without re-sending SETUP (which would
+stop a running homing), and a homing left running is handed back to the arm
+(:meth:`~bioscara_gym.hardware.arm.Arm.adopt_homing`).
 
 State between invocations (``--state FILE``, ``emulated`` and ``sim`` only):
 without it every command starts from a powered-up arm (not homed, not
 enabled), so ``enable`` then ``home`` then ``status`` needs it. The file is
-JSON (UTF-8), written atomically (temporary file, ``fsync``,
-``os.replace``) after every command, also a failed one::
-
-    {"format": "bioscara-console-state", "version": 1,
-     "backend": "emulated", "config": "<hash of joints and gripper>",
-     "time_s": 6.64,                      # simulated time
-     "mujoco": [...],                     # mjSTATE_INTEGRATION, floats
-     "firmware": {"j1": {...}, ...},      # FirmwareCore.snapshot() per joint;
-                                          # enums as {"enum": NAME}, Infinity/NaN
-                                          # as Python's json writes them
-     "host": {"gripper": {"enabled": false, "width_m": 0.08},
-              "homing": {"j1": 0.03},     # homings left running (--no-wait)
-              "stats": {"j1": {"transactions": 12, ...}}}}
-
-The firmware keeps what the real joints keep across a host restart (flags,
-enable state, encoder zero, HOMEOFFSET); ``init`` reads HOMEOFFSET back as on
-the real arm. The host part is what the real host would have in memory: the
-gripper (no feedback), homings still running, bus statistics. A file that is
-not such JSON, or was saved by another backend or with another arm
-configuration, is refused with a message (delete it to start over); a
-missing file means a powered-up arm and is created. Simulated time does not
-advance between commands, only while a command runs (``home``, ``move``,
-``gripper``, ``monitor``). The ``mock`` backend does not persist (``--state``
-is refused), nor does ``i2c``: the real arm keeps its own state.
+written after every command, also a failed one; its format and what it
+keeps are described in :mod:`bioscara_gym.console_state`. The ``mock``
+backend does not persist (``--state`` is refused), nor does ``i2c``: the
+real arm keeps its own state.
 """
 
 from __future__ import annotations
@@ -78,22 +60,18 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import hashlib
 import json
 import math
-import os
-import tempfile
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
-from enum import Enum
+from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 
 from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from bioscara_gym.console_state import HostFacts, load_state, save_state
 from bioscara_gym.dashboard import flags_text, format_position, format_velocity, joint_unit
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
@@ -106,8 +84,7 @@ from bioscara_gym.hardware.errors import (
     NotHomedError,
 )
 from bioscara_gym.hardware.gripper import Gripper
-from bioscara_gym.hardware.registers import Flag, Reg
-from bioscara_gym.hardware.stats import CommStats
+from bioscara_gym.hardware.registers import Flag
 
 #: Period of the arm's read/write cycle while a command waits, s (25 Hz).
 CYCLE_S = 0.04
@@ -115,16 +92,9 @@ CYCLE_S = 0.04
 GRIPPER_SETTLE_S = 0.3
 #: Backends whose state ``--state`` can keep.
 PERSISTENT_BACKENDS = ("emulated", "sim")
-#: ``format`` and ``version`` of the state file.
-STATE_FORMAT = "bioscara-console-state"
-STATE_VERSION = 1
 #: A move is reached within this many rad (revolute) or m (prismatic), at
 #: a tenth of it per s.
 MOVE_TOLERANCE = {"revolute": 1e-3, "prismatic": 1e-4}
-
-
-class StateFileError(ValueError):
-    """A ``--state`` file that cannot be used (corrupt, other backend or configuration)."""
 
 
 class ConsoleUsageError(ValueError):
@@ -152,24 +122,6 @@ class ConsoleOptions:
     def from_args(cls, args: argparse.Namespace) -> ConsoleOptions:
         """Take the common options from parsed arguments."""
         return cls(backend=args.backend, config=args.config, bus=args.bus, state=args.state)
-
-
-@dataclass
-class HostFacts:
-    """What the host must remember between commands (the rest lives in the firmware).
-
-    Attributes:
-        gripper_enabled: Whether the servo is driven.
-        gripper_width_m: Last commanded width in m (the servo has no feedback);
-            ``None`` when unknown.
-        homing: Joint name to signed homing speed of homings still running.
-        stats: Joint name to :class:`~bioscara_gym.hardware.stats.CommStats` counters.
-    """
-
-    gripper_enabled: bool = False
-    gripper_width_m: float | None = None
-    homing: dict[str, float] = field(default_factory=dict)
-    stats: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -252,185 +204,6 @@ def homing_timeout_s(config: JointConfig, speed: float) -> float:
 def move_timeout_s(config: JointConfig, distance: float) -> float:
     """Time a move of ``distance`` may take, s: twice the trapezoid profile's, plus 5 s."""
     return 2.0 * (abs(distance) / config.max_velocity + config.max_velocity / config.max_acceleration) + 5.0
-
-
-# -------------------------------------------------------------- state file
-def config_fingerprint(config: ArmConfig) -> str:
-    """A short hash of the joints and gripper, to refuse a state saved with another arm."""
-    return hashlib.sha256(repr((config.joints, config.gripper)).encode()).hexdigest()[:16]
-
-
-def _encode(value: object) -> object:
-    """Firmware snapshot value to JSON: enums by name, tuples as lists, numpy scalars as Python."""
-    if isinstance(value, Enum):
-        return {"enum": value.name}
-    if isinstance(value, tuple):
-        return [_encode(v) for v in value]
-    if isinstance(value, bool) or value is None or isinstance(value, str):
-        return value
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float):
-        return float(value)
-    item = getattr(value, "item", None)  # numpy scalars
-    if callable(item):
-        return _encode(item())
-    raise TypeError(f"cannot store {type(value).__name__} {value!r} in the state file")
-
-
-def _decode(saved: object, like: object, where: str) -> object:
-    """Decode ``saved`` into the type of ``like`` (the fresh firmware's value)."""
-    if isinstance(like, Enum):
-        cls = type(like)
-        if isinstance(saved, dict) and set(saved) == {"enum"} and saved["enum"] in cls.__members__:
-            return cls[saved["enum"]]
-        if isinstance(saved, int) and not isinstance(saved, bool):
-            try:  # IntEnum registers may hold an unknown register byte
-                return cls(saved)
-            except ValueError:
-                return saved
-        raise StateFileError(f"{where}: {saved!r} is not a {cls.__name__}")
-    if isinstance(like, tuple):
-        if not isinstance(saved, list) or len(saved) != len(like):
-            raise StateFileError(f"{where}: {saved!r} is not a list of {len(like)}")
-        return tuple(_decode(s, ref, where) for s, ref in zip(saved, like, strict=True))
-    if isinstance(like, bool):
-        if not isinstance(saved, bool):
-            raise StateFileError(f"{where}: {saved!r} is not true or false")
-        return saved
-    if isinstance(like, (int, float)):
-        if isinstance(saved, bool) or not isinstance(saved, (int, float)):
-            raise StateFileError(f"{where}: {saved!r} is not a number")
-        return saved
-    return saved
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` atomically (temporary file, fsync, os.replace)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def save_state(path: Path, backend: Backend, facts: HostFacts) -> None:
-    """Write the simulated arm and the host facts to ``path`` (format: module docstring).
-
-    Raises:
-        ConsoleUsageError: The backend has no simulation to save.
-        OSError: The file could not be written.
-    """
-    if backend.sim is None:
-        raise ConsoleUsageError(f"--state: the {backend.name} backend has no state to save")
-    mj_state, cores = backend.sim.snapshot()  # type: ignore[attr-defined]
-    doc = {
-        "format": STATE_FORMAT,
-        "version": STATE_VERSION,
-        "backend": backend.name,
-        "config": config_fingerprint(backend.config),
-        "time_s": backend.clock.now(),
-        "mujoco": [float(x) for x in mj_state],
-        "firmware": {name: {k: _encode(v) for k, v in core.items()} for name, core in cores.items()},
-        "host": {
-            "gripper": {"enabled": facts.gripper_enabled, "width_m": facts.gripper_width_m},
-            "homing": dict(facts.homing),
-            "stats": facts.stats,
-        },
-    }
-    _write_atomic(path, json.dumps(doc, indent=1) + "\n")
-
-
-def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> HostFacts:
-    host = doc.get("host")
-    if not isinstance(host, dict):
-        raise StateFileError(f"{where}: no 'host' object")
-    gripper = host.get("gripper", {})
-    enabled = gripper.get("enabled") if isinstance(gripper, dict) else None
-    width = gripper.get("width_m") if isinstance(gripper, dict) else None
-    if not isinstance(enabled, bool) or not (
-        width is None
-        or (isinstance(width, (int, float)) and not isinstance(width, bool) and math.isfinite(width))
-    ):
-        raise StateFileError(f"{where}: host.gripper must be {{'enabled': bool, 'width_m': number}}")
-    names = set(names)
-    homing = host.get("homing", {})
-    if not isinstance(homing, dict) or not all(
-        n in names and isinstance(s, (int, float)) and not isinstance(s, bool) and s != 0
-        for n, s in homing.items()
-    ):
-        raise StateFileError(f"{where}: host.homing must map joint names to non-zero speeds")
-    stats = host.get("stats", {})
-    counters = {f.name for f in dataclasses.fields(CommStats)}
-    if not isinstance(stats, dict) or not all(
-        n in names
-        and isinstance(c, dict)
-        and set(c) == counters
-        and all(isinstance(v, int) for v in c.values())
-        for n, c in stats.items()
-    ):
-        raise StateFileError(f"{where}: host.stats must map joint names to {sorted(counters)}")
-    return HostFacts(bool(enabled), None if width is None else float(width), dict(homing), stats)
-
-
-def load_state(path: Path, backend: Backend) -> HostFacts:
-    """Restore the simulated arm from ``path`` and return the host facts.
-
-    Raises:
-        StateFileError: Unreadable, not a state file, or saved by another
-            backend or with another arm configuration; nothing is changed.
-    """
-    where = f"state file {path}"
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise StateFileError(f"{where} cannot be read ({e}); delete it to start from a powered-up arm") from e
-    if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
-        raise StateFileError(f"{where} is not a bioscara console state file; delete it or pick another")
-    if doc.get("version") != STATE_VERSION:
-        raise StateFileError(
-            f"{where} has version {doc.get('version')!r}; this console reads {STATE_VERSION}"
-        )
-    if doc.get("backend") != backend.name:
-        raise StateFileError(
-            f"{where} was saved by the {doc.get('backend')} backend; use --backend {doc.get('backend')} "
-            "or another file"
-        )
-    if doc.get("config") != config_fingerprint(backend.config):
-        raise StateFileError(
-            f"{where} was saved with another arm configuration (joints or gripper differ); use the same "
-            "--config or another file"
-        )
-    sim = backend.sim
-    fresh_state, fresh_cores = sim.snapshot()  # type: ignore[union-attr]
-    mj = doc.get("mujoco")
-    if (
-        not isinstance(mj, list)
-        or len(mj) != len(fresh_state)
-        or not all(isinstance(x, (int, float)) for x in mj)
-    ):
-        raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} numbers")
-    saved_cores = doc.get("firmware")
-    if not isinstance(saved_cores, dict) or set(saved_cores) != set(fresh_cores):
-        raise StateFileError(f"{where}: 'firmware' must hold the joints {', '.join(fresh_cores)}")
-    cores: dict[str, dict[str, object]] = {}
-    for name, fresh in fresh_cores.items():
-        saved = saved_cores[name]
-        if not isinstance(saved, dict) or set(saved) != set(fresh):
-            raise StateFileError(f"{where}: firmware state of {name} does not match this firmware emulation")
-        cores[name] = {k: _decode(saved[k], fresh[k], f"{where}: {name}.{k}") for k in fresh}
-    facts = _host_facts(doc, fresh_cores, where)
-    import numpy as np
-
-    sim.restore((np.asarray(mj, dtype=float), cores))  # type: ignore[union-attr]
-    return facts
 
 
 def _read_saved_width(path: Path | None) -> float | None:
@@ -522,8 +295,8 @@ class Session:
         if self._configure:
             self.arm.configure()
             self._attached = True
+            self.arm.attach()
             self._adopt_gripper()
-            self.sync()
             self._adopt_homings()
 
     def _close(self, exc: BaseException | None) -> None:
@@ -586,29 +359,10 @@ class Session:
         """Take over homings an earlier command left running (``home --no-wait``)."""
         for name, speed in self.facts.homing.items():
             if self.arm.joints[name].is_enabled():
-                _adopt_homing(self.arm, name, speed)
+                self.arm.adopt_homing(name, speed)
         if self.facts.homing:
             self.arm.read()
             self.finish_homings()
-
-    def sync(self) -> None:
-        """Set the lifecycle from the devices: ``active`` when any is enabled, else ``inactive``.
-
-        Going active holds the measured positions (no command interface) as
-        :meth:`Arm.activate` does, but sends nothing.
-        """
-        arm = self.arm
-        if arm.state not in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
-            return
-        enabled = any(j.is_enabled() for j in arm.joints.values()) or self.backend.gripper.is_enabled
-        if enabled and arm.state is Lifecycle.INACTIVE:
-            arm.state = Lifecycle.ACTIVE
-            for name in arm.names:
-                arm.modes[name] = CommandMode.NONE
-                arm.commands[name] = arm.joint_states[name].position
-            arm.gripper_command = self.backend.gripper.get_position()
-        elif not enabled and arm.state is Lifecycle.ACTIVE:
-            arm.state = Lifecycle.INACTIVE
 
     # ------------------------------------------------------------- queries
     @property
@@ -680,33 +434,20 @@ class Session:
                     f"{name}: busy (a homing is running); enabling it again would stop it; abort it "
                     f"first with `bioscara home {name} --abort`"
                 )
-        everything = target.gripper and set(joints) == set(arm.names)
-        if everything and arm.state is Lifecycle.INACTIVE:
-            arm.activate()
-            if self.facts.gripper_width_m is not None:  # the last width, not the backup one
-                self.backend.gripper.set_position(self.facts.gripper_width_m)
+        arm.enable(joints)
+        if target.gripper:
             self.enable_gripper()
-        else:
-            for name in joints:
-                _enable_joint(arm, name)
-            if target.gripper:
-                self.enable_gripper()
-            arm.read()
-            self.sync()
-            for name in joints:
-                if arm.modes[name] is CommandMode.NONE:
-                    arm.commands[name] = arm.joint_states[name].position
         return [*joints, *([GRIPPER_NAME] if target.gripper else [])]
 
     def enable_gripper(self) -> None:
         """Drive the servo at its last known width (the state file's, or its own file's)."""
         gripper = self.backend.gripper
         if not gripper.is_enabled:
-            gripper.enable()
-            if self.facts.gripper_width_m is not None:
+            self.arm.enable([GRIPPER_NAME])
+            if self.facts.gripper_width_m is not None:  # the last width, not the backup one
                 gripper.set_position(self.facts.gripper_width_m)
         self.facts.gripper_width_m = gripper.get_position()
-        self.arm.gripper_command = gripper.get_position()
+        self.arm.set_gripper(gripper.get_position())
 
     def disable(self, target: Target) -> list[str]:
         """Disable joints (stopped, no current, freewheel) and the gripper; stops a running homing.
@@ -714,37 +455,20 @@ class Session:
         Returns:
             The names disabled.
         """
-        arm = self.arm
-        everything = target.gripper and set(target.joints) == set(arm.names)
-        if everything and arm.state is Lifecycle.ACTIVE:
+        names = [*target.joints, *([GRIPPER_NAME] if target.gripper else [])]
+        if target.gripper:
             self._remember_gripper()
-            arm.deactivate()
-        else:
-            for name in target.joints:
-                arm.joints[name].disable()
-            arm.read()
-            self.finish_homings()
-            for name in target.joints:
-                if arm.modes[name] is not CommandMode.NONE:
-                    arm.release(name)
-            gripper = self.backend.gripper
-            if target.gripper and gripper.is_enabled:
-                self._remember_gripper()
-                gripper.disable()
-            self.sync()
-        return [*target.joints, *([GRIPPER_NAME] if target.gripper else [])]
+        self.arm.disable(names)
+        self.finish_homings()
+        return names
 
     def disable_all_safely(self) -> None:
         """Disable every joint and the gripper, best effort (the console's on-error rule)."""
         arm = self.arm
-        with contextlib.suppress(JointError):
-            if arm.state is Lifecycle.ACTIVE:
+        if arm.state in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
+            with contextlib.suppress(JointError):
                 self._remember_gripper()
-                arm.deactivate()
-            elif arm.state is Lifecycle.INACTIVE:
-                for joint in arm.joints.values():
-                    with contextlib.suppress(JointError):
-                        joint.disable()
+                arm.disable((*arm.names, GRIPPER_NAME))
 
     def start_homing(self, names: Iterable[str], direction: str | None = None) -> dict[str, float]:
         """Start homing joints through the arm's home command interface; return at once.
@@ -903,10 +627,9 @@ class Session:
                 f"gripper: width {width_m:g} m is outside the limits [{g.min:g}, {g.max:g}] m"
             )
         self.enable_gripper()
-        self.sync()
         gripper = self.backend.gripper
         gripper.set_position(width_m)
-        self.arm.gripper_command = width_m
+        self.arm.set_gripper(width_m)
         self.facts.gripper_width_m = width_m
         for _ in range(math.ceil(GRIPPER_SETTLE_S / CYCLE_S)):
             self.cycle(CYCLE_S)
@@ -947,39 +670,12 @@ class Session:
         return results
 
 
-def _enable_joint(arm: Arm, name: str) -> None:
-    """Enable one joint the way :meth:`Arm.activate` enables each."""
-    cfg = arm.config.joint(name)
-    joint = arm.joints[name]
-    joint.enable(cfg.drive_current, cfg.hold_current)
-    joint.enable_stallguard(cfg.stall_threshold)
-    joint.set_max_velocity(cfg.max_velocity)
-    joint.set_max_acceleration(cfg.max_acceleration)
-
-
-def _adopt_homing(arm: Arm, name: str, speed: float) -> None:
-    """Make the arm and the joint driver finish a homing an earlier process started.
-
-    The host half of a homing (the driver's current blocking command and the
-    offset to store, the arm's set of running homings) lives in private
-    fields and neither class offers a public way to resume it; this sets
-    them as ``start_homing`` and the arm's home write would have.
-    """
-    joint = arm.joints[name]
-    joint._current_b_cmd = Reg.HOME
-    joint._homing_offset = joint.max if speed > 0 else joint.min
-    arm.modes[name] = CommandMode.HOME
-    arm.commands[name] = speed
-    arm._homing.add(name)
-    arm.joint_states[name].homing = True
-
-
 # ----------------------------------------------------------------- output
 def make_console() -> Console:
-    """A console for command output: 120 columns when not a terminal (and no ``COLUMNS``)."""
+    """A console for command output: at least 120 columns when not a terminal (pipes, logs)."""
     con = Console(highlight=False)
-    if not con.is_terminal and "COLUMNS" not in os.environ:
-        con = Console(highlight=False, width=120)
+    if not con.is_terminal:
+        con = Console(highlight=False, width=max(120, con.width))
     return con
 
 

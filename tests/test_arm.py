@@ -20,6 +20,7 @@ from conftest import ARM_BACKENDS
 
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import Backend, EmulatedBackend
+from bioscara_gym.hardware.codec import pack_bytes
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import (
@@ -27,6 +28,7 @@ from bioscara_gym.hardware.errors import (
     IncorrectStateError,
     InvalidArgumentError,
     NotHomedError,
+    NotInitError,
     StalledError,
 )
 from bioscara_gym.hardware.gripper import GripperStateWarning
@@ -1056,3 +1058,294 @@ def test_set_gripper_clamps_to_the_width_limits(active_arm: Arm, width: float, c
 def test_set_gripper_refuses_a_non_finite_width(mock_arm: Arm, width: float) -> None:
     with pytest.raises(InvalidArgumentError, match=f"gripper: width {width} must be finite"):
         mock_arm.set_gripper(width)
+
+
+# ------------------------------------------------ per-device enable / disable
+
+
+def test_enable_a_subset_enables_only_those_joints_and_goes_active(arm: Arm) -> None:
+    arm.configure()
+    arm.enable(["j1", "j3"])
+    assert arm.state is Lifecycle.ACTIVE
+    assert [arm.joints[n].is_enabled() for n in NAMES] == [True, False, True, False]
+    assert not arm.gripper.is_enabled
+    assert set(arm.modes.values()) == {CommandMode.NONE}
+
+
+def test_enable_sends_what_activate_sends_to_each_named_joint_only(
+    mock_arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mock_arm.configure()
+    traffic = spy(monkeypatch, mock_arm)
+    mock_arm.enable(["j2"])
+    cfg = CONFIG.joint("j2")
+    sent = [(joint, reg) for joint, reg, value in traffic.log if value is not None]
+    assert sent == [
+        ("j2", Reg.SETUP),
+        ("j2", Reg.ENABLESTALLGUARD),
+        ("j2", Reg.SETMAXVELOCITY),
+        ("j2", Reg.SETMAXACCELERATION),
+    ]
+    assert traffic.values("j2", Reg.ENABLESTALLGUARD) == [cfg.stall_threshold]
+    assert traffic.values("j2", Reg.SETMAXACCELERATION) == [
+        pytest.approx(motor_rate_deg("j2", cfg.max_acceleration))
+    ]
+
+
+def test_enable_gripper_by_name_drives_it_at_the_saved_width(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    mock_arm.enable(["gripper"])
+    assert mock_arm.state is Lifecycle.ACTIVE
+    assert mock_arm.gripper.is_enabled
+    assert mock_arm.gripper_command == 0.08
+    assert not any(j.is_enabled() for j in mock_arm.joints.values())
+
+
+def test_enable_releases_the_joints_interfaces_and_holds_the_measured_position(
+    homed_mock_arm: Arm,
+) -> None:
+    arm = homed_mock_arm
+    arm.claim("j1", "position")
+    arm.set_command("j1", 0.5)
+    arm.claim("j2", "velocity")
+    arm.enable(["j1"])
+    assert arm.modes["j1"] is CommandMode.NONE
+    assert arm.commands["j1"] == arm.joint_states["j1"].position
+    assert arm.modes["j2"] is CommandMode.VELOCITY
+
+
+def test_enable_of_nothing_leaves_an_inactive_arm_inactive(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    mock_arm.enable([])
+    assert mock_arm.state is Lifecycle.INACTIVE
+
+
+def test_enable_refuses_an_unknown_name_listing_joints_and_gripper(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    with pytest.raises(InvalidArgumentError, match="unknown joint 'j9'; known: j1, j2, j3, j4, gripper"):
+        mock_arm.enable(["j1", "j9"])
+    assert not mock_arm.joints["j1"].is_enabled()
+
+
+def test_enable_is_refused_while_the_arm_homes_the_joint(active_arm: Arm) -> None:
+    start_homing(active_arm, "j1", 0.03)
+    with pytest.raises(ArmStateError, match="j1: homing is running and enabling would stop it"):
+        active_arm.enable(["j1"])
+    assert active_arm.joints["j1"].is_busy()
+
+
+def test_enable_is_refused_while_unconfigured(mock_arm: Arm) -> None:
+    with pytest.raises(ArmStateError, match="cannot enable while unconfigured"):
+        mock_arm.enable(["j1"])
+
+
+def test_failed_enable_falls_back_to_unconfigured(make_arm_backend: MakeBackend) -> None:
+    backend = make_arm_backend("emulated")
+    arm = Arm(backend)
+    arm.configure()
+    assert isinstance(backend, EmulatedBackend)
+    backend.bus.faults = FaultPlan(nack=1.0)
+    with pytest.raises(CommError):
+        arm.enable(["j3"])
+    assert arm.state is Lifecycle.UNCONFIGURED
+
+
+def test_disable_a_subset_keeps_the_others_enabled_and_the_arm_active(active_arm: Arm) -> None:
+    active_arm.disable(["j2", "gripper"])
+    assert active_arm.state is Lifecycle.ACTIVE
+    assert [active_arm.joints[n].is_enabled() for n in NAMES] == [True, False, True, True]
+    assert not active_arm.gripper.is_enabled
+
+
+def test_disabling_the_last_enabled_device_makes_the_arm_inactive(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    mock_arm.enable(["j4", "gripper"])
+    mock_arm.disable(["j4"])
+    assert mock_arm.state is Lifecycle.ACTIVE
+    mock_arm.disable(["gripper"])
+    assert mock_arm.state is Lifecycle.INACTIVE
+
+
+def test_disable_releases_the_named_joints_interfaces(homed_mock_arm: Arm) -> None:
+    homed_mock_arm.claim("j1", "position")
+    homed_mock_arm.claim("j2", "position")
+    homed_mock_arm.disable(["j1"])
+    assert homed_mock_arm.modes["j1"] is CommandMode.NONE
+    assert homed_mock_arm.modes["j2"] is CommandMode.POSITION
+
+
+def test_disable_stops_a_running_homing_and_finishes_it_not_homed(active_arm: Arm) -> None:
+    start_homing(active_arm, "j1", 0.03)
+    active_arm.cycle(DT)
+    active_arm.disable(["j1"])
+    state = active_arm.joint_states["j1"]
+    assert not state.homing
+    assert not state.homed
+    assert active_arm.modes["j1"] is CommandMode.NONE
+    assert active_arm.joints["j1"].current_blocking_command is Reg.NONE
+    assert not active_arm.joints["j1"].is_busy()
+
+
+# ---------------------------------------------- attach and adopt_homing
+
+
+def enable_and_home_elsewhere(arm: Arm, name: str, speed: float) -> None:
+    """Leave ``name`` as an earlier process would have: enabled and homing at ``speed``.
+
+    The homing is started through the joint's register primitive, so this
+    process's driver knows nothing of it (no blocking command, no offset);
+    then the arm reads the state, as :meth:`Arm.configure` would.
+    """
+    cfg = CONFIG.joint(name)
+    joint = arm.joints[name]
+    joint.enable(cfg.drive_current, cfg.hold_current)
+    rpm = joint.homing_rpm(speed)
+    joint._command(
+        Reg.HOME, pack_bytes(int(rpm > 0), int(abs(rpm)), cfg.homing.threshold, cfg.homing.current)
+    )
+    arm.read()
+
+
+def test_attach_over_enabled_joints_keeps_a_running_homing_running(
+    arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    arm.configure()
+    enable_and_home_elsewhere(arm, "j1", 0.03)
+    traffic = spy(monkeypatch, arm)
+    assert arm.attach()
+    assert traffic.log == []  # no SETUP, nothing at all
+    assert arm.state is Lifecycle.ACTIVE
+    assert set(arm.modes.values()) == {CommandMode.NONE}
+    for name in NAMES:
+        assert arm.commands[name] == arm.joint_states[name].position
+    arm.cycle(DT)
+    assert arm.joints["j1"].is_busy()
+    assert not arm.joints["j2"].is_enabled()
+
+
+def test_attach_with_nothing_enabled_stays_inactive(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    assert not mock_arm.attach()
+    assert mock_arm.state is Lifecycle.INACTIVE
+
+
+def test_attach_is_refused_while_active(homed_mock_arm: Arm) -> None:
+    with pytest.raises(ArmStateError, match="cannot attach while active; the arm must be inactive"):
+        homed_mock_arm.attach()
+
+
+def test_adopted_homing_finishes_at_max_for_a_positive_speed(
+    arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    arm.configure()
+    speed = CONFIG.joint("j1").homing.speed
+    enable_and_home_elsewhere(arm, "j1", speed)
+    arm.attach()
+    arm.adopt_homing("j1", speed)
+    assert arm.modes["j1"] is CommandMode.HOME
+    assert arm.joint_states["j1"].homing
+    traffic = spy(monkeypatch, arm)
+    cycle_until(arm, lambda: not arm.joint_states["j1"].homing)
+    assert Reg.HOME not in traffic.regs("j1")  # tracked, not restarted
+    assert traffic.values("j1", Reg.HOMEOFFSET) == [pytest.approx(CONFIG.joint("j1").max)]
+    state = arm.joint_states["j1"]
+    assert state.homed
+    assert state.position == pytest.approx(CONFIG.joint("j1").max, abs=1e-3)
+    assert arm.commands["j1"] == 0.0
+    assert arm.joints["j1"].current_blocking_command is Reg.NONE
+
+
+def test_adopted_homing_finishes_at_min_for_a_negative_speed(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    enable_and_home_elsewhere(mock_arm, "j1", -0.03)
+    mock_arm.attach()
+    mock_arm.adopt_homing("j1", -0.03)
+    cycle_until(mock_arm, lambda: not mock_arm.joint_states["j1"].homing)
+    assert mock_arm.joint_states["j1"].homed
+    assert mock_arm.joint_states["j1"].position == CONFIG.joint("j1").min
+
+
+def test_adopted_homing_is_aborted_by_a_home_command_of_zero(active_arm: Arm) -> None:
+    arm = active_arm
+    arm.deactivate()
+    enable_and_home_elsewhere(arm, "j1", 0.03)
+    arm.attach()
+    arm.adopt_homing("j1", 0.03)
+    arm.set_command("j1", 0.0)
+    arm.write()
+    state = arm.read()["j1"]
+    assert not state.homing
+    assert not state.homed
+    assert not arm.joints["j1"].is_busy()
+
+
+def test_adopting_a_homing_that_already_ended_finishes_it_on_the_next_read(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    enable_and_home_elsewhere(mock_arm, "j1", 0.03)
+    mock_arm.backend.step(2.0)  # the homing ends while nobody watches
+    mock_arm.read()
+    mock_arm.attach()
+    mock_arm.adopt_homing("j1", 0.03)
+    mock_arm.read()
+    assert not mock_arm.joint_states["j1"].homing
+    assert mock_arm.joint_states["j1"].position == CONFIG.joint("j1").max
+
+
+def test_adopt_homing_is_refused_unless_active(mock_arm: Arm) -> None:
+    mock_arm.configure()
+    with pytest.raises(ArmStateError, match="cannot adopt a homing on j1 while inactive"):
+        mock_arm.adopt_homing("j1", 0.03)
+
+
+def test_adopt_homing_is_refused_over_another_interface(homed_mock_arm: Arm) -> None:
+    homed_mock_arm.claim("j1", "position")
+    with pytest.raises(ArmStateError, match="j1: position interface is active; release it"):
+        homed_mock_arm.adopt_homing("j1", 0.03)
+
+
+@pytest.mark.parametrize("speed", [0.0, math.nan, math.inf])
+def test_adopt_homing_refuses_a_zero_or_non_finite_speed(homed_mock_arm: Arm, speed: float) -> None:
+    with pytest.raises(InvalidArgumentError, match=r"j1: homing speed .* must be finite and non-zero"):
+        homed_mock_arm.adopt_homing("j1", speed)
+    assert homed_mock_arm.modes["j1"] is CommandMode.NONE
+
+
+def test_adopt_homing_of_an_unknown_joint_is_refused_listing_the_known_joints(
+    homed_mock_arm: Arm,
+) -> None:
+    with pytest.raises(InvalidArgumentError, match=KNOWN_JOINTS):
+        homed_mock_arm.adopt_homing("j9", 0.03)
+
+
+# ----------------------------------------------------- BaseJoint.adopt_homing
+
+
+@pytest.mark.parametrize(("speed", "end"), [(0.03, "max"), (-0.03, "min")])
+def test_joint_adopt_homing_sets_home_and_the_offset_from_the_sign(
+    mock_arm: Arm, monkeypatch: pytest.MonkeyPatch, speed: float, end: str
+) -> None:
+    mock_arm.configure()
+    joint = mock_arm.joints["j3"]
+    enable_and_home_elsewhere(mock_arm, "j3", speed)
+    traffic = spy(monkeypatch, mock_arm)
+    joint.adopt_homing(speed)
+    assert traffic.log == []
+    assert joint.current_blocking_command is Reg.HOME
+    mock_arm.backend.step(2.0)
+    joint.wait_while_busy()
+    joint.post_homing()
+    assert joint.offset == getattr(CONFIG.joint("j3"), end)
+    assert traffic.values("j3", Reg.HOMEOFFSET) == [getattr(CONFIG.joint("j3"), end)]
+
+
+@pytest.mark.parametrize("velocity", [0.0, math.nan])
+def test_joint_adopt_homing_refuses_a_zero_or_non_finite_velocity(mock_arm: Arm, velocity: float) -> None:
+    mock_arm.configure()
+    with pytest.raises(InvalidArgumentError, match="j1: homing velocity"):
+        mock_arm.joints["j1"].adopt_homing(velocity)
+    assert mock_arm.joints["j1"].current_blocking_command is Reg.NONE
+
+
+def test_joint_adopt_homing_refused_before_init(mock_arm: Arm) -> None:
+    with pytest.raises(NotInitError):
+        mock_arm.joints["j1"].adopt_homing(0.03)

@@ -19,11 +19,11 @@ from rich.console import Console
 
 from bioscara_gym.cli import main
 from bioscara_gym.console import (
-    STATE_FORMAT,
     ConsoleOptions,
     Session,
     resolve_target,
 )
+from bioscara_gym.console_state import STATE_FORMAT
 from bioscara_gym.dashboard import (
     BusView,
     DashboardSnapshot,

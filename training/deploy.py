@@ -15,21 +15,27 @@ Reads top to bottom, as a deployment runs:
 6. **deactivate** (joints disabled, gripper width saved) and **clean up**.
 
 Any stop (NaN action, stall, bus error, deadman, Ctrl-C/SIGTERM) ends in
-:func:`~training.safety.safe_stop`. The run log is JSON Lines, one line
+:func:`~training.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
+sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
+the arm is left disabled in every case. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
 
 =============  ======================================================================
 ``type``       fields
 =============  ======================================================================
-``header``     policy, env_id, backend, rate_hz, faults, seed, episodes, started
+``header``     policy, env_id, backend, rate_hz, control_mode, faults, seed, episodes,
+               realtime, started
 ``phase``      phase, detail, t (backend clock, s)
 ``cycle``      cycle, episode, step, t, period_s (backend clock), wall_period_s, work_s
                (host time for policy + step), silence_s (longest joint silence), overrun,
-               action (policy output), clamped, commands / q / qd / flags (per joint), reward
+               action (policy output), clamped, commands / q / qd / flags (per joint), reward;
+               the cycle a safety stop cut short: action, flags, ``stopped: true``
 ``episode``    episode, success, distance, steps, return, stalled
 ``stop``       reason, message, joint
 ``summary``    episodes, successes, cycles, period/jitter/overrun statistics, stop_reason,
-               message, final_state (per-joint flags after the stop), gripper, exit_code
+               message, joint, final_state (per-joint flags after the stop, read from the
+               emulator where there is one), arm_disabled, not_confirmed_disabled,
+               gripper (width_m, state_file), exit_code
 =============  ======================================================================
 
 On ``mock`` and ``emulated`` time is simulated: ``period_s`` is simulated and
@@ -53,6 +59,7 @@ from typing import Any, Protocol
 import gymnasium as gym
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from bioscara_gym.hardware.arm import Lifecycle
@@ -315,7 +322,7 @@ class Deployment:
         if args.faults and args.backend != "emulated":
             raise DeployError("--faults needs --backend emulated (faults are injected by the emulated bus)")
         self.args = args
-        self.console = console or Console(highlight=False)
+        self.console = console or Console(highlight=False, soft_wrap=True)
         self.on_cycle = on_cycle
         self._policy_override = policy
         self._metadata_override = metadata
@@ -331,13 +338,17 @@ class Deployment:
     # --------------------------------------------------------------- output
     def _phase(self, name: str, detail: str, log: RunLog | None = None) -> None:
         """Print a phase; log it (phases before the log opens are logged when it does)."""
-        self.console.print(f"[bold]{name:<10}[/bold] {detail}")
+        self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)}")
         t = self.env.unwrapped.backend.clock.now() if self.env is not None else None
         record = {"type": "phase", "phase": name, "detail": detail, "t": t}
         if log is None:
             self._early_phases.append(record)
         else:
             log.write(record)
+
+    def _starting(self, name: str, detail: str) -> None:
+        """Print that a phase starts (a failure in it is printed right after)."""
+        self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)} ...")
 
     # ----------------------------------------------------------------- build
     def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
@@ -348,7 +359,7 @@ class Deployment:
             if args.env is not None:
                 env_id = args.env  # checked against the metadata below
         else:
-            env_id = args.env or "Bioscara-Reach"
+            env_id = args.env or "Bioscara-Reach-v0"
         config = load_config(args.config)
         if args.bus is not None:
             config = dataclasses.replace(config, bus=args.bus)
@@ -388,7 +399,7 @@ class Deployment:
         try:
             env_id = _env_id(env)
             self.console.print(
-                f"[bold]deploy[/bold]     {description} -> {_describe_env(env)} on {args.backend}"
+                f"[bold]deploy[/bold]     {escape(description)} -> {_describe_env(env)} on {args.backend}"
             )
             if metadata is not None:
                 try:
@@ -456,11 +467,12 @@ class Deployment:
                 except BaseException as e:  # every way out makes the arm safe first
                     with signals.shielded():
                         reason, message, joint, exit_code = self._classify(e, arm)
+                        stop_report = safe_stop(arm)  # the arm first, then the words
+                        self._gripper_width = stop_report.gripper_width_m
+                        self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(message)}")
                         log.write(
                             {"type": "stop", "reason": reason.value, "message": message, "joint": joint}
                         )
-                        stop_report = safe_stop(arm)
-                        self._gripper_width = stop_report.gripper_width_m
                         if not isinstance(e, Exception | KeyboardInterrupt):
                             raise
                 finally:
@@ -481,7 +493,7 @@ class Deployment:
         disabled = self._disabled_line()
         self.console.print(disabled)
         if reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
-            raise Interrupted(signals.pending or 2)
+            raise Interrupted(exit_code - 128)
         raise DeployError(f"safe stop: {message}", exit_code, self.summary)
 
     @staticmethod
@@ -507,12 +519,14 @@ class Deployment:
     def _bring_up(self, env: gym.Env, log: RunLog) -> None:
         u = env.unwrapped
         arm = u.arm
-        arm.configure()
-        pinged = ", ".join(
+        addressed = ", ".join(
             f"{n} {j.address:#04x}" if hasattr(j, "address") else n for n, j in arm.joints.items()
         )
-        self._phase("configure", f"pinged {pinged}", log)
+        self._starting("configure", f"connecting and pinging {addressed}")
+        arm.configure()
+        self._phase("configure", "every joint answered", log)
         homed_before = [n for n in arm.names if arm.joint_states[n].homed]
+        self._starting("activate", "enabling joints, stall detection and limits")
         arm.activate()
         self._phase("activate", "joints enabled, stall detection and limits set", log)
         todo = [n for n in arm.names if n not in homed_before]
@@ -522,7 +536,7 @@ class Deployment:
             )
         if todo:
             t0 = u.backend.clock.now()
-            self.console.print(f"{'home':<10} homing {', '.join(todo)} ...")
+            self._starting("home", f"homing {', '.join(todo)}")
             arm.home(todo)
             self._phase("home", f"{', '.join(todo)} homed in {u.backend.clock.now() - t0:.1f} s", log)
         from bioscara_gym.envs.base import JOINT_MODE
@@ -547,7 +561,6 @@ class Deployment:
         dt = u.dt
         names = u.joint_names
         paced_wall = args.realtime or args.backend == "i2c"
-        warned = 0
         for ep in range(args.episodes):
             obs, info = env.reset(seed=args.seed + ep)
             if hasattr(policy, "reset"):
@@ -577,34 +590,15 @@ class Deployment:
                                 "step": steps,
                                 "t": t_clock,
                                 "action": np.asarray(raw, dtype=np.float64),
+                                "flags": {n: int(arm.joint_states[n].flags) for n in names},
                                 "stopped": True,
                             }
                         )
                         raise
                     work = time.perf_counter() - t_wall
-                    overrun = period is not None and period > dt * (1 + OVERRUN_TOLERANCE)
-                    if paced_wall and wall_period is not None and wall_period > dt * (1 + OVERRUN_TOLERANCE):
-                        overrun = True
-                    if period is not None:
-                        stats.periods.append(period)
-                    if wall_period is not None:
-                        stats.wall_periods.append(wall_period)
-                    stats.work.append(work)
-                    stats.silences.append(check.silence_s)
+                    overrun = self._account(stats, dt, period, wall_period, work, check.silence_s, paced_wall)
                     if overrun:
-                        stats.overruns += 1
-                        if warned < OVERRUN_WARNINGS:
-                            warned += 1
-                            shown = wall_period if paced_wall and wall_period is not None else period
-                            self.console.print(
-                                f"[yellow]warning[/yellow]: overrun at cycle {counts['cycles']}: period "
-                                f"{(shown or 0.0) * 1000:.1f} ms > {dt * 1000:.0f} ms"
-                                + (
-                                    " (further overruns are only counted)"
-                                    if warned == OVERRUN_WARNINGS
-                                    else ""
-                                )
-                            )
+                        self._warn_overrun(stats, counts["cycles"], dt, wall_period if paced_wall else period)
                     states = arm.joint_states
                     log.write(
                         {
@@ -656,6 +650,43 @@ class Deployment:
                 f"distance {info.get('distance', math.nan) * 1000:.1f} mm, {steps} steps"
             )
 
+    @staticmethod
+    def _account(
+        stats: LoopStats,
+        dt: float,
+        period: float | None,
+        wall_period: float | None,
+        work: float,
+        silence: float,
+        paced_wall: bool,
+    ) -> bool:
+        """Add one cycle's timing to ``stats``; return whether it overran.
+
+        A cycle overruns when its period on the backend's clock (what the
+        joints see), or on the wall clock where the loop is paced by it, is
+        more than ``OVERRUN_TOLERANCE`` over the nominal period.
+        """
+        limit = dt * (1 + OVERRUN_TOLERANCE)
+        overrun = period is not None and period > limit
+        overrun |= paced_wall and wall_period is not None and wall_period > limit
+        if period is not None:
+            stats.periods.append(period)
+        if wall_period is not None:
+            stats.wall_periods.append(wall_period)
+        stats.work.append(work)
+        stats.silences.append(silence)
+        stats.overruns += overrun
+        return overrun
+
+    def _warn_overrun(self, stats: LoopStats, cycle: int, dt: float, period: float | None) -> None:
+        if stats.overruns > OVERRUN_WARNINGS:
+            return
+        more = " (further overruns are only counted)" if stats.overruns == OVERRUN_WARNINGS else ""
+        self.console.print(
+            f"[yellow]warning[/yellow]: overrun at cycle {cycle}: period "
+            f"{(period or 0.0) * 1000:.1f} ms > {dt * 1000:.0f} ms{more}"
+        )
+
     # --------------------------------------------------------------- summary
     def _summary(
         self,
@@ -698,7 +729,7 @@ class Deployment:
         enabled = [n for n, st in s["final_state"].items() if st["enabled"]]
         return (
             f"[red]arm NOT confirmed disabled[/red]: {', '.join(enabled)} still enabled "
-            f"({'; '.join(s['problems']) or 'no reply'}); cut the power"
+            f"({escape('; '.join(s['problems'])) or 'no reply'}); cut the power"
         )
 
     def _print_summary(self) -> None:
@@ -725,11 +756,11 @@ class Deployment:
         table.add_row("host work per cycle mean / max", f"{ms('work_mean_s')} / {ms('work_max_s')}")
         table.add_row("longest joint silence", ms("max_silence_s"))
         table.add_row("overruns", str(s["overruns"]))
-        table.add_row("stop", s["message"])
+        table.add_row("stop", escape(s["message"]))
         flags = ", ".join(f"{n} {st['flag_names']}" for n, st in s["final_state"].items())
         table.add_row("final flags", flags)
         self.console.print(table)
-        self.console.print(f"log        {self.log_path}")
+        self.console.print(f"log        {self.log_path}", markup=False)
 
 
 # ----------------------------------------------------------------------- CLI
@@ -763,10 +794,14 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
     try:
         Deployment(_args_from_namespace(ns)).run()
     except DeployError as e:
-        Console(stderr=True, highlight=False).print(f"bioscara deploy: error: {e}", markup=False)
+        Console(stderr=True, highlight=False, soft_wrap=True).print(
+            f"bioscara deploy: error: {e}", markup=False
+        )
         return e.code
     except Interrupted as e:
-        Console(stderr=True, highlight=False).print(f"bioscara deploy: interrupted by {e}", markup=False)
+        Console(stderr=True, highlight=False, soft_wrap=True).print(
+            f"bioscara deploy: interrupted by {e}", markup=False
+        )
         return e.exit_code
     return 0
 
@@ -776,7 +811,7 @@ def cmd_export(ns: argparse.Namespace) -> int:
     from training.export import export_onnx
 
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
-    con = Console(highlight=False)
+    con = Console(highlight=False, markup=False, soft_wrap=True)
     con.print(f"onnx      {result.path}")
     con.print(f"input     obs = {' + '.join(f'{k}[{n}]' for k, n in result.obs_keys)}")
     if result.checked:
@@ -804,9 +839,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bus", type=int, help="I2C bus number, /dev/i2c-N (default: the config's)")
     p.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
     p.add_argument("--episodes", type=int, default=1)
-    p.add_argument("--rate", type=float, help="control rate in Hz (default: the policy's)")
+    p.add_argument(
+        "--rate",
+        type=float,
+        help="control rate in Hz (default: the policy's; a trained policy refuses another)",
+    )
     p.add_argument("--log", type=Path, help="run log, JSON Lines (default: runs/deploy/deploy-<time>.jsonl)")
-    p.add_argument("--faults", help="emulated bus faults, e.g. nack=0.01,latency_ms=2")
+    p.add_argument("--faults", help="emulated bus faults, e.g. nack=0.01,latency_ms=0.5 (per transaction)")
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")
     p.add_argument("--state-file", type=Path, help="gripper state file")

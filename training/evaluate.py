@@ -97,8 +97,13 @@ def sb3_policy(model: Any) -> Policy:
     return act
 
 
-def load_model(path: Path, env: gym.Env | None = None) -> tuple[Any, dict[str, Any]]:
-    """Load a trained ``model.zip`` and its metadata (the algorithm is in the metadata).
+def load_model(path: Path) -> tuple[Any, dict[str, Any]]:
+    """Load a trained ``model.zip`` to act, with its metadata (the algorithm is in the metadata).
+
+    ``algo.load`` without an env fails for a model trained with
+    ``HerReplayBuffer`` (the default for the goal tasks) and would allocate
+    the whole replay buffer; acting needs neither, so the buffer is replaced
+    by a one-entry plain one.
 
     Raises:
         MetadataError: No or unreadable metadata.
@@ -112,7 +117,8 @@ def load_model(path: Path, env: gym.Env | None = None) -> tuple[Any, dict[str, A
     if not model_file.exists():
         raise FileNotFoundError(f"no model at {model_file}")
     algo = ALGOS[metadata.get("algo", "sac")]
-    model = algo.load(model_file, env=env, device="cpu")
+    act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
+    model = algo.load(model_file, env=None, device="cpu", custom_objects=act_only)
     return model, metadata
 
 
@@ -146,7 +152,7 @@ def evaluate_model(
     env = make_eval_env(metadata, backend, render=video is not None)
     try:
         check_metadata(metadata, env, metadata["env_id"])
-        model, _ = load_model(Path(model_path), env)
+        model, _ = load_model(Path(model_path))
         frames: list[np.ndarray] | None = [] if video is not None else None
         stats = run_episodes(env, sb3_policy(model), episodes, seed=seed, frames=frames)
         if video is not None and frames:

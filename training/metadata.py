@@ -8,8 +8,6 @@ control mode or rate), before anything touches the arm.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -17,6 +15,7 @@ from typing import Any
 import gymnasium as gym
 
 import bioscara_gym
+from bioscara_gym.fsutil import atomic_write_text  # also imported from here by train and evaluate
 
 METADATA_NAME = "metadata.json"
 #: env kwargs that change what the policy's actions mean; they must match to deploy.
@@ -40,21 +39,6 @@ def space_description(space: gym.Space) -> Any:
             "high": float(space.high.max()),
         }
     return {"type": type(space).__name__, "repr": repr(space)}
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def build_metadata(env: gym.Env, env_id: str, env_kwargs: dict[str, Any], **extra: Any) -> dict[str, Any]:

@@ -6,6 +6,12 @@ Lifecycle (SPEC.md "The arm layer")::
     ACTIVE --deactivate--> INACTIVE --cleanup--> UNCONFIGURED
     any --shutdown--> FINALIZED;  an error in a transition --> UNCONFIGURED
 
+:meth:`Arm.enable` and :meth:`Arm.disable` do the same per device (a joint
+name or ``"gripper"``): the arm is ACTIVE while any device is enabled.
+:meth:`Arm.attach` goes ACTIVE over devices an earlier process enabled
+without sending anything that stops them, and :meth:`Arm.adopt_homing` takes
+over a homing such a process left running.
+
 Every joint has three command interfaces, position, velocity and home, of
 which at most one is active, and three state values read in the order
 position, velocity, home. :meth:`Arm.read` and :meth:`Arm.write` are one
@@ -22,7 +28,7 @@ from enum import Enum
 
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.base_joint import BaseJoint
-from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import (
     IncorrectStateError,
     InvalidArgumentError,
@@ -129,25 +135,191 @@ class Arm:
     def activate(self) -> None:
         """Enable the joints, stall detection and limits; hold the measured position.
 
-        Command set points are set to the measured state, and no command mode
-        is active, so nothing moves.
+        The same as :meth:`enable` of every joint and the gripper. Command set
+        points are set to the measured state, and no command mode is active,
+        so nothing moves.
+
+        Raises:
+            ArmStateError: The arm is not inactive.
+            JointError: A joint could not be enabled (the arm falls back to
+                unconfigured).
         """
         self._require(Lifecycle.INACTIVE, action="activate")
+        self.enable((*self.names, GRIPPER_NAME))
+
+    def enable(self, names: Iterable[str]) -> None:
+        """Enable joints (and ``"gripper"``) as :meth:`activate` does; hold them still.
+
+        Each joint gets its configured drive and hold current (percent), stall
+        detection, max velocity and max acceleration; the gripper is driven
+        at its saved width. An inactive arm becomes active (the devices not
+        named stay disabled). The named joints' command interfaces are
+        released and their set points set to the measured position, so
+        nothing moves; a joint already enabled is enabled again, which
+        clears a stall and stops whatever it was doing.
+
+        Args:
+            names: Joint names and ``"gripper"``; none does nothing.
+
+        Raises:
+            ArmStateError: The arm is not configured (inactive or active), or
+                a named joint is homing (abort it with a home command of 0
+                first: enabling would stop it).
+            InvalidArgumentError: An unknown name.
+            JointError: A device could not be enabled; the arm falls back to
+                unconfigured, every device disabled.
+        """
+        self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="enable")
+        joints, gripper = self._split(names)
+        for name in joints:
+            if name in self._homing:
+                raise ArmStateError(
+                    f"{name}: homing is running and enabling would stop it; abort it (home command 0) first"
+                )
+        if not joints and not gripper:
+            return
+        was_active = self.state is Lifecycle.ACTIVE
 
         def body() -> None:
-            for name, joint in self.joints.items():
+            for name in joints:
                 cfg = self.config.joint(name)
+                joint = self.joints[name]
                 joint.enable(cfg.drive_current, cfg.hold_current)
                 joint.enable_stallguard(cfg.stall_threshold)
                 joint.set_max_velocity(cfg.max_velocity)
                 joint.set_max_acceleration(cfg.max_acceleration)
-            self.gripper.enable()
-            self.gripper_command = self.gripper.get_position()
+            if gripper:
+                self.gripper.enable()
+                self.gripper_command = self.gripper.get_position()
             self.state = Lifecycle.ACTIVE
             self.read()
-            self._hold_measured()
+            if was_active:
+                for name in joints:
+                    self.modes[name] = CommandMode.NONE
+                    self.commands[name] = self.joint_states[name].position
+            else:
+                self._hold_measured()
 
         self._transition(body)
+
+    def disable(self, names: Iterable[str]) -> None:
+        """Disable joints (stopped, no current, back-drivable) and ``"gripper"``.
+
+        A running homing on a named joint is stopped and finished by the
+        read that follows (aborted: the joint reports not homed). The named
+        joints' command interfaces
+        are released. When no joint reports enabled and the gripper is not
+        driven afterwards, an active arm becomes inactive (as after
+        :meth:`deactivate`). Every named device is tried even if one fails.
+
+        Args:
+            names: Joint names and ``"gripper"``; none does nothing.
+
+        Raises:
+            ArmStateError: The arm is not configured (inactive or active).
+            InvalidArgumentError: An unknown name.
+            JointError: A device could not be disabled, or the state could
+                not be read afterwards; every device is disabled (best
+                effort) and the arm left inactive.
+        """
+        self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="disable")
+        joints, gripper = self._split(names)
+        if not joints and not gripper:
+            return
+        try:
+            self._disable_devices(joints, gripper)
+        except JointError:
+            self._fail()
+            raise
+        self.read()
+        for name in joints:
+            self.modes[name] = CommandMode.NONE
+            self._homing.discard(name)
+            self.joint_states[name].homing = False
+        if self.state is Lifecycle.ACTIVE and not self._any_enabled():
+            self.state = Lifecycle.INACTIVE
+
+    def attach(self) -> bool:
+        """Become active over devices an earlier process enabled, without enabling them.
+
+        :meth:`activate` and :meth:`enable` send SETUP, which stops a running
+        blocking command, such as a homing another process left running. This
+        sends nothing: if any joint reported enabled in the last
+        :meth:`read` (:meth:`configure` ends with one; read again first if
+        time has passed) or the gripper is driven, the arm becomes active
+        holding the measured positions, with no command interface claimed
+        (as after :meth:`activate`); joints that reported disabled stay so.
+        A running homing keeps running; hand it to the arm with
+        :meth:`adopt_homing`.
+
+        Returns:
+            Whether the arm became active (``False``: nothing is enabled and
+            the arm stays inactive).
+
+        Raises:
+            ArmStateError: The arm is not inactive.
+        """
+        self._require(Lifecycle.INACTIVE, action="attach")
+        if not self._any_enabled():
+            return False
+        self.state = Lifecycle.ACTIVE
+        self.gripper_command = self.gripper.get_position()
+        self._hold_measured()
+        return True
+
+    def adopt_homing(self, name: str, speed: float) -> None:
+        """Track a homing that another process started on the joint, as if :meth:`write` had.
+
+        The joint's home interface becomes active with ``speed`` as its
+        command (nothing is sent: the homing already runs); :meth:`read`
+        finishes it once BUSY clears (offset stored, max acceleration
+        restored, home command reset to 0), and a home command of 0 aborts
+        it. A homing that already ended is finished by the next
+        :meth:`read`. See :meth:`BaseJoint.adopt_homing` for why the speed
+        is needed.
+
+        Args:
+            name: The joint.
+            speed: Signed homing speed the homing was started with, rad/s or
+                m/s; its sign says which end stop it runs to (positive: max).
+
+        Raises:
+            ArmStateError: The arm is not active, or another command
+                interface is active on the joint (release it first).
+            InvalidArgumentError: Unknown joint, or ``speed`` zero or not finite.
+            IncorrectStateError: The joint driver runs another blocking command.
+        """
+        self._require(Lifecycle.ACTIVE, action=f"adopt a homing on {name}")
+        mode = self._mode(name)
+        if mode not in (CommandMode.NONE, CommandMode.HOME):
+            raise ArmStateError(
+                f"{name}: {mode.value} interface is active; release it before adopting a homing"
+            )
+        speed = float(speed)
+        if not math.isfinite(speed) or speed == 0.0:
+            raise InvalidArgumentError(f"{name}: homing speed {speed} must be finite and non-zero")
+        self.joints[name].adopt_homing(speed)
+        self.modes[name] = CommandMode.HOME
+        self.commands[name] = speed
+        self._homing.add(name)
+        self.joint_states[name].homing = True
+
+    def _split(self, names: Iterable[str]) -> tuple[list[str], bool]:
+        """Joint names (configuration order) and whether ``"gripper"`` is among ``names``."""
+        if isinstance(names, str):
+            names = (names,)
+        wanted = set()
+        for name in names:
+            if name != GRIPPER_NAME and name not in self.modes:
+                raise InvalidArgumentError(
+                    f"unknown joint {name!r}; known: {', '.join((*self.names, GRIPPER_NAME))}"
+                )
+            wanted.add(name)
+        return [n for n in self.names if n in wanted], GRIPPER_NAME in wanted
+
+    def _any_enabled(self) -> bool:
+        """Whether any joint reports enabled (last flags) or the gripper is driven."""
+        return any(j.is_enabled() for j in self.joints.values()) or self.gripper.is_enabled
 
     def _hold_measured(self) -> None:
         for name in self.names:
@@ -167,20 +339,27 @@ class Arm:
 
     def _disable_all(self) -> None:
         """Best effort: try every device even if one fails, then raise the first error."""
+        try:
+            self._disable_devices(self.names, True)
+        finally:
+            self.modes = dict.fromkeys(self.names, CommandMode.NONE)
+            self._homing.clear()
+
+    def _disable_devices(self, joints: Iterable[str], gripper: bool) -> None:
+        """Best effort: try every named device even if one fails, then raise the first error."""
         first: BaseException | None = None
-        for joint in self.joints.values():
+        for name in joints:
+            joint = self.joints[name]
             try:
                 if joint.initialized:
                     joint.disable()
             except JointError as e:
                 first = first or e
         try:
-            if self.gripper.is_enabled:
+            if gripper and self.gripper.is_enabled:
                 self.gripper.disable()
         except JointError as e:
             first = first or e
-        self.modes = dict.fromkeys(self.names, CommandMode.NONE)
-        self._homing.clear()
         if first is not None:
             raise first
 

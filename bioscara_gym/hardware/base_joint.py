@@ -277,6 +277,47 @@ class BaseJoint(abc.ABC):
         self._current_b_cmd = Reg.HOME
         self._send(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
 
+    def adopt_homing(self, velocity: float) -> None:
+        """Take over a homing that another process started on the joint; send nothing.
+
+        A homing has two halves: the firmware runs it and clears NOT_HOMED
+        at the end stop, while the host remembers that HOME is the blocking
+        command and which end stop the encoder zero will be (the offset
+        :meth:`post_homing` stores). A process that did not call
+        :meth:`start_homing` (a console command after ``home --no-wait``, a
+        host restart) has only the firmware half, and the firmware does not
+        report the homing's direction, so the caller passes the velocity the
+        homing was started with. Its sign picks the offset as in
+        :meth:`start_homing`: ``max`` for positive, ``min`` for negative.
+
+        Afterwards :meth:`current_blocking_command` is ``Reg.HOME``; wait
+        while BUSY and call :meth:`post_homing` as after :meth:`start_homing`.
+        If the homing already ended, :meth:`post_homing` finishes it at once
+        (storing the offset if the joint homed).
+
+        Args:
+            velocity: Signed homing velocity the homing was started with,
+                rad/s or m/s; only its sign is used.
+
+        Raises:
+            InvalidArgumentError: ``velocity`` is zero or not finite.
+            NotInitError: Called before :meth:`init`.
+            IncorrectStateError: Another blocking command was started by
+                this object and has not finished.
+        """
+        velocity = self._check_finite("homing velocity", velocity)
+        if velocity == 0.0:
+            raise InvalidArgumentError(
+                f"{self.name}: homing velocity must be non-zero; its sign picks the end stop"
+            )
+        self._require_init()
+        if self._current_b_cmd not in (Reg.NONE, Reg.HOME):
+            raise IncorrectStateError(
+                f"{self.name}: {self._current_b_cmd.name} is running; cannot adopt a homing"
+            )
+        self._homing_offset = self.max if velocity > 0 else self.min
+        self._current_b_cmd = Reg.HOME
+
     def post_homing(self) -> None:
         """Finish a homing: clear the blocking command, check, store the offset.
 

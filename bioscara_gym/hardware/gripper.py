@@ -28,16 +28,15 @@ Backends:
 from __future__ import annotations
 
 import abc
-import contextlib
 import errno
 import json
 import math
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from types import TracebackType
 
+from bioscara_gym.fsutil import atomic_write_text
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.errors import (
     CommError,
@@ -560,46 +559,12 @@ class BaseGripper(abc.ABC):
             return
         text = json.dumps({_STATE_KEY: width_m}, allow_nan=False) + "\n"
         try:
-            _atomic_write_text(path, text)
+            atomic_write_text(path, text)
         except OSError as e:
             self._warn_state(
                 f"cannot save width {width_m:g} m to state file {path} ({e}); "
                 "the next enable() will not know where the fingers are"
             )
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Replace ``path`` with ``text`` atomically (temp file, fsync, os.replace).
-
-    Creates missing parent directories. On any failure the temporary file is
-    removed and ``path`` is untouched.
-
-    Raises:
-        OSError: The file could not be written or replaced.
-    """
-    directory = path.parent
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    # Make the rename itself durable; not possible on every platform.
-    try:
-        dir_fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        with contextlib.suppress(OSError):
-            os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 
 class Gripper(BaseGripper):

@@ -1,0 +1,403 @@
+"""``bioscara deploy`` and ``bioscara export``: the safety layer on the emulated arm.
+
+Deployments run in-process through :class:`training.deploy.Deployment` (a
+hook injects faults mid-run) and, for signals, as a ``bioscara deploy``
+subprocess whose emulator state is read back from the run log's summary.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from rich.console import Console
+from rigs import place_obstacle
+
+from bioscara_gym.hardware.backends import make_backend
+from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.hardware.registers import Flag
+from training.deploy import (
+    EXIT_REFUSED,
+    EXIT_SAFETY_STOP,
+    DeployArgs,
+    DeployError,
+    Deployment,
+)
+from training.metadata import build_metadata, read_metadata, write_metadata
+from training.safety import Interrupted, SignalGuard
+
+REACH = "Bioscara-Reach-v0"
+
+
+# ------------------------------------------------------------------ helpers
+def read_log(path: Path) -> list[dict[str, Any]]:
+    """Every line of a run log, parsed (fails on a torn line)."""
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+
+
+def assert_every_joint_disabled(summary: dict[str, Any]) -> None:
+    """Checked on the device side: the firmware emulator (or the mock device), not the host's view."""
+    for name, state in summary["final_state"].items():
+        assert state["source"] in ("emulator", "mock device"), name
+        assert state["flags"] & Flag.NOT_ENABLED, f"{name} still enabled: {state}"
+    assert summary["arm_disabled"] is True
+    assert summary["arm_state"] == "finalized"
+
+
+class Run:
+    """A finished in-process deployment: its object, output, error and log."""
+
+    def __init__(self, deployment: Deployment, output: str, error: DeployError | None, log: Path) -> None:
+        self.deployment = deployment
+        self.output = output
+        self.error = error
+        self.log = log
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        return self.deployment.summary
+
+    @property
+    def backend(self) -> Any:
+        return self.deployment.env.unwrapped.backend
+
+
+@pytest.fixture
+def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., Run]:
+    """``deploy(policy=None, metadata=None, on_cycle=None, **DeployArgs fields)`` on ``emulated``."""
+
+    def run(
+        policy: Any = None,
+        metadata: dict[str, Any] | None = None,
+        on_cycle: Callable[[int, gym.Env], None] | None = None,
+        **fields: Any,
+    ) -> Run:
+        fields.setdefault("backend", "emulated")
+        fields.setdefault("log", tmp_path / "run.jsonl")
+        fields.setdefault("state_file", gripper_state_file)
+        if policy is None and "model" not in fields and "onnx" not in fields:
+            fields.setdefault("expert", True)
+            fields.setdefault("env", REACH)
+        out = io.StringIO()
+        deployment = Deployment(
+            DeployArgs(**fields),
+            policy=policy,
+            metadata=metadata,
+            console=Console(file=out, width=200),
+            on_cycle=on_cycle,
+        )
+        error = None
+        try:
+            deployment.run()
+        except DeployError as e:
+            error = e
+        return Run(deployment, out.getvalue(), error, Path(fields["log"]))
+
+    return run
+
+
+class ConstantPolicy:
+    """Returns ``action`` every call; ``bad_from`` on it returns NaN instead."""
+
+    def __init__(self, action: list[float], bad_from: int | None = None) -> None:
+        self.action = np.asarray(action, dtype=np.float32)
+        self.bad_from = bad_from
+        self.calls = 0
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        self.calls += 1
+        if self.bad_from is not None and self.calls > self.bad_from:
+            return np.array([np.nan, 0.0, 0.0, 0.0], dtype=np.float32)
+        return self.action
+
+
+class PushJ1:
+    """Turns j1 at half speed towards the middle of its range (set on the first call)."""
+
+    def __init__(self) -> None:
+        self.direction = 0
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        if self.direction == 0:
+            self.direction = -1 if obs["observation"][0] > 0 else 1
+        return np.array([0.5 * self.direction, 0.0, 0.0, 0.0], dtype=np.float32)
+
+
+# ---------------------------------------------------------- a trained policy
+@pytest.fixture(scope="module")
+def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
+    import torch
+    from stable_baselines3 import SAC, HerReplayBuffer
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("sac")
+    env = gym.make(REACH)
+    model = SAC(
+        "MultiInputPolicy",
+        env,
+        learning_starts=100,
+        batch_size=32,
+        buffer_size=1000,
+        replay_buffer_class=HerReplayBuffer,
+        policy_kwargs={"net_arch": [32, 32]},
+        seed=0,
+        device="cpu",
+    )
+    model.learn(200)
+    model.save(out / "model.zip")
+    write_metadata(out, build_metadata(env, REACH, {}, algo="sac"))
+    env.close()
+    return out / "model.zip"
+
+
+@pytest.fixture(scope="module")
+def onnx_file(sac_model: Path) -> Path:
+    from training.export import export_onnx
+
+    return export_onnx(sac_model, sac_model.parent / "policy.onnx", check_samples=0).path
+
+
+# --------------------------------------------------------------------- runs
+@pytest.mark.parametrize("backend", ["emulated", "mock"])
+def test_expert_deploy_completes_and_logs_every_cycle(deploy: Callable[..., Run], backend: str) -> None:
+    run = deploy(episodes=2, backend=backend)
+    assert run.error is None, run.output
+    lines = read_log(run.log)
+    assert lines[0]["type"] == "header"
+    assert lines[-1]["type"] == "summary"
+    cycles = [r for r in lines if r["type"] == "cycle"]
+    summary = lines[-1]
+    assert summary["stop_reason"] == "completed"
+    assert summary["episodes"] == 2 and summary["cycles"] == len(cycles) == 100
+    assert summary["period_mean_s"] == pytest.approx(0.04)
+    assert set(cycles[0]) >= {"t", "period_s", "work_s", "action", "commands", "q", "qd", "flags", "overrun"}
+    for phase in ("check", "configure", "activate", "home", "run", "deactivate", "cleanup"):
+        assert any(r["type"] == "phase" and r["phase"] == phase for r in lines), phase
+    assert_every_joint_disabled(summary)
+
+
+def test_deploy_clamps_actions_outside_the_action_space(deploy: Callable[..., Run]) -> None:
+    run = deploy(policy=ConstantPolicy([5.0, 0.0, -5.0, 0.0]))
+    assert run.error is None, run.output
+    cycles = [r for r in read_log(run.log) if r["type"] == "cycle"]
+    config = run.backend.config
+    assert all(c["clamped"] for c in cycles)
+    for c in cycles:
+        for name, command in c["commands"].items():
+            assert abs(command) <= config.joint(name).max_velocity + 1e-9
+
+
+def test_deploy_homes_only_the_joints_not_homed_before(
+    deploy: Callable[..., Run], monkeypatch: pytest.MonkeyPatch, gripper_state_file: Path
+) -> None:
+    backend = make_backend("emulated", state_file=gripper_state_file)
+    j1, cfg = backend.joints["j1"], backend.config.joint("j1")
+    j1.init()
+    j1.enable(cfg.drive_current, cfg.hold_current)
+    j1.home(cfg.homing.speed, cfg.homing.threshold, cfg.homing.current)
+    j1.deinit()  # the host goes away; the joint stays powered and homed
+    monkeypatch.setattr("bioscara_gym.envs.base.make_backend", lambda *a, **k: backend)
+    run = deploy()
+    assert run.error is None, run.output
+    assert "j1 homed before: offset restored from HOMEOFFSET" in run.output
+    assert "homing j2, j3, j4" in run.output
+
+
+# ------------------------------------------------------------- safe stops
+def test_stall_mid_run_stops_every_joint_and_names_it(deploy: Callable[..., Run]) -> None:
+    policy = PushJ1()
+
+    def obstacle(cycle: int, env: gym.Env) -> None:
+        if cycle == 3:
+            place_obstacle(env.unwrapped.sim, "j1", direction=policy.direction, gap=0.01)
+
+    run = deploy(policy=policy, on_cycle=obstacle)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "j1 stalled" in str(run.error)
+    summary = read_log(run.log)[-1]
+    assert summary["stop_reason"] == "stall" and summary["joint"] == "j1"
+    assert summary["final_state"]["j1"]["flags"] & Flag.STALL
+    assert_every_joint_disabled(summary)
+
+
+@pytest.mark.parametrize("backend", ["emulated", "mock"])
+def test_nan_action_stops_before_the_arm_sees_it(deploy: Callable[..., Run], backend: str) -> None:
+    run = deploy(policy=ConstantPolicy([0.1, 0.0, 0.0, 0.0], bad_from=3), backend=backend)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "non-finite action [nan" in str(run.error)
+    lines = read_log(run.log)
+    assert lines[-1]["stop_reason"] == "nan_action"
+    assert lines[-1]["cycles"] == 3
+    assert [r for r in lines if r["type"] == "cycle"][-1]["action"][0] == "nan"
+    assert_every_joint_disabled(lines[-1])
+
+
+def test_persistent_nacks_end_in_a_named_comm_error_with_joints_disabled(deploy: Callable[..., Run]) -> None:
+    run = deploy(faults="nack=1.0")
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "communication error: j1 (0x11): PING failed after 3 attempts" in str(run.error)
+    summary = read_log(run.log)[-1]
+    assert summary["stop_reason"] == "comm_error" and summary["joint"] == "j1"
+    assert_every_joint_disabled(summary)
+
+
+def test_bus_lost_mid_run_reports_the_joints_it_could_not_disable(deploy: Callable[..., Run]) -> None:
+    def cut_bus(cycle: int, env: gym.Env) -> None:
+        if cycle == 5:
+            env.unwrapped.backend.bus.faults = FaultPlan(nack=1.0)
+
+    run = deploy(on_cycle=cut_bus)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "communication error: j1" in str(run.error)
+    summary = run.summary
+    assert summary["stop_reason"] == "comm_error"
+    assert summary["not_confirmed_disabled"] == ["j1", "j2", "j3", "j4"]
+    assert "NOT confirmed disabled" in run.output and "cut the power" in run.output
+
+
+def test_deadman_guard_stops_when_a_joint_is_silent_over_50_ms(deploy: Callable[..., Run]) -> None:
+    run = deploy(faults="latency_ms=30")
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "deadman guard" in str(run.error) and "limit 50 ms" in str(run.error)
+    summary = read_log(run.log)[-1]
+    assert summary["stop_reason"] == "deadman" and summary["joint"] in ("j1", "j2", "j3", "j4")
+    assert_every_joint_disabled(summary)
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [({"env": "Bioscara-PickPlace-v0"}, "trained on Bioscara-Reach-v0"), ({"rate": 30.0}, "control_freq")],
+    ids=["other-task", "other-rate"],
+)
+def test_metadata_mismatch_is_refused_before_any_bus_traffic(
+    deploy: Callable[..., Run], sac_model: Path, override: dict[str, Any], expected: str
+) -> None:
+    run = deploy(model=sac_model, **override)
+    assert run.error is not None and run.error.code == EXIT_REFUSED
+    assert "refused" in str(run.error) and expected in str(run.error)
+    assert run.backend.bus.transactions == 0
+    assert not run.log.exists()
+
+
+# ------------------------------------------------------------------ signals
+def test_signal_guard_raises_at_once_outside_the_control_loop() -> None:
+    with SignalGuard(), pytest.raises(Interrupted) as caught:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1)  # not reached: the handler raises
+    assert caught.value.exit_code == 143
+
+
+def test_signal_guard_defers_inside_a_cycle_until_the_next_check() -> None:
+    with SignalGuard() as guard:
+        with guard.deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            finished_cycle = True
+        assert finished_cycle and guard.pending == signal.SIGINT
+        with pytest.raises(Interrupted):
+            guard.check()
+
+
+def test_sigint_during_homing_disables_every_joint(
+    deploy: Callable[..., Run], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from bioscara_gym.hardware.arm import Arm
+
+    home = Arm.home
+
+    def interrupted_home(self: Arm, *args: Any, **kwargs: Any) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        home(self, *args, **kwargs)
+
+    monkeypatch.setattr(Arm, "home", interrupted_home)
+    with pytest.raises(Interrupted):
+        deploy()
+    summary = read_log(tmp_path / "run.jsonl")[-1]
+    assert summary["stop_reason"] == "interrupted" and summary["exit_code"] == 130
+    assert_every_joint_disabled(summary)
+
+
+@pytest.mark.parametrize(
+    ("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["INT", "TERM"]
+)
+def test_signal_to_a_running_deploy_disables_every_joint(tmp_path: Path, signum: int, code: int) -> None:
+    log = tmp_path / "run.jsonl"
+    cmd = [sys.executable, "-m", "bioscara_gym.cli", "deploy", "--expert", "--env", REACH,
+           "--backend", "emulated", "--episodes", "1000", "--log", str(log)]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "MUJOCO_GL": "egl"},
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not (log.exists() and log.read_text(encoding="utf-8").count('"type":"cycle"') >= 20):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "deploy never got going"
+            time.sleep(0.05)
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    assert "arm disabled" in out
+    lines = read_log(log)
+    summary = lines[-1]
+    assert summary["type"] == "summary" and summary["exit_code"] == code
+    assert summary["cycles"] == sum(r["type"] == "cycle" for r in lines)
+    assert_every_joint_disabled(summary)
+
+
+# --------------------------------------------------------------------- ONNX
+def test_onnx_actions_equal_sb3_predict(sac_model: Path, onnx_file: Path) -> None:
+    from training.evaluate import load_model
+    from training.export import OnnxPolicy
+
+    model, _ = load_model(sac_model)
+    policy = OnnxPolicy(onnx_file)
+    env = gym.make(REACH)
+    rng = np.random.default_rng(1)
+    observations = []
+    obs, _ = env.reset(seed=0)
+    for _ in range(100):
+        observations.append(obs)
+        obs, *_ = env.step(env.action_space.sample())
+    env.close()
+    observations += [{k: rng.normal(0, 2, v.shape) for k, v in obs.items()} for _ in range(100)]
+    for o in observations:
+        want, _ = model.predict(o, deterministic=True)
+        np.testing.assert_allclose(policy(o), want, atol=1e-5)
+
+
+def test_onnx_file_carries_the_training_metadata(sac_model: Path, onnx_file: Path) -> None:
+    from training.export import OnnxPolicy
+
+    assert OnnxPolicy(onnx_file).metadata == read_metadata(sac_model)
+
+
+def test_deploy_runs_an_onnx_policy_without_torch(tmp_path: Path, onnx_file: Path) -> None:
+    log = tmp_path / "run.jsonl"
+    script = (
+        "import sys; sys.modules['torch'] = None; sys.modules['stable_baselines3'] = None\n"
+        "from bioscara_gym.cli import main\n"
+        f"sys.exit(main(['deploy', '--onnx', {str(onnx_file)!r}, '--backend', 'emulated', "
+        f"'--log', {str(log)!r}]))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "MUJOCO_GL": "egl"},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    summary = read_log(log)[-1]
+    assert summary["stop_reason"] == "completed" and summary["cycles"] == 50

@@ -1,0 +1,243 @@
+"""ONNX export of a trained policy, and :class:`OnnxPolicy` to run it without torch.
+
+``bioscara export --model runs/reach/model.zip --onnx reach.onnx`` writes the
+policy's deterministic action as an ONNX graph:
+
+============  ============================  =====================================================
+name          shape                         content
+============  ============================  =====================================================
+``obs``       (batch, n) float32            the dict observation flattened in the order of the
+                                            ``obs_keys`` metadata (the model's observation space
+                                            order: ``achieved_goal``, ``desired_goal``,
+                                            ``observation``)
+``action``    (batch, act_dim) float32      what ``model.predict(obs, deterministic=True)``
+                                            returns: SAC/TD3 squashed and rescaled, PPO clipped
+============  ============================  =====================================================
+
+The file's ``metadata_props`` carry the training metadata (``bioscara_metadata``,
+the same JSON as ``metadata.json``) and ``obs_keys`` (JSON ``[[key, size], ...]``),
+so ``bioscara deploy --onnx FILE`` checks the policy against the env without
+the ``.zip``. Only :func:`export_onnx` needs torch; :class:`OnnxPolicy` needs
+numpy and onnxruntime.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: metadata_props key holding the training metadata (JSON).
+METADATA_KEY = "bioscara_metadata"
+#: metadata_props key holding the observation layout (JSON ``[[key, size], ...]``).
+OBS_KEYS_KEY = "obs_keys"
+INPUT_NAME = "obs"
+OUTPUT_NAME = "action"
+OPSET = 17
+
+
+class ExportError(ValueError):
+    """The model cannot be exported, or the export does not reproduce it."""
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What :func:`export_onnx` wrote.
+
+    Attributes:
+        path: The ONNX file.
+        obs_keys: Observation keys and sizes, in input order.
+        max_abs_error: Largest difference to ``model.predict`` over the check set.
+        checked: How many observations were compared.
+    """
+
+    path: Path
+    obs_keys: list[tuple[str, int]]
+    max_abs_error: float
+    checked: int
+
+
+def obs_layout(observation_space: Any) -> list[tuple[str, int]]:
+    """Keys and flat sizes of a Dict observation space, in the space's order.
+
+    Raises:
+        ExportError: Not a Dict of Boxes.
+    """
+    spaces = getattr(observation_space, "spaces", None)
+    if not isinstance(spaces, dict):
+        raise ExportError(f"only Dict observation spaces are supported, not {observation_space}")
+    return [(key, int(np.prod(space.shape))) for key, space in spaces.items()]
+
+
+def flatten_obs(obs: dict[str, np.ndarray], layout: list[tuple[str, int]]) -> np.ndarray:
+    """One float32 row (or a batch) from a dict observation, in ``layout`` order."""
+    parts = []
+    for key, size in layout:
+        value = np.asarray(obs[key], dtype=np.float32)
+        parts.append(value.reshape(-1, size))
+    return np.concatenate(parts, axis=1)
+
+
+def _actor_module(model: Any, layout: list[tuple[str, int]]) -> Any:
+    """A torch module: flat float32 observation -> the action ``predict`` gives."""
+    import torch
+
+    policy = model.policy
+    space = policy.action_space
+    low = torch.as_tensor(space.low, dtype=torch.float32)
+    high = torch.as_tensor(space.high, dtype=torch.float32)
+    squash = bool(policy.squash_output)
+
+    class Actor(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.policy = policy
+            self.register_buffer("low", low)
+            self.register_buffer("high", high)
+
+        def forward(self, flat: torch.Tensor) -> torch.Tensor:
+            obs, start = {}, 0
+            for key, size in layout:
+                obs[key] = flat[:, start : start + size]
+                start += size
+            actions = self.policy._predict(obs, deterministic=True)
+            if squash:
+                return self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
+            return torch.maximum(torch.minimum(actions, self.high), self.low)
+
+    return Actor().eval()
+
+
+def export_onnx(
+    model_path: Path, onnx_path: Path, check_samples: int = 256, atol: float = 1e-5, seed: int = 0
+) -> ExportResult:
+    """Export a trained model's deterministic policy to ONNX, atomically, and check it.
+
+    The check compares :class:`OnnxPolicy` with ``model.predict(...,
+    deterministic=True)`` on ``check_samples`` standard-normal observations.
+
+    Args:
+        model_path: ``model.zip`` (with ``metadata.json`` beside it) or its directory.
+        onnx_path: The file to write.
+        check_samples: Observations to compare; 0 skips the check.
+        atol: Largest difference accepted.
+        seed: Seed of the check observations.
+
+    Raises:
+        ExportError: Unsupported observation space, or the check failed (nothing written).
+        MetadataError: No metadata next to the model.
+    """
+    import onnx
+    import torch
+
+    from training.evaluate import load_model
+
+    model, metadata = load_model(Path(model_path))
+    layout = obs_layout(model.observation_space)
+    actor = _actor_module(model, layout)
+    n_obs = sum(size for _, size in layout)
+    onnx_path = Path(onnx_path)
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=onnx_path.parent, prefix=f".{onnx_path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        with warnings.catch_warnings():
+            # torch >= 2.9 defaults to the dynamo exporter, which needs onnxscript;
+            # the TorchScript exporter needs nothing more and warns that it is legacy.
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                actor,
+                (torch.zeros(1, n_obs),),
+                tmp,
+                dynamo=False,
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+                opset_version=OPSET,
+            )
+        proto = onnx.load(tmp)
+        for key, value in (
+            (METADATA_KEY, json.dumps(metadata, sort_keys=True, default=str)),
+            (OBS_KEYS_KEY, json.dumps(layout)),
+        ):
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = key, value
+        onnx.checker.check_model(proto)
+        with open(tmp, "wb") as f:
+            f.write(proto.SerializeToString())
+            f.flush()
+            os.fsync(f.fileno())
+        error = 0.0
+        if check_samples:
+            error = _max_error(model, OnnxPolicy(tmp), layout, check_samples, seed)
+            if not error <= atol:
+                raise ExportError(f"ONNX actions differ from model.predict by {error:.2e} (> {atol:g})")
+        os.replace(tmp, onnx_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return ExportResult(onnx_path, layout, error, check_samples)
+
+
+def _max_error(
+    model: Any, onnx_policy: OnnxPolicy, layout: list[tuple[str, int]], n: int, seed: int
+) -> float:
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for _ in range(n):
+        obs = {key: rng.standard_normal(size).astype(np.float64) for key, size in layout}
+        want, _ = model.predict(obs, deterministic=True)
+        worst = max(worst, float(np.max(np.abs(onnx_policy(obs) - want))))
+    return worst
+
+
+class OnnxPolicy:
+    """A policy exported by :func:`export_onnx`, run with onnxruntime (no torch).
+
+    Args:
+        path: The ``.onnx`` file.
+
+    Attributes:
+        metadata: The training metadata stored in the file.
+        obs_keys: Observation keys and sizes, in input order.
+
+    Raises:
+        ExportError: The file lacks the metadata :func:`export_onnx` writes.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        """Load the graph on the CPU, single-threaded (the control loop owns the other core)."""
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(
+                str(self.path), sess_options=options, providers=["CPUExecutionProvider"]
+            )
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise ExportError(f"cannot load {self.path}: {e}") from e
+        props = self.session.get_modelmeta().custom_metadata_map
+        try:
+            self.metadata: dict[str, Any] = json.loads(props[METADATA_KEY])
+            self.obs_keys: list[tuple[str, int]] = [(k, int(n)) for k, n in json.loads(props[OBS_KEYS_KEY])]
+        except (KeyError, ValueError) as e:
+            raise ExportError(
+                f"{self.path} has no {METADATA_KEY}/{OBS_KEYS_KEY} metadata; export it with `bioscara export`"
+            ) from e
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The deterministic action for one observation (float32, shape of the action space)."""
+        (action,) = self.session.run([OUTPUT_NAME], {INPUT_NAME: flatten_obs(obs, self.obs_keys)})
+        return action[0]
+
+    def reset(self) -> None:
+        """Stateless: nothing to reset."""
