@@ -175,4 +175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the module's canonical copy, so exceptions such as CliError raised by
+    # subcommand modules are the same classes main() catches.
+    from bioscara_gym.cli import main as _main
+
+    sys.exit(_main())
