@@ -32,7 +32,7 @@ train: $(STAMP)
 		--video $(RUN)/reach.mp4 --json $(RUN)/eval.json
 	@echo "model:    $(RUN)/model.zip (+ metadata.json)"
 	@echo "logs:     $(RUN)/tb   (tensorboard --logdir $(RUN)/tb)"
-	@echo "video:    $(RUN)/reach.mp4"
+	@echo "video:    $(RUN)/reach.mp4 (first 3 evaluation episodes)"
 	@echo "results:  $(RUN)/eval.json"
 
 lint: $(STAMP)

@@ -4,7 +4,13 @@
 ``Bioscara-PickPlace-v0``); the driver layer is :mod:`bioscara_gym.hardware`.
 """
 
+import os
 from importlib.metadata import PackageNotFoundError, version
+
+# Headless (no display): render with EGL unless the user chose a backend.
+# MuJoCo reads this when it is first imported, which the next import does.
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "egl"
 
 from bioscara_gym.envs import register_envs
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -90,12 +89,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from training.train import resolve_env_id
 
         env_id = resolve_env_id(args.env)
-        stats = evaluate_expert(env_id, args.episodes, args.backend or "sim", args.video, seed=args.seed)
+        stats = evaluate_expert(
+            env_id, args.episodes, args.backend or "sim", args.video, args.seed, args.video_episodes
+        )
         title, source = f"scripted expert on {env_id} ({args.backend or 'sim'})", "expert"
     else:
         if args.model is None:
             raise CliError("eval needs --model PATH (or --expert --env ID)")
-        stats = evaluate_model(args.model, args.episodes, args.backend, args.video, seed=args.seed)
+        stats = evaluate_model(
+            args.model, args.episodes, args.backend, args.video, args.seed, args.video_episodes
+        )
         title, source = f"{args.model} ({args.backend or 'as trained'})", str(args.model)
     con = _console()
     con.print(_stats_table(title, stats))
@@ -133,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env", default="Bioscara-Reach", help="env id for --expert")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--backend", choices=("sim", "emulated", "mock"), help="default: as trained (sim)")
-    p.add_argument("--video", type=Path, help="write an MP4 of the episodes")
+    p.add_argument("--video", type=Path, help="write an MP4 of the first --video-episodes episodes")
+    p.add_argument("--video-episodes", type=int, default=3, help="episodes in the video (default 3)")
     p.add_argument("--json", type=Path, help="write the results as JSON")
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.set_defaults(func=cmd_eval)
@@ -149,7 +153,6 @@ EXTRA_COMMAND_MODULES = ("training.deploy", "bioscara_gym.console")
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``bioscara`` console script."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
     parser = build_parser()
     args = parser.parse_args(argv)
     # One line per error whatever the width, and the text printed as is (no markup).

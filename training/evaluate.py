@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -42,17 +43,21 @@ def run_episodes(
     episodes: int,
     seed: int = 0,
     on_reset: Callable[[], None] | None = None,
-    frames: list[np.ndarray] | None = None,
+    on_frame: Callable[[np.ndarray], None] | None = None,
+    video_episodes: int | None = None,
 ) -> EvalStats:
     """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...).
 
     Args:
-        env: The env (``render_mode="rgb_array"`` if ``frames`` is given).
+        env: The env (``render_mode="rgb_array"`` if ``on_frame`` is given).
         policy: Maps an observation to an action.
         episodes: How many episodes.
         seed: Seed of the first episode.
         on_reset: Called after each reset (e.g. to reset a stateful expert).
-        frames: If given, rendered frames of every step are appended.
+        on_frame: If given, receives the rendered frame of every step (streamed,
+            so a long evaluation does not hold its video in memory).
+        video_episodes: Render only the first this many episodes (all if ``None``):
+            headless software rendering costs far more than simulating.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -61,16 +66,17 @@ def run_episodes(
         obs, info = env.reset(seed=seed + ep)
         if on_reset is not None:
             on_reset()
-        if frames is not None:
-            frames.append(env.render())
+        record = on_frame if video_episodes is None or ep < video_episodes else None
+        if record is not None:
+            record(env.render())
         total, steps, done = 0.0, 0, False
         while not done:
             obs, reward, terminated, truncated, info = env.step(policy(obs))
             total += float(reward)
             steps += 1
             done = terminated or truncated
-            if frames is not None:
-                frames.append(env.render())
+            if record is not None:
+                record(env.render())
         successes += bool(info.get("is_success", False))
         stalls += bool(info.get("stalled", False))
         distances.append(float(info.get("distance", math.nan)))
@@ -144,8 +150,12 @@ def evaluate_model(
     backend: str | None = None,
     video: Path | None = None,
     seed: int = 10_000,
+    video_episodes: int = 3,
 ) -> EvalStats:
-    """Evaluate a trained policy on its env (refusing a metadata mismatch)."""
+    """Evaluate a trained policy on its env (refusing a metadata mismatch).
+
+    The video, if asked for, shows the first ``video_episodes`` episodes.
+    """
     from training.train import ALGOS  # noqa: F401 - fail early if SB3 is broken
 
     metadata = read_metadata(Path(model_path))
@@ -153,11 +163,10 @@ def evaluate_model(
     try:
         check_metadata(metadata, env, metadata["env_id"])
         model, _ = load_model(Path(model_path))
-        frames: list[np.ndarray] | None = [] if video is not None else None
-        stats = run_episodes(env, sb3_policy(model), episodes, seed=seed, frames=frames)
-        if video is not None and frames:
-            write_video(video, frames, fps=int(env.metadata.get("render_fps", 25)))
-        return stats
+        with video_writer(video, fps=int(env.metadata.get("render_fps", 25))) as on_frame:
+            return run_episodes(
+                env, sb3_policy(model), episodes, seed, on_frame=on_frame, video_episodes=video_episodes
+            )
     finally:
         env.close()
 
@@ -168,25 +177,34 @@ def evaluate_expert(
     backend: str = "sim",
     video: Path | None = None,
     seed: int = 10_000,
+    video_episodes: int = 3,
     **env_kwargs: Any,
 ) -> EvalStats:
-    """Evaluate the scripted expert of ``env_id``."""
+    """Evaluate the scripted expert of ``env_id`` (video: the first ``video_episodes``)."""
     from bioscara_gym.experts import expert_for
 
     env = gym.make(env_id, backend=backend, render_mode="rgb_array" if video else None, **env_kwargs)
     try:
         expert = expert_for(env.unwrapped)
-        frames: list[np.ndarray] | None = [] if video is not None else None
-        stats = run_episodes(env, expert, episodes, seed=seed, on_reset=expert.reset, frames=frames)
-        if video is not None and frames:
-            write_video(video, frames, fps=int(env.metadata.get("render_fps", 25)))
-        return stats
+        with video_writer(video, fps=int(env.metadata.get("render_fps", 25))) as on_frame:
+            return run_episodes(
+                env, expert, episodes, seed, expert.reset, on_frame=on_frame, video_episodes=video_episodes
+            )
     finally:
         env.close()
 
 
-def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
-    """Write an MP4 (or GIF by suffix) through imageio, atomically."""
+@contextlib.contextmanager
+def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray], None] | None]:
+    """Stream frames into an MP4 (or GIF, by suffix) through imageio.
+
+    Yields a frame sink (``None`` when ``path`` is ``None``). The video is
+    written to a temporary file beside ``path`` and moved into place only when
+    the block completes, so an interrupted evaluation leaves no broken video.
+    """
+    if path is None:
+        yield None
+        return
     import imageio.v2 as imageio
 
     path = Path(path)
@@ -194,11 +212,11 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
     os.close(fd)
     try:
-        imageio.mimsave(tmp, frames, fps=fps)
+        with imageio.get_writer(tmp, fps=fps) as writer:
+            yield writer.append_data
         os.replace(tmp, path)
-    except BaseException:
+    finally:
         Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_json(path: Path, stats: EvalStats, **extra: Any) -> None:

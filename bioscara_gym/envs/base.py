@@ -181,7 +181,6 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._renderer: mujoco.Renderer | None = None
         self._viewer: Any = None
         self._viz: tuple[mujoco.MjModel, mujoco.MjData] | None = None
-        self._steps = 0
 
     # -------------------------------------------------------------- spaces
     def _obs_size(self) -> int:
@@ -406,7 +405,6 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._measure()
         self._elbow = 1.0 if self._q[2] >= 0 else -1.0
         self._reset_task()
-        self._steps = 0
         obs = self._get_obs()
         return obs, self._get_info(obs, stalled=False)
 
@@ -433,7 +431,6 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self.arm.cycle(self.dt)
         except StalledError as e:
             stalled_joint = str(e).split(":")[0]
-        self._steps += 1
         if stalled_joint is None:
             for name in self.joint_names:
                 if self.arm.joint_states[name].flags & Flag.STALL:
