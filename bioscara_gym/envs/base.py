@@ -214,7 +214,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         mode = JOINT_MODE[self.control_mode]
         for name in self.joint_names:
             if arm.modes[name] is not mode:
-                arm.modes[name] = CommandMode.NONE
+                arm.release(name)
                 arm.claim(name, mode)
 
     def _measure(self) -> None:
@@ -347,7 +347,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             return
         arm = self.arm
         for name in self.joint_names:
-            arm.modes[name] = CommandMode.NONE
+            arm.release(name)
             arm.claim(name, CommandMode.POSITION)
         for name, q in zip(self.joint_names, pose, strict=True):
             arm.set_command(name, float(q))
