@@ -170,6 +170,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.goal = np.zeros(3)
         self._q = np.zeros(len(self.joint_names))
         self._qd = np.zeros(len(self.joint_names))
+        self._tcp = kinematics.forward(self._q)
         self._width = self.config.gripper.backup_init_pos
         self._latency: deque[np.ndarray] = deque()
         self._latency_steps = 0
@@ -227,10 +228,11 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         noise = self.randomization.sensor_noise
         if noise:
             self._q = self._q + self._noise_rng.normal(0.0, noise, size=self._q.shape)
+        self._tcp = kinematics.forward(self._q)  # once per step; observations reuse it
 
     def tcp_position(self) -> np.ndarray:
         """TCP position (m) from the measured joints, as on the real arm."""
-        return kinematics.forward(self._q)
+        return self._tcp.copy()
 
     def _joint_obs(self) -> np.ndarray:
         """Normalized joint positions and velocities, gripper width, TCP position."""
@@ -255,7 +257,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         own speed and acceleration limits, as in position mode.
         """
         q = self._q
-        target = kinematics.forward(q) + a[:3] * np.array([CARTESIAN_STEP, CARTESIAN_STEP, CARTESIAN_STEP_Z])
+        target = self._tcp + a[:3] * np.array([CARTESIAN_STEP, CARTESIAN_STEP, CARTESIAN_STEP_Z])
         r = float(np.hypot(target[0], target[1]))
         r_min = abs(kinematics.L1 - kinematics.L2) + REACH_MARGIN
         r_max = kinematics.L1 + kinematics.L2 - REACH_MARGIN

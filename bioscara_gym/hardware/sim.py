@@ -308,9 +308,6 @@ class SimGripper(BaseGripper):
         """Drive the fingers to the width the servo angle stands for."""
         self._sim.data.ctrl[self._act_id] = angle_deg / self.reduction + self.offset
 
-    def measured_width(self) -> float:
-        """The fingers' true opening in m (simulation only: the servo has no feedback)."""
-        return float(self._sim.data.actuator_length[self._act_id])
 
 
 def make_sim_joints(sim: ArmSim, names: Sequence[str] | None = None) -> dict[str, SimJoint]:
