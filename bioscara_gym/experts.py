@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from bioscara_gym import kinematics
-from bioscara_gym.envs.base import CARTESIAN_STEP, CARTESIAN_STEP_Z, WRIST_STEP, BioscaraEnv
+from bioscara_gym.envs.base import WRIST_STEP, BioscaraEnv
 from bioscara_gym.envs.pick_place import BLOCK_SIZE
 
 #: Fraction of the braking-limited speed the controller asks for (the firmware
@@ -59,8 +59,7 @@ class JointSpaceController:
 
     def cartesian_action(self, tcp: np.ndarray, xyz: np.ndarray, q4: float, q4_target: float) -> np.ndarray:
         """Cartesian-mode action moving the TCP to ``xyz`` and the wrist to ``q4_target``."""
-        steps = np.array([CARTESIAN_STEP, CARTESIAN_STEP, CARTESIAN_STEP_Z])
-        a = np.append((xyz - tcp) / steps, (q4_target - q4) / WRIST_STEP)
+        a = np.append((xyz - tcp) / np.asarray(self.env.cartesian_step), (q4_target - q4) / WRIST_STEP)
         return np.clip(a, -1.0, 1.0)
 
     def solve(self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None) -> np.ndarray | None:

@@ -433,7 +433,7 @@ def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str, 
 # ------------------------------------------------------- reward and success
 
 
-@pytest.mark.parametrize("reward_type", ["dense", "sparse"])
+@pytest.mark.parametrize("reward_type", ["dense", "sparse", "log"])
 def test_compute_reward_is_vectorized_and_matches_definition(reward_type: str) -> None:
     env = BioscaraReachEnv(backend="mock", reward_type=reward_type, distance_threshold=0.05)
     try:
@@ -447,7 +447,8 @@ def test_compute_reward_is_vectorized_and_matches_definition(reward_type: str) -
         assert batch.shape == (256,)
         np.testing.assert_array_equal(batch, single)
         d = np.linalg.norm(achieved - desired, axis=-1)
-        expected = -d if reward_type == "dense" else -(d >= 0.05).astype(float)
+        definitions = {"dense": -d, "sparse": -(d >= 0.05).astype(float), "log": -np.log1p(d / 0.05)}
+        expected = definitions[reward_type]
         np.testing.assert_array_equal(batch, expected)
         if reward_type == "sparse":
             assert set(np.unique(batch)) == {-1.0, 0.0}
@@ -458,7 +459,7 @@ def test_compute_reward_is_vectorized_and_matches_definition(reward_type: str) -
         env.close()
 
 
-@pytest.mark.parametrize("reward_type", ["dense", "sparse"])
+@pytest.mark.parametrize("reward_type", ["dense", "sparse", "log"])
 @pytest.mark.parametrize("env_id", TASK_IDS)
 def test_step_reward_and_success_agree_with_compute_reward(
     make_env: MakeEnv, env_id: str, reward_type: str
@@ -535,6 +536,106 @@ def test_position_policy_reaches_reach_goals(make_env: MakeEnv) -> None:
         assert info["is_success"], f"seed {seed}: {info['distance']:.4f} m from the goal at the end"
 
 
+def test_reach_takes_the_unused_block_out_of_the_physics(make_env: MakeEnv) -> None:
+    env = make_env(REACH)
+    env.reset(seed=0)
+    sim = env.unwrapped.sim
+    start = sim.data.body("block").xpos.copy()
+    for action in _random_actions(env, 10):
+        env.step(action)
+    assert sim.data.ncon == 0, "Reach should have no contacts with the arm in free space"
+    np.testing.assert_allclose(sim.data.body("block").xpos, start, atol=1e-6)
+    assert sim.model.geom("block").rgba[3] == 0.0
+
+
+def test_pick_place_keeps_the_block_on_the_table(make_env: MakeEnv) -> None:
+    env = make_env(PICK)
+    env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    sim = env.unwrapped.sim
+    assert sim.data.ncon > 0  # the block rests on the table
+    assert sim.model.geom("block").rgba[3] > 0.0
+
+
+# -------------------------------------------------------------- cartesian mode
+
+
+@pytest.fixture
+def cartesian_env(make_env: MakeEnv) -> BioscaraEnv:
+    """A reset cartesian-mode Reach env on mock; tests pose it by setting its measurement."""
+    env = make_env(REACH, backend="mock", control_mode="cartesian")
+    env.reset(seed=0)
+    return env.unwrapped
+
+
+def _pose(u: BioscaraEnv, j1: float, j3: float, z: float = 0.1) -> None:
+    """Make ``u`` believe it measured the arm at (j1, z, j3, 0); its elbow follows j3."""
+    u._q = np.array([j1, z, j3, 0.0])
+    u._tcp = kinematics.forward(u._q)
+    u._elbow = 1.0 if j3 >= 0 else -1.0
+
+
+def _toward(u: BioscaraEnv, direction: np.ndarray) -> np.ndarray:
+    """Cartesian action of full length along ``direction`` (x, y), wrist and z still."""
+    action = np.zeros(4)
+    action[:2] = direction / np.linalg.norm(direction)
+    return action
+
+
+def test_cartesian_push_into_the_inner_rim_slides_along_it(cartesian_env: BioscaraEnv) -> None:
+    u = cartesian_env
+    _pose(u, j1=0.5, j3=u._cmd_hi[2])  # elbow folded as far as j3 allows: on the inner rim
+    inward = -u._tcp[:2]
+    tangent = np.array([-inward[1], inward[0]])
+    cmd = u._cartesian_commands(_toward(u, inward + tangent))
+    assert cmd[2] <= u._cmd_hi[2]
+    assert abs(cmd[0] - u._q[0]) > 0.01, "the arm froze instead of sliding along the rim"
+    r_min = u._planar_reach[0]
+    assert np.hypot(*kinematics.forward(cmd)[:2]) >= r_min - 1e-9
+
+
+def test_cartesian_rim_keeps_j3_targets_inside_its_limits(cartesian_env: BioscaraEnv) -> None:
+    u = cartesian_env
+    _pose(u, j1=0.5, j3=u._cmd_hi[2])
+    cmd = u._cartesian_commands(_toward(u, -u._tcp[:2]))  # straight at the base
+    np.testing.assert_allclose(cmd[2], u._cmd_hi[2], atol=1e-6)
+    np.testing.assert_allclose(cmd[0], u._q[0], atol=1e-6)
+
+
+@pytest.mark.parametrize("j3", [-1.5, -2.4])
+def test_cartesian_stops_j1_at_its_limit_rather_than_swing_to_the_other_elbow(
+    cartesian_env: BioscaraEnv, j3: float
+) -> None:
+    u = cartesian_env
+    _pose(u, j1=u._cmd_hi[0] - 0.005, j3=j3)
+    tangent = np.array([-u._tcp[1], u._tcp[0]])  # counter-clockwise: j1 would pass its limit
+    cmd = u._cartesian_commands(_toward(u, tangent))
+    assert cmd[0] == pytest.approx(u._cmd_hi[0])
+    assert cmd[2] < 0 and u._elbow == -1.0
+    assert np.all(np.abs(cmd[:3] - u._q[:3]) < 0.2)
+
+
+def test_cartesian_switches_elbow_near_the_stretched_arm(cartesian_env: BioscaraEnv) -> None:
+    u = cartesian_env
+    _pose(u, j1=u._cmd_hi[0] - 0.005, j3=-0.28)
+    tangent = np.array([-u._tcp[1], u._tcp[0]])
+    cmd = u._cartesian_commands(_toward(u, tangent))
+    assert cmd[2] > 0 and u._elbow == 1.0
+    assert cmd[0] <= u._cmd_hi[0]
+    target = u._tcp[:2] + u.cartesian_step[0] * tangent / np.linalg.norm(tangent)
+    np.testing.assert_allclose(kinematics.forward(cmd)[:2], target, atol=1e-9)
+
+
+def test_cartesian_ik_keeps_j1_within_half_a_turn_of_the_arm(cartesian_env: BioscaraEnv) -> None:
+    u = cartesian_env
+    _pose(u, j1=2.98, j3=1.0)
+    past_pi = kinematics.forward(np.array([3.2, 0.1, 1.0]))  # inverse() reports j1 as 3.2 - 2 pi
+    j1, _, j3 = u._ik_near(past_pi, 1.0)
+    assert j1 == pytest.approx(3.2) and j3 == pytest.approx(1.0)
+    cmd = u._cartesian_commands(np.zeros(4))
+    assert cmd[0] == pytest.approx(2.98)
+
+
 # ----------------------------------------------------------------- soft limits
 
 
@@ -601,7 +702,9 @@ def test_randomization_off_keeps_the_model_nominal(make_env: MakeEnv) -> None:
     np.testing.assert_array_equal(model.body_mass, nominal.body_mass)
     np.testing.assert_array_equal(model.body_inertia, nominal.body_inertia)
     np.testing.assert_array_equal(model.geom_friction, nominal.geom_friction)
-    np.testing.assert_array_equal(model.dof_damping, nominal.dof_damping)
+    arm = np.ones(model.nv, dtype=bool)
+    arm[model.jnt_dofadr[model.joint("block").id] + np.arange(6)] = False  # Reach pins the unused block
+    np.testing.assert_array_equal(model.dof_damping[arm], nominal.dof_damping[arm])
 
 
 def test_sensor_noise_changes_observations_not_the_true_state(make_env: MakeEnv) -> None:

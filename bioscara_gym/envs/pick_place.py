@@ -95,6 +95,9 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     """
 
     uses_gripper = True
+    #: 2 cm steps in x and y: carrying the block across the table at Reach's 1 cm
+    #: costs the scripted cartesian controller 10 points of success (74 % vs 84 %).
+    cartesian_step = (0.02, 0.02, 0.01)
 
     def __init__(self, *args: object, **kwargs: object) -> None:
         """See the class docstring for the arguments."""
