@@ -18,6 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 import yaml
 from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.buffers import DictReplayBuffer
@@ -25,6 +26,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
 
 from bioscara_gym.cli import EXIT_INTERRUPTED, main
+from training.features import GoalErrorExtractor
 from training.hyperparams import (
     EXTRA_KEYS,
     HyperparamError,
@@ -68,7 +70,8 @@ TINY_OFF_POLICY: dict[str, Any] = {
     "learning_starts": 100,
     "replay_buffer_class": "HerReplayBuffer",
     "replay_buffer_kwargs": "dict(goal_selection_strategy='future', n_sampled_goal=4)",
-    "policy_kwargs": "dict(net_arch=[16, 16])",
+    # As the packaged config: the goal error as a feature (saved, loaded, exported with the model).
+    "policy_kwargs": "dict(net_arch=[16, 16], features_extractor_class=GoalErrorExtractor)",
     "env_kwargs": "dict(control_mode='cartesian', reward_type='dense')",
     "eval_freq": 200,
     "eval_episodes": 2,
@@ -510,6 +513,28 @@ def test_parse_literal_call_refuses_names_and_calls(text: str) -> None:
         parse_literal_call(text, "where")
 
 
+def test_parse_literal_call_resolves_the_allowed_class_names() -> None:
+    parsed = parse_literal_call(
+        "dict(activation_fn=nn.Tanh, features_extractor_class=GoalErrorExtractor, net_arch=[8])", "here"
+    )
+    expected = {"activation_fn": th.nn.Tanh, "features_extractor_class": GoalErrorExtractor, "net_arch": [8]}
+    assert parsed == expected
+
+
+def test_parse_literal_call_names_the_allowed_names_when_refusing() -> None:
+    with pytest.raises(HyperparamError, match=r"'nn\.Sigmoid' is not allowed.*nn\.ReLU.*GoalErrorExtractor"):
+        parse_literal_call("dict(activation_fn=nn.Sigmoid)", "where")
+
+
+def test_hyperparams_as_dict_names_classes_so_metadata_is_json(tmp_path: Path) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["sac"]})
+    plain = load_hyperparams(config, REACH).as_dict()
+    assert plain["algo_kwargs"]["policy_kwargs"]["features_extractor_class"] == (
+        "training.features.GoalErrorExtractor"
+    )
+    json.dumps(plain)
+
+
 def test_parse_literal_call_refuses_invalid_syntax() -> None:
     with pytest.raises(HyperparamError, match="not a Python literal"):
         parse_literal_call("dict(a=1", "where")
@@ -522,7 +547,8 @@ def test_load_hyperparams_splits_extras_from_algorithm_arguments(tmp_path: Path)
     assert hp.n_timesteps == 30_000
     assert (hp.eval_freq, hp.eval_episodes, hp.noise_type, hp.noise_std) == (200, 2, "normal", 0.2)
     assert hp.env_kwargs == REACH_KWARGS
-    assert hp.algo_kwargs["policy_kwargs"] == {"net_arch": [16, 16]}
+    policy_kwargs = {"net_arch": [16, 16], "features_extractor_class": GoalErrorExtractor}
+    assert hp.algo_kwargs["policy_kwargs"] == policy_kwargs
     her = {"goal_selection_strategy": "future", "n_sampled_goal": 4}
     assert hp.algo_kwargs["replay_buffer_kwargs"] == her
     assert not set(EXTRA_KEYS) & set(hp.algo_kwargs)

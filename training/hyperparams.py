@@ -5,13 +5,15 @@ keyword arguments plus rl-zoo3's extras (``n_timesteps``, ``policy``,
 ``n_envs``, ``env_kwargs``, ``noise_type``/``noise_std``,
 ``replay_buffer_class``) and ours (``eval_freq``, ``eval_episodes``,
 ``target_success``). Values that are strings of Python calls such as
-``"dict(net_arch=[256, 256])"`` are parsed with :mod:`ast` for literals only,
+``"dict(net_arch=[256, 256])"`` are parsed with :mod:`ast` for literals and
+the few class names in :data:`NAMES` (``nn.ReLU``, ``GoalErrorExtractor``),
 never evaluated.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -31,6 +33,16 @@ EXTRA_KEYS = (
     "eval_episodes",
     "target_success",
 )
+
+
+#: Names a value may use (rl-zoo3 writes ``activation_fn=nn.ReLU``), as ``module:attribute``.
+NAMES = {
+    "nn.ReLU": "torch.nn:ReLU",
+    "nn.Tanh": "torch.nn:Tanh",
+    "nn.ELU": "torch.nn:ELU",
+    "nn.LeakyReLU": "torch.nn:LeakyReLU",
+    "GoalErrorExtractor": "training.features:GoalErrorExtractor",
+}
 
 
 class HyperparamError(ValueError):
@@ -77,19 +89,30 @@ class Hyperparams:
             target_success=self.target_success,
             noise_type=self.noise_type,
             noise_std=self.noise_std,
-            algo_kwargs={
-                k: v if isinstance(v, int | float | str | bool | list | dict | None) else str(v)
-                for k, v in self.algo_kwargs.items()
-            },
+            algo_kwargs=_plain(self.algo_kwargs),
         )
         return out
 
 
+def _plain(value: Any) -> Any:
+    """``value`` with classes and other objects replaced by their names (for JSON)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, int | float | str | bool | None):
+        return value
+    if isinstance(value, type):
+        return f"{value.__module__}.{value.__qualname__}"
+    return str(value)
+
+
 def parse_literal_call(text: str, where: str) -> Any:
-    """Parse ``"dict(a=1, b=[2, 3])"`` or a literal; no names, no evaluation.
+    """Parse ``"dict(a=1, b=[2, 3])"`` or a literal; names only from :data:`NAMES`.
 
     Raises:
-        HyperparamError: Anything but literals and nested ``dict(...)`` calls.
+        HyperparamError: Anything but literals, nested ``dict(...)`` calls and
+            the names of :data:`NAMES`.
     """
     try:
         node = ast.parse(text, mode="eval").body
@@ -111,11 +134,15 @@ def parse_literal_call(text: str, where: str) -> Any:
             return tuple(convert(e) for e in n.elts)
         if isinstance(n, ast.Dict):
             return {convert(k): convert(v) for k, v in zip(n.keys, n.values, strict=True)}
+        if isinstance(n, ast.Name | ast.Attribute) and ast.unparse(n) in NAMES:
+            module, attribute = NAMES[ast.unparse(n)].split(":")
+            return getattr(importlib.import_module(module), attribute)
         try:
             return ast.literal_eval(n)
         except ValueError as e:
             raise HyperparamError(
-                f"{where}: {ast.unparse(n)!r} is not allowed; use literals and dict(...) only"
+                f"{where}: {ast.unparse(n)!r} is not allowed; use literals, dict(...) "
+                f"and the names {', '.join(NAMES)}"
             ) from e
 
     return convert(node)
