@@ -141,9 +141,12 @@ def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
     from stable_baselines3 import SAC, HerReplayBuffer
 
+    from training.features import GoalErrorExtractor
+
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("sac")
-    env = gym.make(REACH)
+    env_kwargs = {"control_mode": "cartesian", "reward_type": "log"}
+    env = gym.make(REACH, **env_kwargs)
     model = SAC(
         "MultiInputPolicy",
         env,
@@ -151,13 +154,13 @@ def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
         batch_size=32,
         buffer_size=1000,
         replay_buffer_class=HerReplayBuffer,
-        policy_kwargs={"net_arch": [32, 32]},
+        policy_kwargs={"net_arch": [32, 32], "features_extractor_class": GoalErrorExtractor},
         seed=0,
         device="cpu",
     )
     model.learn(200)
     model.save(out / "model.zip")
-    write_metadata(out, build_metadata(env, REACH, {}, algo="sac"))
+    write_metadata(out, build_metadata(env, REACH, env_kwargs, algo="sac"))
     env.close()
     return out / "model.zip"
 
@@ -166,7 +169,9 @@ def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def onnx_file(sac_model: Path) -> Path:
     from training.export import export_onnx
 
-    return export_onnx(sac_model, sac_model.parent / "policy.onnx", check_samples=0).path
+    result = export_onnx(sac_model, sac_model.parent / "policy.onnx", check_samples=64)
+    assert result.max_abs_error <= 1e-5
+    return result.path
 
 
 # --------------------------------------------------------------------- runs
@@ -366,7 +371,7 @@ def test_onnx_actions_equal_sb3_predict(sac_model: Path, onnx_file: Path) -> Non
 
     model, _ = load_model(sac_model)
     policy = OnnxPolicy(onnx_file)
-    env = gym.make(REACH)
+    env = gym.make(REACH, control_mode="cartesian", reward_type="log")
     rng = np.random.default_rng(1)
     observations = []
     obs, _ = env.reset(seed=0)

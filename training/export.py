@@ -120,7 +120,9 @@ def export_onnx(
     """Export a trained model's deterministic policy to ONNX, atomically, and check it.
 
     The check compares :class:`OnnxPolicy` with ``model.predict(...,
-    deterministic=True)`` on ``check_samples`` standard-normal observations.
+    deterministic=True)`` on ``check_samples`` observations the policy would
+    see: its own env (from the metadata) on the mock backend, from a seeded
+    reset through random actions.
 
     Args:
         model_path: ``model.zip`` (with ``metadata.json`` beside it) or its directory.
@@ -175,7 +177,8 @@ def export_onnx(
             os.fsync(f.fileno())
         error = 0.0
         if check_samples:
-            error = _max_error(model, OnnxPolicy(tmp), layout, check_samples, seed)
+            observations = _check_observations(metadata, check_samples, seed)
+            error = _max_error(model, OnnxPolicy(tmp), observations)
             if not error <= atol:
                 raise ExportError(f"ONNX actions differ from model.predict by {error:.2e} (> {atol:g})")
         os.replace(tmp, onnx_path)
@@ -185,13 +188,28 @@ def export_onnx(
     return ExportResult(onnx_path, layout, error, check_samples)
 
 
-def _max_error(
-    model: Any, onnx_policy: OnnxPolicy, layout: list[tuple[str, int]], n: int, seed: int
-) -> float:
-    rng = np.random.default_rng(seed)
+def _check_observations(metadata: dict[str, Any], n: int, seed: int) -> list[dict[str, np.ndarray]]:
+    """``n`` observations of the policy's env on ``mock``: a seeded reset, then random actions."""
+    from training.evaluate import make_eval_env
+
+    env = make_eval_env(metadata, backend="mock")
+    try:
+        env.action_space.seed(seed)
+        obs, _ = env.reset(seed=seed)
+        observations = []
+        while len(observations) < n:
+            observations.append(obs)
+            obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            if terminated or truncated:
+                obs, _ = env.reset()
+        return observations
+    finally:
+        env.close()
+
+
+def _max_error(model: Any, onnx_policy: OnnxPolicy, observations: list[dict[str, np.ndarray]]) -> float:
     worst = 0.0
-    for _ in range(n):
-        obs = {key: rng.standard_normal(size).astype(np.float64) for key, size in layout}
+    for obs in observations:
         want, _ = model.predict(obs, deterministic=True)
         worst = max(worst, float(np.max(np.abs(onnx_policy(obs) - want))))
     return worst
