@@ -71,7 +71,8 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
 
     ## Action space
     ``Box(-1, 1, (5,), float32)``: the four joint commands of Reach, then the
-    gripper opening mapped onto [0.04, 0.12] m.
+    gripper opening mapped onto [0.04, 0.12] m. In ``cartesian`` mode x and y
+    move by up to 2 cm per step (Reach: 1 cm), to carry the block in time.
 
     ## Observation space
     | key           | shape | content                                                            |

@@ -143,7 +143,8 @@ class BioscaraReachEnv(BioscaraEnv):
         """Pin the scene's block (a PickPlace prop) where it is, intangible and invisible.
 
         Resting on the table it makes 4 friction contacts (24 constraint rows)
-        in every physics step: taking it out halves the cost of ``mj_step``.
+        in every physics step: taking it out took Reach from 1397 to 1603
+        env steps/s.
         Without contacts it would fall forever; a huge damping on its free
         joint (integrated implicitly, so stable) holds it instead.
         """
