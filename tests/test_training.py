@@ -588,6 +588,20 @@ def test_packaged_config_loads_for_every_algo_and_task(algo: str, env_id: str) -
     assert hp.eval_episodes > 0
 
 
+def test_packaged_reach_config_builds_sac_on_the_goal_error() -> None:
+    hp = load_hyperparams(default_config_path("sac"), REACH)
+    env = gym.make(REACH, backend="mock", **hp.env_kwargs)
+    try:
+        model = SAC(hp.policy, env, device="cpu", **_algo_kwargs(hp, env, "sac"))
+    finally:
+        env.close()
+    extractor = model.actor.features_extractor
+    assert isinstance(extractor, GoalErrorExtractor) and extractor.scale == 0.01
+    assert isinstance(model.critic.features_extractor, GoalErrorExtractor)
+    assert isinstance(model.replay_buffer, HerReplayBuffer)
+    assert hp.env_kwargs == {"control_mode": "cartesian", "reward_type": "log"}
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_off_policy_on_goal_env_gets_her_when_config_omits_it(algo: str, reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"learning_starts": 10})
