@@ -283,13 +283,14 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         The target is the measured TCP plus ``a[0:3]`` times ``cartesian_step``,
         kept inside the planar annulus the arm can reach within its j3 limits
         (so pushing into a rim slides along it instead of stopping the arm)
-        and turned into joints by analytic IK with the current elbow. The other elbow is taken only when the current
-        one would cross a j1 limit and the switch moves j3 by at most
-        ``ELBOW_SWITCH_MAX`` (near the stretched arm, where both solutions
-        meet); otherwise j1 stops at its limit. A far switch would swing the
-        whole arm through the workspace. ``a[3]`` turns the wrist by up to
-        ``WRIST_STEP``. The firmware then moves each joint there under its own
-        speed and acceleration limits, as in position mode.
+        and turned into joints by analytic IK with the current elbow. The
+        other elbow is taken only when the current one would cross a j1 limit
+        and the switch moves j3 by at most ``ELBOW_SWITCH_MAX`` (near the
+        stretched arm, where both solutions meet); otherwise j1 stops at its
+        limit. A far switch would swing the whole arm through the workspace.
+        ``a[3]`` turns the wrist by up to ``WRIST_STEP``. The firmware then
+        moves each joint there under its own speed and acceleration limits,
+        as in position mode.
         """
         q = self._q
         target = self._tcp + a[:3] * np.asarray(self.cartesian_step)
