@@ -191,6 +191,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         margin = np.array([self.limit_margin[j.joint_type] for j in self._joint_cfgs])
         self._cmd_lo, self._cmd_hi = self._lo + margin, self._hi - margin
         self._planar_reach = self._planar_reach_limits()
+        self._cartesian_step = np.array(self.cartesian_step, dtype=float)
         self._vmax = np.array([j.max_velocity for j in self._joint_cfgs])
         self._amax = np.array([j.max_acceleration for j in self._joint_cfgs])
         g = self.config.gripper
@@ -293,7 +294,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         as in position mode.
         """
         q = self._q
-        target = self._tcp + a[:3] * np.asarray(self.cartesian_step)
+        target = self._tcp + a[:3] * self._cartesian_step
         r = float(np.hypot(target[0], target[1]))
         r_min, r_max = self._planar_reach
         if r > 1e-9 and not r_min <= r <= r_max:
