@@ -28,8 +28,8 @@ from rich.table import Table
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.hardware.emulated_bus import FaultPlan
-from training.evaluate import EvalStats, make_eval_env, run_episodes
-from training.metadata import check_metadata
+from bioscara_gym.training.evaluate import EvalStats, make_eval_env, run_episodes
+from bioscara_gym.training.metadata import check_metadata
 
 TARGET_GAP_POINTS = 5.0
 
@@ -45,12 +45,12 @@ def _policy_and_env(args: argparse.Namespace, backend: str) -> tuple[Any, gym.En
         expert = expert_for(env.unwrapped)
         return expert, env, expert.reset
     if Path(args.model).suffix == ".onnx":
-        from training.export import OnnxPolicy
+        from bioscara_gym.training.export import OnnxPolicy
 
         policy: Any = OnnxPolicy(args.model)
         metadata = policy.metadata
     else:
-        from training.evaluate import load_model, sb3_policy
+        from bioscara_gym.training.evaluate import load_model, sb3_policy
 
         model, metadata = load_model(Path(args.model))
         policy = sb3_policy(model)

@@ -15,7 +15,7 @@ import statistics
 import tempfile
 from pathlib import Path
 
-from training.train import TrainArgs, TrainResult, train
+from bioscara_gym.training.train import TrainArgs, TrainResult, train
 
 TARGET_S = 300.0
 

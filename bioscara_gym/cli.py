@@ -36,7 +36,7 @@ class CliError(Exception):
 # ----------------------------------------------------------------- train
 def cmd_train(args: argparse.Namespace) -> int:
     """``bioscara train``."""
-    from training.train import TrainArgs, train
+    from bioscara_gym.training.train import TrainArgs, train
 
     result = train(
         TrainArgs(
@@ -83,10 +83,10 @@ def _stats_table(title: str, stats: object) -> Table:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """``bioscara eval``."""
-    from training.evaluate import evaluate_expert, evaluate_model, write_json
+    from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model, write_json
 
     if args.expert:
-        from training.train import resolve_env_id
+        from bioscara_gym.training.train import resolve_env_id
 
         env_id = resolve_env_id(args.env)
         stats = evaluate_expert(
@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Modules that add subcommands: each has ``register(subparsers)`` and sets ``func``.
-EXTRA_COMMAND_MODULES = ("training.deploy", "bioscara_gym.console")
+EXTRA_COMMAND_MODULES = ("bioscara_gym.training.deploy", "bioscara_gym.console.session")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -18,13 +18,13 @@ import pytest
 from rich.console import Console
 
 from bioscara_gym.cli import main
-from bioscara_gym.console import (
+from bioscara_gym.console.session import (
     ConsoleOptions,
     Session,
     resolve_target,
 )
-from bioscara_gym.console_state import STATE_FORMAT
-from bioscara_gym.dashboard import (
+from bioscara_gym.console.state import STATE_FORMAT
+from bioscara_gym.console.dashboard import (
     BusView,
     DashboardSnapshot,
     JointView,

@@ -1,6 +1,6 @@
 """``bioscara deploy`` and ``bioscara export``: the safety layer on the emulated arm.
 
-Deployments run in-process through :class:`training.deploy.Deployment` (a
+Deployments run in-process through :class:`bioscara_gym.training.deploy.Deployment` (a
 hook injects faults mid-run) and, for signals, as a ``bioscara deploy``
 subprocess whose emulator state is read back from the run log's summary.
 """
@@ -27,15 +27,15 @@ from rigs import place_obstacle
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
-from training.deploy import (
+from bioscara_gym.training.deploy import (
     EXIT_REFUSED,
     EXIT_SAFETY_STOP,
     DeployArgs,
     DeployError,
     Deployment,
 )
-from training.metadata import build_metadata, read_metadata, write_metadata
-from training.safety import Interrupted, SignalGuard
+from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
+from bioscara_gym.training.safety import Interrupted, SignalGuard
 
 REACH = "Bioscara-Reach-v0"
 
@@ -141,7 +141,7 @@ def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
     from stable_baselines3 import SAC, HerReplayBuffer
 
-    from training.features import GoalErrorExtractor
+    from bioscara_gym.training.features import GoalErrorExtractor
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("sac")
@@ -167,7 +167,7 @@ def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def onnx_file(sac_model: Path) -> Path:
-    from training.export import export_onnx
+    from bioscara_gym.training.export import export_onnx
 
     result = export_onnx(sac_model, sac_model.parent / "policy.onnx", check_samples=64)
     assert result.max_abs_error <= 1e-5
@@ -366,8 +366,8 @@ def test_signal_to_a_running_deploy_disables_every_joint(tmp_path: Path, signum:
 
 # --------------------------------------------------------------------- ONNX
 def test_onnx_actions_equal_sb3_predict(sac_model: Path, onnx_file: Path) -> None:
-    from training.evaluate import load_model
-    from training.export import OnnxPolicy
+    from bioscara_gym.training.evaluate import load_model
+    from bioscara_gym.training.export import OnnxPolicy
 
     model, _ = load_model(sac_model)
     policy = OnnxPolicy(onnx_file)
@@ -386,7 +386,7 @@ def test_onnx_actions_equal_sb3_predict(sac_model: Path, onnx_file: Path) -> Non
 
 
 def test_onnx_file_carries_the_training_metadata(sac_model: Path, onnx_file: Path) -> None:
-    from training.export import OnnxPolicy
+    from bioscara_gym.training.export import OnnxPolicy
 
     assert OnnxPolicy(onnx_file).metadata == read_metadata(sac_model)
 

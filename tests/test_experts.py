@@ -7,7 +7,7 @@ import pytest
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.experts import PickPlaceExpert, ReachExpert, expert_for
-from training.evaluate import run_episodes
+from bioscara_gym.training.evaluate import run_episodes
 
 
 def _success_rate(env_id: str, episodes: int, **kwargs: object) -> float:

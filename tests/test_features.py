@@ -8,7 +8,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 
-from training.features import GoalErrorExtractor
+from bioscara_gym.training.features import GoalErrorExtractor
 
 
 def _goal_space(obs: int = 5, goal: int = 3) -> spaces.Dict:

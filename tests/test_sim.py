@@ -28,7 +28,8 @@ from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.firmware import DEADMAN_S, HOMING_SETTLE_S, TICK_S
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.hardware.sim import ArmSim, scene_path
+from bioscara_gym.assets import scene_path
+from bioscara_gym.hardware.sim import ArmSim
 from bioscara_gym.hardware.transmission import rpm_to_velocity, velocity_to_rpm
 
 #: Homing accuracy the issue asks for: 1 mm on the lift, 0.2 deg on the revolute joints.

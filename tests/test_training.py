@@ -26,8 +26,8 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
 
 from bioscara_gym.cli import EXIT_INTERRUPTED, main
-from training.features import GoalErrorExtractor
-from training.hyperparams import (
+from bioscara_gym.training.features import GoalErrorExtractor
+from bioscara_gym.training.hyperparams import (
     EXTRA_KEYS,
     HyperparamError,
     Hyperparams,
@@ -35,7 +35,7 @@ from training.hyperparams import (
     load_hyperparams,
     parse_literal_call,
 )
-from training.metadata import (
+from bioscara_gym.training.metadata import (
     METADATA_NAME,
     MetadataError,
     build_metadata,
@@ -43,7 +43,7 @@ from training.metadata import (
     read_metadata,
     write_metadata,
 )
-from training.train import (
+from bioscara_gym.training.train import (
     ALGOS,
     STATE_NAME,
     SuccessEvalCallback,
@@ -530,7 +530,7 @@ def test_hyperparams_as_dict_names_classes_so_metadata_is_json(tmp_path: Path) -
     config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["sac"]})
     plain = load_hyperparams(config, REACH).as_dict()
     assert plain["algo_kwargs"]["policy_kwargs"]["features_extractor_class"] == (
-        "training.features.GoalErrorExtractor"
+        "bioscara_gym.training.features.GoalErrorExtractor"
     )
     json.dumps(plain)
 

@@ -10,12 +10,12 @@ Reads top to bottom, as a deployment runs:
 4. **home** the joints that are not homed (a joint homed before a host
    restart keeps its offset, read back from HOMEOFFSET on configure).
 5. **run** the episodes with the env the policy was trained on, on the
-   chosen backend, through :class:`~training.safety.SafetyLayer`, at a fixed
+   chosen backend, through :class:`~bioscara_gym.training.safety.SafetyLayer`, at a fixed
    rate; every cycle goes to the run log.
 6. **deactivate** (joints disabled, gripper width saved) and **clean up**.
 
 Any stop (NaN action, stall, bus error, deadman, Ctrl-C/SIGTERM) ends in
-:func:`~training.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
+:func:`~bioscara_gym.training.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
 sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
 the arm is left disabled in every case. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
@@ -66,8 +66,8 @@ from bioscara_gym.hardware.arm import Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import CommError, JointError
-from training.metadata import MetadataError, check_metadata, read_metadata
-from training.safety import (
+from bioscara_gym.training.metadata import MetadataError, check_metadata, read_metadata
+from bioscara_gym.training.safety import (
     DeadmanGuard,
     Interrupted,
     SafetyLayer,
@@ -276,11 +276,11 @@ def load_policy(args: DeployArgs) -> tuple[Callable[[gym.Env], Policy], dict[str
 
         return (lambda env: expert_for(env.unwrapped)), None, "scripted expert"
     if args.onnx is not None:
-        from training.export import OnnxPolicy
+        from bioscara_gym.training.export import OnnxPolicy
 
         onnx_policy = OnnxPolicy(args.onnx)
         return (lambda env: onnx_policy), onnx_policy.metadata, f"ONNX {args.onnx}"
-    from training.evaluate import load_model, sb3_policy
+    from bioscara_gym.training.evaluate import load_model, sb3_policy
 
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
     model, metadata = load_model(Path(args.model))
@@ -808,7 +808,7 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
 
 def cmd_export(ns: argparse.Namespace) -> int:
     """``bioscara export``: write the ONNX file and report the check against torch."""
-    from training.export import export_onnx
+    from bioscara_gym.training.export import export_onnx
 
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
     con = Console(highlight=False, markup=False, soft_wrap=True)

@@ -15,7 +15,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from training.metadata import MetadataError, atomic_write_text, check_metadata, read_metadata
+from bioscara_gym.training.metadata import MetadataError, atomic_write_text, check_metadata, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -115,7 +115,7 @@ def load_model(path: Path) -> tuple[Any, dict[str, Any]]:
         MetadataError: No or unreadable metadata.
         FileNotFoundError: No model file.
     """
-    from training.train import ALGOS
+    from bioscara_gym.training.train import ALGOS
 
     path = Path(path)
     model_file = path / "model.zip" if path.is_dir() else path
@@ -156,7 +156,7 @@ def evaluate_model(
 
     The video, if asked for, shows the first ``video_episodes`` episodes.
     """
-    from training.train import ALGOS  # noqa: F401 - fail early if SB3 is broken
+    from bioscara_gym.training.train import ALGOS  # noqa: F401 - fail early if SB3 is broken
 
     metadata = read_metadata(Path(model_path))
     env = make_eval_env(metadata, backend, render=video is not None)

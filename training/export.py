@@ -138,7 +138,7 @@ def export_onnx(
     import onnx
     import torch
 
-    from training.evaluate import load_model
+    from bioscara_gym.training.evaluate import load_model
 
     model, metadata = load_model(Path(model_path))
     layout = obs_layout(model.observation_space)
@@ -190,7 +190,7 @@ def export_onnx(
 
 def _check_observations(metadata: dict[str, Any], n: int, seed: int) -> list[dict[str, np.ndarray]]:
     """``n`` observations of the policy's env on ``mock``: a seeded reset, then random actions."""
-    from training.evaluate import make_eval_env
+    from bioscara_gym.training.evaluate import make_eval_env
 
     env = make_eval_env(metadata, backend="mock")
     try:

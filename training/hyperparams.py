@@ -41,7 +41,7 @@ NAMES = {
     "nn.Tanh": "torch.nn:Tanh",
     "nn.ELU": "torch.nn:ELU",
     "nn.LeakyReLU": "torch.nn:LeakyReLU",
-    "GoalErrorExtractor": "training.features:GoalErrorExtractor",
+    "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
 }
 
 
@@ -150,7 +150,7 @@ def parse_literal_call(text: str, where: str) -> Any:
 
 def default_config_path(algo: str) -> Path:
     """The packaged hyperparameter file of ``algo`` (``training/configs/ALGO.yaml``)."""
-    return Path(str(resources.files("training") / "configs" / f"{algo}.yaml"))
+    return Path(str(resources.files("bioscara_gym.training") / "configs" / f"{algo}.yaml"))
 
 
 def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:

@@ -25,9 +25,9 @@ from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckA
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import bioscara_gym  # noqa: F401 - registers the tasks
-from training.evaluate import EvalStats, run_episodes, sb3_policy
-from training.hyperparams import HyperparamError, Hyperparams, default_config_path, load_hyperparams
-from training.metadata import atomic_write_text, build_metadata, write_metadata
+from bioscara_gym.training.evaluate import EvalStats, run_episodes, sb3_policy
+from bioscara_gym.training.hyperparams import HyperparamError, Hyperparams, default_config_path, load_hyperparams
+from bioscara_gym.training.metadata import atomic_write_text, build_metadata, write_metadata
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from importlib import resources
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
@@ -35,11 +35,6 @@ from bioscara_gym.hardware.registers import Reg
 
 #: Joint names of the model, in order.
 JOINT_NAMES = ("j1", "j2", "j3", "j4")
-
-
-def scene_path() -> Path:
-    """Path of the packaged MuJoCo scene (arm, table, block, target, obstacle)."""
-    return Path(str(resources.files("bioscara_gym") / "assets" / "scene.xml"))
 
 
 class MujocoMotor:

@@ -50,7 +50,7 @@ State between invocations (``--state FILE``, ``emulated`` and ``sim`` only):
 without it every command starts from a powered-up arm (not homed, not
 enabled), so ``enable`` then ``home`` then ``status`` needs it. The file is
 written after every command, also a failed one; its format and what it
-keeps are described in :mod:`bioscara_gym.console_state`. The ``mock``
+keeps are described in :mod:`bioscara_gym.console.state`. The ``mock``
 backend does not persist (``--state`` is refused), nor does ``i2c``: the
 real arm keeps its own state.
 """
@@ -71,8 +71,8 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.console_state import HostFacts, load_state, save_state
-from bioscara_gym.dashboard import flags_text, format_position, format_velocity, joint_unit
+from bioscara_gym.console.state import HostFacts, load_state, save_state
+from bioscara_gym.console.dashboard import flags_text, format_position, format_velocity, joint_unit
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig, load_config
@@ -850,7 +850,7 @@ def cmd_gripper(args: argparse.Namespace) -> int:
 
 def cmd_monitor(args: argparse.Namespace) -> int:
     """``bioscara monitor``."""
-    from bioscara_gym.dashboard import MonitorApp, key_source, run_monitor
+    from bioscara_gym.console.dashboard import MonitorApp, key_source, run_monitor
 
     if args.rate <= 0 or not math.isfinite(args.rate):
         raise ConsoleUsageError(f"--rate {args.rate:g} must be a positive number of refreshes per second")

@@ -8,8 +8,8 @@ Three layers, so each can be tested without a terminal:
   table with a position bar between the limits, velocity, flags in colour
   (STALL red, BUSY yellow, NOT_HOMED magenta, NOT_ENABLED dim) and homing
   progress, a bus table, and the keys.
-* :class:`MonitorApp` holds a console :class:`~bioscara_gym.console.Session`,
-  cycles the arm (read/write at :data:`~bioscara_gym.console.CYCLE_S` or
+* :class:`MonitorApp` holds a console :class:`~bioscara_gym.console.session.Session`,
+  cycles the arm (read/write at :data:`~bioscara_gym.console.session.CYCLE_S` or
   faster, so the firmware deadman never trips; the simulation advances in
   step), computes bus rates from :class:`~bioscara_gym.hardware.stats.CommStats`
   deltas and builds snapshots. :func:`handle_key` applies one key to it.
@@ -45,7 +45,7 @@ from bioscara_gym.hardware.errors import JointError
 from bioscara_gym.hardware.registers import Flag
 
 if TYPE_CHECKING:
-    from bioscara_gym.console import Session
+    from bioscara_gym.console.session import Session
 
 #: Style of each flag, in the order flags are listed.
 FLAG_STYLES: tuple[tuple[Flag, str], ...] = (
@@ -329,7 +329,7 @@ class MonitorApp:
 
     def step(self, dt: float) -> None:
         """Cycle the arm for ``dt`` seconds (in cycles of at most 40 ms), then update the rates."""
-        from bioscara_gym.console import CYCLE_S
+        from bioscara_gym.console.session import CYCLE_S
 
         n = max(1, math.ceil(dt / CYCLE_S - 1e-9))
         finished: dict[str, bool] = {}
@@ -448,7 +448,7 @@ def handle_key(app: MonitorApp, key: str) -> None:
     message. An error from the arm disables everything (the console's
     on-error rule) and is shown in the message; the dashboard keeps running.
     """
-    from bioscara_gym.console import resolve_target
+    from bioscara_gym.console.session import resolve_target
 
     key = key.lower()
     if key not in KEYS:

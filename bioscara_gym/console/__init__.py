@@ -1,0 +1,1 @@
+"""The operator console: ``bioscara status``, ``ping``, ``enable``, ``home``, ``move``, ``monitor``."""
