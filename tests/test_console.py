@@ -18,12 +18,6 @@ import pytest
 from rich.console import Console
 
 from bioscara_gym.cli import main
-from bioscara_gym.console.session import (
-    ConsoleOptions,
-    Session,
-    resolve_target,
-)
-from bioscara_gym.console.state import STATE_FORMAT
 from bioscara_gym.console.dashboard import (
     BusView,
     DashboardSnapshot,
@@ -34,6 +28,12 @@ from bioscara_gym.console.dashboard import (
     position_bar,
     render_dashboard,
 )
+from bioscara_gym.console.session import (
+    ConsoleOptions,
+    Session,
+    resolve_target,
+)
+from bioscara_gym.console.state import STATE_FORMAT
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.registers import Flag
 

@@ -21,12 +21,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
-from rich.console import Console
-from rigs import place_obstacle
-
-from bioscara_gym.hardware.backends import make_backend
-from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.training.deploy import (
     EXIT_REFUSED,
     EXIT_SAFETY_STOP,
@@ -36,6 +30,12 @@ from bioscara_gym.training.deploy import (
 )
 from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
 from bioscara_gym.training.safety import Interrupted, SignalGuard
+from rich.console import Console
+from rigs import place_obstacle
+
+from bioscara_gym.hardware.backends import make_backend
+from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.hardware.registers import Flag
 
 REACH = "Bioscara-Reach-v0"
 
@@ -139,9 +139,8 @@ class PushJ1:
 def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
     import torch
-    from stable_baselines3 import SAC, HerReplayBuffer
-
     from bioscara_gym.training.features import GoalErrorExtractor
+    from stable_baselines3 import SAC, HerReplayBuffer
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("sac")

@@ -10,8 +10,6 @@ import ast
 import inspect
 import math
 import re
-import subprocess
-import sys
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -25,13 +23,12 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import bioscara_gym
-from bioscara_gym import kinematics
-from bioscara_gym import TASKS, register_envs
+from bioscara_gym import TASKS, kinematics, register_envs
+from bioscara_gym.assets import scene_path
 from bioscara_gym.envs import BioscaraEnv, BioscaraReachEnv
 from bioscara_gym.envs.reach import reachable_travel
 from bioscara_gym.hardware.arm import Lifecycle
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.assets import scene_path
 
 REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v0"

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import gymnasium as gym
 import pytest
+from bioscara_gym.training.evaluate import run_episodes
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.experts import PickPlaceExpert, ReachExpert, expert_for
-from bioscara_gym.training.evaluate import run_episodes
 
 
 def _success_rate(env_id: str, episodes: int, **kwargs: object) -> float:

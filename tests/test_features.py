@@ -6,9 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from gymnasium import spaces
-
 from bioscara_gym.training.features import GoalErrorExtractor
+from gymnasium import spaces
 
 
 def _goal_space(obs: int = 5, goal: int = 3) -> spaces.Dict:

@@ -23,12 +23,12 @@ import pytest
 from conftest import HomingRun, near_max_pose, ready_arm
 from rigs import park_obstacle, place_obstacle
 
+from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.firmware import DEADMAN_S, HOMING_SETTLE_S, TICK_S
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware.sim import ArmSim
 from bioscara_gym.hardware.transmission import rpm_to_velocity, velocity_to_rpm
 

@@ -20,12 +20,6 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
-from stable_baselines3.common.buffers import DictReplayBuffer
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
-
-from bioscara_gym.cli import EXIT_INTERRUPTED, main
 from bioscara_gym.training.features import GoalErrorExtractor
 from bioscara_gym.training.hyperparams import (
     EXTRA_KEYS,
@@ -51,6 +45,12 @@ from bioscara_gym.training.train import (
     _algo_kwargs,
     resolve_env_id,
 )
+from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
+
+from bioscara_gym.cli import EXIT_INTERRUPTED, main
 
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")

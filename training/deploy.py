@@ -58,14 +58,6 @@ from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table
-
-from bioscara_gym.hardware.arm import Lifecycle
-from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, JointError
 from bioscara_gym.training.metadata import MetadataError, check_metadata, read_metadata
 from bioscara_gym.training.safety import (
     DeadmanGuard,
@@ -78,6 +70,14 @@ from bioscara_gym.training.safety import (
     joint_named_in,
     safe_stop,
 )
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from bioscara_gym.hardware.arm import Lifecycle
+from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.hardware.errors import CommError, JointError
 
 #: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``).
 DEPLOY_BACKENDS = ("i2c", "emulated", "mock")

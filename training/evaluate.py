@@ -14,7 +14,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-
 from bioscara_gym.training.metadata import MetadataError, atomic_write_text, check_metadata, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]

@@ -137,7 +137,6 @@ def export_onnx(
     """
     import onnx
     import torch
-
     from bioscara_gym.training.evaluate import load_model
 
     model, metadata = load_model(Path(model_path))

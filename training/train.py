@@ -17,6 +17,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from bioscara_gym.training.evaluate import EvalStats, run_episodes, sb3_policy
+from bioscara_gym.training.hyperparams import (
+    HyperparamError,
+    Hyperparams,
+    default_config_path,
+    load_hyperparams,
+)
+from bioscara_gym.training.metadata import atomic_write_text, build_metadata, write_metadata
 from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -25,9 +33,6 @@ from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckA
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import bioscara_gym  # noqa: F401 - registers the tasks
-from bioscara_gym.training.evaluate import EvalStats, run_episodes, sb3_policy
-from bioscara_gym.training.hyperparams import HyperparamError, Hyperparams, default_config_path, load_hyperparams
-from bioscara_gym.training.metadata import atomic_write_text, build_metadata, write_metadata
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}

@@ -71,8 +71,8 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.console.state import HostFacts, load_state, save_state
 from bioscara_gym.console.dashboard import flags_text, format_position, format_velocity, joint_unit
+from bioscara_gym.console.state import HostFacts, load_state, save_state
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig, load_config
