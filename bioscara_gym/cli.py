@@ -16,21 +16,11 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-EXIT_ERROR = 2
-EXIT_INTERRUPTED = 130
+from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CliError
 
 
 def _console() -> Console:
     return Console(highlight=False, soft_wrap=True)  # paths stay on one line
-
-
-class CliError(Exception):
-    """An error to print as one line, with the exit code to use."""
-
-    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
-        """Store the message and exit code."""
-        super().__init__(message)
-        self.code = code
 
 
 # ----------------------------------------------------------------- train

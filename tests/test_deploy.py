@@ -21,18 +21,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
-from bioscara_gym.training.deploy import (
-    EXIT_REFUSED,
-    EXIT_SAFETY_STOP,
-    DeployArgs,
-    DeployError,
-    Deployment,
-)
+from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployArgs, Deployment
 from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
 from bioscara_gym.training.safety import Interrupted, SignalGuard
 from rich.console import Console
 from rigs import place_obstacle
 
+from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag

@@ -23,7 +23,6 @@ import yaml
 from bioscara_gym.training.features import GoalErrorExtractor
 from bioscara_gym.training.hyperparams import (
     EXTRA_KEYS,
-    HyperparamError,
     Hyperparams,
     default_config_path,
     load_hyperparams,
@@ -31,26 +30,19 @@ from bioscara_gym.training.hyperparams import (
 )
 from bioscara_gym.training.metadata import (
     METADATA_NAME,
-    MetadataError,
     build_metadata,
     check_metadata,
     read_metadata,
     write_metadata,
 )
-from bioscara_gym.training.train import (
-    ALGOS,
-    STATE_NAME,
-    SuccessEvalCallback,
-    TrainingError,
-    _algo_kwargs,
-    resolve_env_id,
-)
+from bioscara_gym.training.train import ALGOS, STATE_NAME, SuccessEvalCallback, _algo_kwargs, resolve_env_id
 from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
 
 from bioscara_gym.cli import EXIT_INTERRUPTED, main
+from bioscara_gym.errors import HyperparamError, MetadataError, TrainingError
 
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")

@@ -58,7 +58,7 @@ from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
-from bioscara_gym.training.metadata import MetadataError, check_metadata, read_metadata
+from bioscara_gym.training.metadata import check_metadata, read_metadata
 from bioscara_gym.training.safety import (
     DeadmanGuard,
     Interrupted,
@@ -74,6 +74,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from bioscara_gym.errors import DeployError, MetadataError
 from bioscara_gym.hardware.arm import Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
@@ -98,21 +99,6 @@ class Policy(Protocol):
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The action for ``obs``."""
         ...
-
-
-class DeployError(Exception):
-    """Deployment refused or stopped; ``code`` is the exit code, the message names the cause.
-
-    Attributes:
-        code: Exit code for the CLI.
-        summary: The run's summary, if the run started.
-    """
-
-    def __init__(self, message: str, code: int = EXIT_REFUSED, summary: dict[str, Any] | None = None) -> None:
-        """Record message, exit code and summary."""
-        super().__init__(message)
-        self.code = code
-        self.summary = summary
 
 
 @dataclass

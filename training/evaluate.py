@@ -14,7 +14,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from bioscara_gym.training.metadata import MetadataError, atomic_write_text, check_metadata, read_metadata
+from bioscara_gym.training.metadata import atomic_write_text, check_metadata, read_metadata
+
+from bioscara_gym.errors import MetadataError
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 

@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from bioscara_gym.errors import ExportError
+
 #: metadata_props key holding the training metadata (JSON).
 METADATA_KEY = "bioscara_metadata"
 #: metadata_props key holding the observation layout (JSON ``[[key, size], ...]``).
@@ -40,10 +42,6 @@ OBS_KEYS_KEY = "obs_keys"
 INPUT_NAME = "obs"
 OUTPUT_NAME = "action"
 OPSET = 17
-
-
-class ExportError(ValueError):
-    """The model cannot be exported, or the export does not reproduce it."""
 
 
 @dataclass(frozen=True)

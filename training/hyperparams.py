@@ -21,6 +21,8 @@ from typing import Any
 
 import yaml
 
+from bioscara_gym.errors import HyperparamError
+
 #: Keys of an entry that are not the algorithm's constructor arguments.
 EXTRA_KEYS = (
     "n_timesteps",
@@ -43,10 +45,6 @@ NAMES = {
     "nn.LeakyReLU": "torch.nn:LeakyReLU",
     "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
 }
-
-
-class HyperparamError(ValueError):
-    """A hyperparameter file that cannot be used; the message names file and key."""
 
 
 @dataclass(frozen=True)

@@ -15,15 +15,12 @@ from typing import Any
 import gymnasium as gym
 
 import bioscara_gym
+from bioscara_gym.errors import MetadataError
 from bioscara_gym.fsutil import atomic_write_text  # also imported from here by train and evaluate
 
 METADATA_NAME = "metadata.json"
 #: env kwargs that change what the policy's actions mean; they must match to deploy.
 BEHAVIOUR_KWARGS = ("control_mode", "control_freq")
-
-
-class MetadataError(ValueError):
-    """A policy's metadata is missing, unreadable or does not match the env."""
 
 
 def space_description(space: gym.Space) -> Any:

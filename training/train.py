@@ -18,12 +18,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from bioscara_gym.training.evaluate import EvalStats, run_episodes, sb3_policy
-from bioscara_gym.training.hyperparams import (
-    HyperparamError,
-    Hyperparams,
-    default_config_path,
-    load_hyperparams,
-)
+from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
 from bioscara_gym.training.metadata import atomic_write_text, build_metadata, write_metadata
 from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -33,6 +28,7 @@ from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckA
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import bioscara_gym  # noqa: F401 - registers the tasks
+from bioscara_gym.errors import HyperparamError, TrainingError
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
@@ -84,10 +80,6 @@ class TrainResult:
     final_eval: EvalStats | None
     target_reached_at: int | None
     target_reached_after_s: float | None
-
-
-class TrainingError(ValueError):
-    """Bad training input (unknown env or algorithm, bad config, nothing to resume)."""
 
 
 def resolve_env_id(env: str) -> str:

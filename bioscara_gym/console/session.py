@@ -73,6 +73,7 @@ from rich.table import Table
 
 from bioscara_gym.console.dashboard import flags_text, format_position, format_velocity, joint_unit
 from bioscara_gym.console.state import HostFacts, load_state, save_state
+from bioscara_gym.errors import ConsoleUsageError
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig, load_config
@@ -95,10 +96,6 @@ PERSISTENT_BACKENDS = ("emulated", "sim")
 #: A move is reached within this many rad (revolute) or m (prismatic), at
 #: a tenth of it per s.
 MOVE_TOLERANCE = {"revolute": 1e-3, "prismatic": 1e-4}
-
-
-class ConsoleUsageError(ValueError):
-    """Options that do not go together (e.g. ``--state`` with ``mock``)."""
 
 
 # ----------------------------------------------------------------- options

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from bioscara_gym.errors import StateFileError
 from bioscara_gym.fsutil import atomic_write_text
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.config import ArmConfig
@@ -51,13 +52,6 @@ from bioscara_gym.hardware.stats import CommStats
 #: ``format`` and ``version`` of the state file.
 STATE_FORMAT = "bioscara-console-state"
 STATE_VERSION = 1
-
-
-class StateFileError(ValueError):
-    """A ``--state`` file that cannot be used (corrupt, other backend or configuration).
-
-    Also raised when saving a backend that has no simulated state.
-    """
 
 
 @dataclass

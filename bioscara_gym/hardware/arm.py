@@ -30,6 +30,7 @@ from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import (
+    ArmStateError,
     IncorrectStateError,
     InvalidArgumentError,
     JointError,
@@ -54,10 +55,6 @@ class CommandMode(Enum):
     POSITION = "position"
     VELOCITY = "velocity"
     HOME = "home"
-
-
-class ArmStateError(IncorrectStateError):
-    """A request that the arm's lifecycle state or command mode does not allow."""
 
 
 @dataclass

@@ -55,20 +55,43 @@ def error_to_string(code: ErrType | int) -> str:
 
 
 class JointError(Exception):
-    """Base class of every driver error; ``code`` says which one."""
+    """Base class of every driver error; ``code`` says which one.
+
+    Attributes:
+        code: The :class:`ErrType`.
+        joint: Name of the joint (or ``"gripper"``) at fault, if any.
+        register: The register of the failed transaction, if any
+            (a :class:`~bioscara_gym.hardware.registers.Reg`).
+    """
 
     code: ErrType = ErrType.ERROR
 
-    def __init__(self, message: str = "", *, code: ErrType | None = None) -> None:
+    def __init__(
+        self,
+        message: str = "",
+        *,
+        joint: str | None = None,
+        register: IntEnum | None = None,
+        code: ErrType | None = None,
+    ) -> None:
         """Create the error.
 
         Args:
-            message: What happened, naming the joint and the expectation.
+            message: What happened and what was expected. With ``joint``, the
+                text is prefixed by the joint's name (``"j2: ..."``) unless it
+                already starts with it.
+            joint: The joint (or ``"gripper"``) at fault.
+            register: The register of the failed transaction.
             code: Overrides the class's code (only for the generic base class).
         """
         if code is not None:
             self.code = code
-        super().__init__(message or error_to_string(self.code))
+        self.joint = joint
+        self.register = register
+        text = message or error_to_string(self.code)
+        if joint is not None and not text.startswith(f"{joint}:"):
+            text = f"{joint}: {text}"
+        super().__init__(text)
 
 
 class NotHomedError(JointError):
@@ -111,6 +134,10 @@ class IncorrectStateError(JointError):
     """Another blocking command (homing, orientation check) is running."""
 
     code = ErrType.INCORRECT_STATE
+
+
+class ArmStateError(IncorrectStateError):
+    """A request that the arm's lifecycle state or command mode does not allow."""
 
 
 _BY_CODE: dict[ErrType, type[JointError]] = {

@@ -1,0 +1,77 @@
+"""Errors of the layers above the drivers: command line, console, training, deploy.
+
+The driver layer's own errors (:class:`~bioscara_gym.hardware.errors.JointError`
+and its subclasses) are in :mod:`bioscara_gym.hardware.errors`. Every error
+here is a ``ValueError`` or carries an exit code, and its message is one line
+that names the file, key, joint or option at fault; the ``bioscara`` command
+prints it as is.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: Exit code of a refused request (bad input; nothing was sent to the arm).
+EXIT_ERROR = 2
+#: Exit code after Ctrl-C or SIGTERM (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+class MissingExtraError(ImportError):
+    """An optional dependency is not installed; the message names the extra to install."""
+
+    def __init__(self, what: str, extra: str) -> None:
+        """Say what needs the extra, and how to install it."""
+        super().__init__(f"{what} needs the [{extra}] extra: pip install 'bioscara-gym[{extra}]'")
+        self.extra = extra
+
+
+class CliError(Exception):
+    """An error to print as one line, with the exit code to use."""
+
+    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
+        """Store the message and exit code."""
+        super().__init__(message)
+        self.code = code
+
+
+class ConsoleUsageError(ValueError):
+    """Options that do not go together (e.g. ``--state`` with ``mock``)."""
+
+
+class StateFileError(ValueError):
+    """A ``--state`` file that cannot be used (corrupt, other backend or configuration).
+
+    Also raised when saving a backend that has no simulated state.
+    """
+
+
+class HyperparamError(ValueError):
+    """A hyperparameter file that cannot be used; the message names file and key."""
+
+
+class TrainingError(ValueError):
+    """Bad training input (unknown env or algorithm, bad config, nothing to resume)."""
+
+
+class MetadataError(ValueError):
+    """A policy's metadata is missing, unreadable or does not match the env."""
+
+
+class ExportError(ValueError):
+    """The model cannot be exported, or the export does not reproduce it."""
+
+
+class DeployError(Exception):
+    """Deployment refused or stopped; ``code`` is the exit code, the message names the cause.
+
+    Attributes:
+        code: Exit code for the CLI.
+        summary: The run's summary, if the run started.
+    """
+
+    def __init__(self, message: str, code: int = EXIT_ERROR, summary: dict[str, Any] | None = None) -> None:
+        """Record message, exit code and summary."""
+        super().__init__(message)
+        self.code = code
+        self.summary = summary
