@@ -238,17 +238,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     def _bring_up(self) -> None:
         """Configure, activate and home the arm (through the home command path)."""
-        arm = self.arm
-        if arm.state is Lifecycle.UNCONFIGURED:
-            arm.configure()
-        if arm.state is Lifecycle.INACTIVE:
-            arm.activate()
-        arm.home()
-        mode = JOINT_MODE[self.control_mode]
-        for name in self.joint_names:
-            if arm.modes[name] is not mode:
-                arm.release(name)
-                arm.claim(name, mode)
+        self.arm.bring_up(JOINT_MODE[self.control_mode], self.joint_names)
 
     def _measure(self) -> None:
         states = self.arm.joint_states
@@ -405,25 +395,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self.sim.set_joint_state(dict(zip(self.joint_names, pose, strict=True)))
             self.arm.read()
             return
-        arm = self.arm
-        for name in self.joint_names:
-            arm.release(name)
-            arm.claim(name, CommandMode.POSITION)
-        for name, q in zip(self.joint_names, pose, strict=True):
-            arm.set_command(name, float(q))
-        deadline = self.backend.clock.now() + 30.0
-        while True:
-            arm.cycle(self.dt)
-            q = np.array([arm.joint_states[n].position for n in self.joint_names])
-            qd = np.array([arm.joint_states[n].velocity for n in self.joint_names])
-            if np.all(np.abs(q - pose) < 1e-3) and np.all(np.abs(qd) < 1e-2):
-                break
-            if self.backend.clock.now() > deadline:
-                raise RuntimeError(f"arm did not reach the start pose {np.round(pose, 3)} within 30 s")
-        mode = JOINT_MODE[self.control_mode]
-        for name in self.joint_names:
-            arm.release(name)
-            arm.claim(name, mode)
+        self.arm.move_to(dict(zip(self.joint_names, map(float, pose), strict=True)), period_s=self.dt)
 
     def _reset_task(self) -> None:
         """Place objects and sample the goal (task-specific)."""

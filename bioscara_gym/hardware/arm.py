@@ -28,7 +28,7 @@ from enum import Enum
 
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.base_joint import BaseJoint
-from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig
 from bioscara_gym.hardware.errors import (
     ArmStateError,
     IncorrectStateError,
@@ -470,8 +470,10 @@ class Arm:
         """Set the value of the joint's active command interface.
 
         Position and velocity commands are clamped to the joint's limits
-        (position range, ±max velocity); a home command is a signed homing
-        speed, 0 to abort.
+        (position range, ±max velocity). Of a home command only the sign
+        counts (seed 000, ``write()``): +1 homes to the max end stop, -1 to
+        the min one, with the speed, sensitivity, current and acceleration of
+        the joint's configuration; 0 aborts a running homing.
 
         Raises:
             ArmStateError: No interface is active on the joint.
@@ -488,6 +490,8 @@ class Arm:
             value = min(max(value, cfg.min), cfg.max)
         elif mode is CommandMode.VELOCITY:
             value = min(max(value, -cfg.max_velocity), cfg.max_velocity)
+        elif mode is CommandMode.HOME:
+            value = math.copysign(1.0, value) if value else 0.0
         self.commands[name] = value
 
     def set_gripper(self, width_m: float) -> None:
@@ -564,18 +568,19 @@ class Arm:
             raise
 
     def _write_home(self, name: str) -> None:
+        """Start (a non-zero command: its sign is the direction) or abort (0) a homing."""
         joint = self.joints[name]
-        speed = self.commands[name]
-        if speed != 0.0 and name not in self._homing:
+        command = self.commands[name]
+        if command != 0.0 and name not in self._homing:
             if joint.current_blocking_command is not Reg.NONE and joint.is_busy():
                 raise IncorrectStateError(
                     f"{name}: {joint.current_blocking_command.name} is running; cannot start homing"
                 )
             cfg = self.config.joint(name).homing
             joint.set_max_acceleration(cfg.acceleration)
-            joint.start_homing(speed, cfg.threshold, cfg.current)
+            joint.start_homing(math.copysign(abs(cfg.speed), command), cfg.threshold, cfg.current)
             self._homing.add(name)
-        elif speed == 0.0 and name in self._homing:
+        elif command == 0.0 and name in self._homing:
             joint.stop()  # aborts; read() finishes it (post_homing reports not homed)
 
     def _fail(self) -> None:
@@ -585,56 +590,264 @@ class Arm:
                 self._disable_all()
             self.state = Lifecycle.INACTIVE
 
-    # ---------------------------------------------------------- conveniences
+    # ------------------------------------------------------- homing, moving
+    def homing_names(self) -> list[str]:
+        """Joints whose homing, started or adopted by this arm, is running."""
+        return [n for n in self.names if n in self._homing]
+
+    def start_homing(self, names: Iterable[str], direction: int | None = None) -> dict[str, float]:
+        """Start homing joints through their home command interface; return at once.
+
+        Each joint homes with its configured speed, sensitivity, current and
+        acceleration; ``direction`` picks the end stop (the home command's
+        sign, as a panel's +1/-1). A joint with another interface claimed is
+        released first. :meth:`read` finishes each homing when its BUSY flag
+        clears; :meth:`finish_homings` then releases the home interface.
+
+        Args:
+            names: Joints to home.
+            direction: ``+1`` (the max end stop), ``-1`` (min), or ``None``
+                for the sign of the configured homing speed.
+
+        Returns:
+            Joint name to the signed homing speed used, rad/s or m/s.
+
+        Raises:
+            InvalidArgumentError: Unknown joint or a direction other than +1/-1
+                (nothing is sent).
+            ArmStateError: The arm is not active.
+        """
+        self._require(Lifecycle.ACTIVE, action="home")
+        if direction not in (None, 1, -1):
+            raise InvalidArgumentError(f"homing direction {direction!r} must be +1 or -1")
+        speeds = {}
+        for name in names:
+            self._mode(name)  # unknown names: InvalidArgumentError listing the joints
+            speed = self.config.joint(name).homing.speed
+            speeds[name] = speed if direction is None else math.copysign(speed, direction)
+        for name, speed in speeds.items():
+            if self.modes[name] is not CommandMode.HOME:
+                self.release(name)
+                self.claim(name, CommandMode.HOME)
+            self.set_command(name, math.copysign(1.0, speed))
+        if speeds:
+            self.write()
+            self.read()
+        return speeds
+
+    def finish_homings(self) -> dict[str, bool]:
+        """Release the home interface of joints whose homing ended.
+
+        Returns:
+            Joint name to whether it is homed now.
+        """
+        done = {}
+        for name in self.names:
+            if self.modes[name] is CommandMode.HOME and name not in self._homing:
+                self.modes[name] = CommandMode.NONE
+                done[name] = self.joint_states[name].homed
+        return done
+
+    def abort_homing(self, names: Iterable[str]) -> list[str]:
+        """Abort homings: a home command of 0, or a STOP for a blocking command the arm did not start.
+
+        Returns:
+            The joints whose homing was aborted, in configuration order.
+        """
+        names = set(names)
+        ours = [n for n in self.names if n in names and n in self._homing]
+        foreign = [n for n in self.names if n in names and n not in ours and self.joints[n].is_busy()]
+        for name in ours:
+            self.commands[name] = 0.0
+        try:
+            if ours:
+                self.write()
+            for name in foreign:
+                self.joints[name].stop()
+        except JointError:
+            self._fail()
+            raise
+        if ours or foreign:
+            self.read()
+            self.finish_homings()
+        return [n for n in self.names if n in ours or n in foreign]
+
     def home(
         self,
         names: Iterable[str] | None = None,
-        period_s: float = 0.02,
-        timeout_s: float = 600.0,
+        direction: int | None = None,
+        *,
+        period_s: float = 0.04,
+        timeout_s: float | None = None,
         only_unhomed: bool = True,
-    ) -> None:
-        """Home joints through the home command interface and wait until done.
+    ) -> dict[str, float]:
+        """Home joints through the home command interface and wait until every homing ended.
 
-        Uses each joint's configured homing speed (its sign picks the end
-        stop). Joints run their homing together; the arm keeps cycling
-        read/write at ``period_s`` so the deadman never trips.
+        Joints home together; the arm keeps cycling read/write every
+        ``period_s`` so no deadman trips. Afterwards the joints hold still
+        with no command interface claimed.
+
+        Args:
+            names: Joints to home (default: all).
+            direction: As :meth:`start_homing`.
+            period_s: Control period while waiting, s.
+            timeout_s: Give up (and abort the homings) after this long;
+                default: the whole joint range at the homing speed, with
+                margin (:func:`homing_timeout_s`).
+            only_unhomed: Skip joints that already report homed (the default).
+
+        Returns:
+            Joint name to the signed homing speed used.
 
         Raises:
             NotHomedError: A homing ended without the joint homed.
-            ArmStateError: Not active, or the timeout passed (homing stopped).
+            ArmStateError: Not active, or the timeout passed (homings aborted).
         """
-        self._require(Lifecycle.ACTIVE, action="home")
-        names = self.names if names is None else list(names)
+        names = self.names if names is None else tuple(names)
         for name in names:
-            self._mode(name)  # unknown names: InvalidArgumentError listing the joints
+            self._mode(name)
         todo = [n for n in names if not (only_unhomed and self.joints[n].is_homed())]
-        previous = {n: self.modes[n] for n in todo}
-        for name in todo:
-            if self.modes[name] is not CommandMode.HOME:
-                self.modes[name] = CommandMode.NONE
-                self.claim(name, CommandMode.HOME)
-            self.set_command(name, self.config.joint(name).homing.speed)
-        self.write()
-        start = self.backend.clock.now()
-        while any(n in self._homing for n in todo):
-            if self.backend.clock.now() - start > timeout_s:
-                for name in todo:
-                    self.commands[name] = 0.0
-                self.write()
-                raise ArmStateError(f"homing {', '.join(todo)} did not finish within {timeout_s:g} s")
-            self.backend.step(period_s)
-            self.read()
-            self.write()
-        for name in todo:
-            self.modes[name] = CommandMode.NONE
-            if previous[name] is not CommandMode.HOME and previous[name] is not CommandMode.NONE:
-                self.claim(name, previous[name])
-        failed = [n for n in todo if not self.joint_states[n].homed]
+        speeds = self.start_homing(todo, direction)
+        if timeout_s is None:
+            timeout_s = max(
+                (homing_timeout_s(self.config.joint(n), v) for n, v in speeds.items()), default=0.0
+            )
+        clock = self.backend.clock
+        start = clock.now()
+        while any(n in self._homing for n in speeds):
+            if clock.now() - start > timeout_s:
+                self.abort_homing(speeds)
+                raise ArmStateError(
+                    f"homing {', '.join(speeds)} did not finish within {timeout_s:g} s; aborted"
+                )
+            self.cycle(period_s)
+        self.finish_homings()
+        failed = [n for n in speeds if not self.joint_states[n].homed]
         if failed:
-            raise NotHomedError(f"homing failed for {', '.join(failed)}")
+            raise NotHomedError(f"homing failed for {', '.join(failed)} (aborted or no end stop found)")
+        return speeds
+
+    def move_to(
+        self,
+        targets: Mapping[str, float],
+        *,
+        period_s: float = 0.04,
+        timeout_s: float | None = None,
+    ) -> dict[str, float]:
+        """Move joints to positions in position mode and wait until they are there, at rest.
+
+        Every target is checked against its joint's limits before anything
+        is sent. A joint counts as there within :data:`MOVE_TOLERANCE` of its
+        target and moving slower than a tenth of that per second. Afterwards
+        each joint's command interface is what it was before (a position
+        interface stays claimed at the target; a velocity one is claimed
+        again at 0).
+
+        Args:
+            targets: Joint name to position, rad or m.
+            period_s: Control period while waiting, s.
+            timeout_s: Give up after this long; default: twice the slowest
+                joint's trapezoid profile plus 5 s (:func:`move_timeout_s`).
+
+        Returns:
+            Joint name to the measured position at the end.
+
+        Raises:
+            InvalidArgumentError: Unknown joint, or a target not finite or
+                outside the joint's limits (nothing is sent).
+            NotHomedError: A joint is not homed.
+            ArmStateError: Not active, or not there within the timeout.
+        """
+        self._require(Lifecycle.ACTIVE, action="move")
+        for name, value in targets.items():
+            self._mode(name)
+            cfg = self.config.joint(name)
+            unit = "m" if cfg.joint_type == "prismatic" else "rad"
+            if not (math.isfinite(value) and cfg.min <= value <= cfg.max):
+                raise InvalidArgumentError(
+                    f"{name}: {value:g} {unit} is outside the joint limits [{cfg.min:g}, {cfg.max:g}] {unit}"
+                )
+        for name in targets:
+            if not self.joints[name].is_homed():
+                raise NotHomedError(f"{name}: not homed; home it before moving it")
+        if timeout_s is None:
+            timeout_s = max(
+                (
+                    move_timeout_s(self.config.joint(n), v - self.joint_states[n].position)
+                    for n, v in targets.items()
+                ),
+                default=0.0,
+            )
+        previous = {n: self.modes[n] for n in targets}
+        for name, value in targets.items():
+            if previous[name] is not CommandMode.POSITION:
+                self.release(name)
+                self.claim(name, CommandMode.POSITION)
+            self.set_command(name, value)
+        clock = self.backend.clock
+        start = clock.now()
+        while not all(self._at(name, value) for name, value in targets.items()):
+            if clock.now() - start > timeout_s:
+                where = ", ".join(f"{n} at {self.joint_states[n].position:.4f}" for n in targets)
+                raise ArmStateError(
+                    f"{', '.join(targets)} not at the target within {timeout_s:g} s ({where})"
+                )
+            self.cycle(period_s)
+        for name, mode in previous.items():
+            if mode is not CommandMode.POSITION:
+                self.release(name)
+                if mode is not CommandMode.NONE:
+                    self.claim(name, mode)
+        return {n: self.joint_states[n].position for n in targets}
+
+    def _at(self, name: str, target: float) -> bool:
+        """Whether the joint is within :data:`MOVE_TOLERANCE` of ``target`` and at rest."""
+        tol = MOVE_TOLERANCE[self.config.joint(name).joint_type]
+        st = self.joint_states[name]
+        return abs(st.position - target) <= tol and abs(st.velocity) <= tol / 10
+
+    def bring_up(self, mode: CommandMode | str, names: Iterable[str] | None = None) -> None:
+        """Configure, activate and home the arm as needed, then claim ``mode`` on the joints.
+
+        Each step runs only if needed: a configured arm is not configured
+        again, an active one not re-enabled, homed joints not homed again.
+
+        Args:
+            mode: The command interface to claim (position or velocity).
+            names: The joints (default: all).
+
+        Raises:
+            JointError: A step failed; the arm fell back as the step's
+                transition says (see the module docstring).
+        """
+        mode = CommandMode(mode)
+        names = self.names if names is None else tuple(names)
+        if self.state is Lifecycle.UNCONFIGURED:
+            self.configure()
+        if self.state is Lifecycle.INACTIVE:
+            self.activate()
+        self.home(names, only_unhomed=True)
+        for name in names:
+            if self.modes[name] is not mode:
+                self.release(name)
+                self.claim(name, mode)
 
     def cycle(self, dt: float) -> Mapping[str, JointState]:
         """One control cycle: write the commands, let ``dt`` pass, read the state."""
         self.write()
         self.backend.step(dt)
         return self.read()
+
+
+#: A move is reached within this many rad (revolute) or m (prismatic), at rest.
+MOVE_TOLERANCE = {"revolute": 1e-3, "prismatic": 1e-4}
+
+
+def homing_timeout_s(config: JointConfig, speed: float) -> float:
+    """Time a homing may take, s: 0.5 s pause, the whole range at ``speed`` with 20 % margin, 5 s."""
+    return 0.5 + 1.2 * (config.max - config.min) / abs(speed) + 5.0
+
+
+def move_timeout_s(config: JointConfig, distance: float) -> float:
+    """Time a move of ``distance`` may take, s: twice the trapezoid profile's, plus 5 s."""
+    return 2.0 * (abs(distance) / config.max_velocity + config.max_velocity / config.max_acceleration) + 5.0
