@@ -16,7 +16,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CliError
+from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CliError, MissingExtraError
+from bioscara_gym.hardware.errors import JointError
 
 
 def _console() -> Console:
@@ -155,16 +156,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         err.print(f"bioscara {args.command}: interrupted")
         return EXIT_INTERRUPTED
-    except (ValueError, OSError) as e:
+    except (ValueError, OSError, MissingExtraError, JointError) as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
-    except Exception as e:  # a driver error (JointError) and the like: one line, non-zero
-        from bioscara_gym.hardware.errors import JointError
-
-        if isinstance(e, JointError):
-            err.print(f"bioscara {args.command}: error: {e}")
-            return EXIT_ERROR
-        raise
 
 
 if __name__ == "__main__":

@@ -11,19 +11,26 @@ from __future__ import annotations
 
 from typing import Any
 
+from bioscara_gym.hardware.errors import MissingExtraError
+
+__all__ = [
+    "EXIT_ERROR",
+    "EXIT_INTERRUPTED",
+    "CliError",
+    "ConsoleUsageError",
+    "DeployError",
+    "ExportError",
+    "HyperparamError",
+    "MetadataError",
+    "MissingExtraError",
+    "StateFileError",
+    "TrainingError",
+]
+
 #: Exit code of a refused request (bad input; nothing was sent to the arm).
 EXIT_ERROR = 2
 #: Exit code after Ctrl-C or SIGTERM (128 + SIGINT).
 EXIT_INTERRUPTED = 130
-
-
-class MissingExtraError(ImportError):
-    """An optional dependency is not installed; the message names the extra to install."""
-
-    def __init__(self, what: str, extra: str) -> None:
-        """Say what needs the extra, and how to install it."""
-        super().__init__(f"{what} needs the [{extra}] extra: pip install 'bioscara-gym[{extra}]'")
-        self.extra = extra
 
 
 class CliError(Exception):

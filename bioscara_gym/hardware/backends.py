@@ -23,6 +23,7 @@ from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
 from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
+from bioscara_gym.hardware.errors import require_extra
 from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
@@ -107,6 +108,7 @@ class SimBackend(Backend):
 
     def __init__(self, config: ArmConfig, state_file: str | Path | None = None, **sim_kwargs: object) -> None:
         """Build the simulated arm (kwargs go to :class:`ArmSim`)."""
+        require_extra("mujoco", "the sim backend", "sim")
         from bioscara_gym.hardware.sim import ArmSim, SimGripper, make_sim_joints
 
         sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
@@ -145,6 +147,7 @@ class EmulatedBackend(Backend):
         **sim_kwargs: object,
     ) -> None:
         """Build the arm, one firmware per joint address, the bus and the drivers."""
+        require_extra("mujoco", "the emulated backend", "sim")
         from bioscara_gym.hardware.sim import ArmSim, SimGripper
 
         sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
