@@ -16,8 +16,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from rigs import J1, RIG_FACTORIES, EmulatedJoint, JointRig, build_emulated
+from rigs import J1, NEAR_END_STOPS, RIG_FACTORIES, EmulatedJoint, JointRig, MakeBackend, build_emulated
 
+from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.base_joint import BUSY_POLL_S
 from bioscara_gym.hardware.clock import ManualClock
@@ -273,3 +274,63 @@ def homing_run(request: pytest.FixtureRequest) -> HomingRun:
         times=np.array(times),
         qpos=np.array(qpos),
     )
+
+
+# --------------------------------------------------------- arms (test_arm_*.py)
+
+
+@pytest.fixture(params=ARM_BACKENDS)
+def backend(request: pytest.FixtureRequest, make_arm_backend: MakeBackend) -> Backend:
+    """Each backend an arm runs on without hardware, fresh (joints powered up, unhomed).
+
+    The simulated arms power up at :data:`NEAR_END_STOPS`.
+    """
+    if request.param == "mock":
+        return make_arm_backend("mock")
+    return make_arm_backend(request.param, initial_qpos=NEAR_END_STOPS)
+
+
+@pytest.fixture
+def arm(backend: Backend) -> Arm:
+    """An unconfigured arm on :func:`backend`."""
+    return Arm(backend)
+
+
+@pytest.fixture
+def active_arm(arm: Arm) -> Arm:
+    """:func:`arm` configured and activated; its joints are not homed."""
+    arm.configure()
+    arm.activate()
+    return arm
+
+
+@pytest.fixture
+def homed_arm(active_arm: Arm) -> Arm:
+    """:func:`active_arm` with every joint homed (at its max end stop)."""
+    active_arm.home()
+    return active_arm
+
+
+@pytest.fixture
+def mock_arm(make_arm_backend: MakeBackend) -> Arm:
+    """An unconfigured arm on the mock backend (for rules that involve no joint behaviour)."""
+    return Arm(make_arm_backend("mock"))
+
+
+@pytest.fixture
+def homed_mock_arm(mock_arm: Arm) -> Arm:
+    """:func:`mock_arm` active with every joint homed (at its max end stop)."""
+    mock_arm.configure()
+    mock_arm.activate()
+    mock_arm.home()
+    return mock_arm
+
+
+@pytest.fixture
+def emulated_homed_arm(make_arm_backend: MakeBackend) -> Arm:
+    """An active, homed arm on the emulated backend (its bus is ``arm.backend.bus``)."""
+    arm = Arm(make_arm_backend("emulated", initial_qpos=NEAR_END_STOPS))
+    arm.configure()
+    arm.activate()
+    arm.home()
+    return arm

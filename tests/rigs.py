@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
+import pytest
 
+from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, EmulatedBackend, make_backend
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock, ManualClock
@@ -433,3 +435,98 @@ RIG_FACTORIES: dict[str, Callable[[], JointRig]] = {
     "emulated_mujoco_j1": emulated_mujoco_j1,
     "emulated_mujoco_j2": emulated_mujoco_j2,
 }
+
+
+# ------------------------------------------------------------- arm tests (test_arm_*.py)
+
+MakeBackend = Callable[..., Backend]
+NAMES = ("j1", "j2", "j3", "j4")
+CONFIG = load_config()
+KNOWN_JOINTS = r"known joints: j1, j2, j3, j4"
+#: Control period of the tests' cycles, s (25 Hz, as the envs run).
+DT = 0.04
+
+
+#: Power-up pose of the simulated arms: 0.3 % of each range inside the end stop
+#: homing drives to, so homing takes about a simulated second.
+NEAR_END_STOPS = ArmSim.parked_pose(CONFIG, margin=0.003)
+
+
+@dataclass
+class Traffic:
+    """Register transactions of every joint, in order: ``(joint, register, value)``.
+
+    ``value`` is the command's payload, or ``None`` for a read.
+    """
+
+    log: list[tuple[str, Reg, float | int | None]] = field(default_factory=list)
+
+    def regs(self, name: str) -> list[Reg]:
+        """Registers joint ``name`` was sent, in order."""
+        return [reg for joint, reg, _ in self.log if joint == name]
+
+    def values(self, name: str, reg: Reg) -> list[float | int | None]:
+        """Payloads of ``reg`` commands to joint ``name``."""
+        return [value for joint, r, value in self.log if joint == name and r == reg and value is not None]
+
+    def clear(self) -> None:
+        """Forget the transactions so far."""
+        self.log.clear()
+
+
+def spy(monkeypatch: pytest.MonkeyPatch, arm: Arm) -> Traffic:
+    """Record every joint's register traffic from now on."""
+    traffic = Traffic()
+    for name, joint in arm.joints.items():
+        command, query = joint._command, joint._query
+
+        def recording_command(reg: Reg, value: float | int, _n: str = name, _f: Callable = command) -> int:
+            traffic.log.append((_n, Reg(reg), value))
+            return _f(reg, value)
+
+        def recording_query(reg: Reg, _n: str = name, _f: Callable = query) -> tuple[float | int, int]:
+            traffic.log.append((_n, Reg(reg), None))
+            return _f(reg)
+
+        monkeypatch.setattr(joint, "_command", recording_command)
+        monkeypatch.setattr(joint, "_query", recording_query)
+    return traffic
+
+
+def cycle_until(arm: Arm, done: Callable[[], bool], max_s: float = 20.0) -> float:
+    """Run control cycles of :data:`DT` until ``done()``; return the time it took."""
+    start = arm.backend.clock.now()
+    while not done():
+        assert arm.backend.clock.now() - start < max_s, f"not done after {max_s} s"
+        arm.cycle(DT)
+    return arm.backend.clock.now() - start
+
+
+def start_homing(arm: Arm, name: str, speed: float) -> None:
+    """Claim the home interface of ``name``, send a home command of ``speed``, read the state."""
+    arm.claim(name, "home")
+    arm.set_command(name, speed)
+    arm.write()
+    arm.read()
+
+
+def motor_rate_deg(name: str, value: float) -> float:
+    """A joint-side velocity or acceleration as sent to the joint, deg/s or deg/s^2."""
+    return abs(math.degrees(CONFIG.joint(name).reduction * value))
+
+
+def enable_and_home_elsewhere(arm: Arm, name: str, speed: float) -> None:
+    """Leave ``name`` as an earlier process would have: enabled and homing at ``speed``.
+
+    The homing is started through the joint's register primitive, so this
+    process's driver knows nothing of it (no blocking command, no offset);
+    then the arm reads the state, as :meth:`Arm.configure` would.
+    """
+    cfg = CONFIG.joint(name)
+    joint = arm.joints[name]
+    joint.enable(cfg.drive_current, cfg.hold_current)
+    rpm = joint.homing_rpm(speed)
+    joint._command(
+        Reg.HOME, pack_bytes(int(rpm > 0), int(abs(rpm)), cfg.homing.threshold, cfg.homing.current)
+    )
+    arm.read()

@@ -684,8 +684,9 @@ class Arm:
         """Home joints through the home command interface and wait until every homing ended.
 
         Joints home together; the arm keeps cycling read/write every
-        ``period_s`` so no deadman trips. Afterwards the joints hold still
-        with no command interface claimed.
+        ``period_s`` so no deadman trips. Afterwards a position or velocity
+        interface that was claimed before is claimed again (holding the
+        homed position, or at 0); the others stay released.
 
         Args:
             names: Joints to home (default: all).
@@ -707,6 +708,7 @@ class Arm:
         for name in names:
             self._mode(name)
         todo = [n for n in names if not (only_unhomed and self.joints[n].is_homed())]
+        previous = {n: self.modes[n] for n in todo}
         speeds = self.start_homing(todo, direction)
         if timeout_s is None:
             timeout_s = max(
@@ -722,6 +724,9 @@ class Arm:
                 )
             self.cycle(period_s)
         self.finish_homings()
+        for name, mode in previous.items():  # give back a motion interface claimed before
+            if mode in (CommandMode.POSITION, CommandMode.VELOCITY) and self.joint_states[name].homed:
+                self.claim(name, mode)
         failed = [n for n in speeds if not self.joint_states[n].homed]
         if failed:
             raise NotHomedError(f"homing failed for {', '.join(failed)} (aborted or no end stop found)")
