@@ -10,7 +10,7 @@ returns a fresh :class:`JointRig`) to :data:`RIG_FACTORIES` and listing in its
 ``features`` which of :data:`FEATURES` it supports; tests that need a missing
 feature are skipped with a reason.
 
-Joint parameters are SPEC.md's (kinematics table and the arm's parameter
+Joint parameters are docs/model.md's (kinematics table and the arm's parameter
 file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 """
 
@@ -50,7 +50,7 @@ FEATURES = frozenset(
     }
 )
 
-#: SPEC.md j1 (shoulder): kinematics table and parameter file.
+#: docs/model.md j1 (shoulder): kinematics table and parameter file.
 J1 = JointConfig(
     name="j1",
     address=0x11,
@@ -66,7 +66,7 @@ J1 = JointConfig(
     homing=HomingConfig(speed=0.03, threshold=30, current=15, acceleration=0.01),
 )
 
-#: SPEC.md j2 (lift): negative reduction, a positive motor turn moves it down.
+#: docs/model.md j2 (lift): negative reduction, a positive motor turn moves it down.
 J2 = JointConfig(
     name="j2",
     address=0x12,
@@ -343,7 +343,7 @@ def park_obstacle(sim: ArmSim) -> None:
 
 @functools.cache
 def _packaged_config() -> ArmConfig:
-    """The packaged configuration (SPEC.md's numbers), loaded once: it is frozen."""
+    """The packaged configuration (the numbers of docs/model.md), loaded once: it is frozen."""
     return load_config()
 
 

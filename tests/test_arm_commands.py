@@ -1,4 +1,4 @@
-"""The arm's command interfaces and I/O (SPEC.md "The arm layer").
+"""The arm's command interfaces and I/O (docs/arm.md, "The arm layer").
 
 Covers claiming and releasing the position, velocity and home interfaces of each joint (one per
 joint, motion only on homed joints), set_command (unknown joints, non-finite values, clamping to
@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 
 import pytest
-from rigs import CONFIG, DT, KNOWN_JOINTS, NAMES, cycle_until, spy, start_homing
+from rigs import CONFIG, DT, KNOWN_JOINTS, NAMES, MakeBackend, cycle_until, spy, start_homing
 
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.errors import (

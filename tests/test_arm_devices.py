@@ -1,4 +1,4 @@
-"""Per-device control of the arm (SPEC.md "The arm layer"): the gripper, enable/disable and attach.
+"""Per-device control of the arm (docs/arm.md, "The arm layer"): the gripper, enable/disable and attach.
 
 Covers the gripper (enabled at its saved width, the width saved on deactivate and shutdown,
 set_gripper clamping and refusing non-finite widths), enabling and disabling a subset of the

@@ -1,4 +1,4 @@
-"""Homing through the arm (SPEC.md "The arm layer"): the home interface, Arm.home and adopt_homing.
+"""Homing through the arm (docs/arm.md, "The arm layer"): the home interface, Arm.home and adopt_homing.
 
 Covers the home command's semantics (a signed speed starts homing, 0 aborts it, refused while
 another blocking command runs), homing completing in read at the max or min end stop with the

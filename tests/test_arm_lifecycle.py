@@ -1,4 +1,4 @@
-"""The arm's lifecycle (SPEC.md "The arm layer") and how errors send it back to a safe state.
+"""The arm's lifecycle (docs/arm.md, "The arm layer") and how errors send it back to a safe state.
 
 Covers configure, activate, deactivate, cleanup, shutdown and the context manager; transitions
 refused from the wrong state, naming both states; and error recovery: a failed configure,

@@ -1,4 +1,4 @@
-"""Payload encoding and unit conversions (SPEC.md "Units and transmission", "I2C protocol").
+"""Payload encoding and unit conversions (docs/model.md "Units and transmission", docs/protocol.md).
 
 Payloads are float32, int32, uint32 or uint8, little-endian. Transmission:
 ``actuator = reduction * (joint - offset)``; position commands are
@@ -9,30 +9,18 @@ Payloads are float32, int32, uint32 or uint8, little-endian. Transmission:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import Any
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bioscara_gym.hardware.codec import (
-    decode_f32,
-    decode_i32,
-    decode_u8,
-    decode_u32,
-    encode_f32,
-    encode_i32,
-    encode_u8,
-    encode_u32,
-    pack_bytes,
-    unpack_bytes,
-)
+from bioscara_gym.hardware import codec
+from bioscara_gym.hardware.codec import pack_bytes, unpack_bytes
 from bioscara_gym.hardware.errors import InvalidArgumentError
+from bioscara_gym.hardware.registers import PAYLOAD_FORMAT, Reg
 from bioscara_gym.hardware.transmission import (
     actuator_to_joint,
     degrees_to_position,
-    degrees_to_steps,
     joint_to_actuator,
     position_to_degrees,
     rate_to_degrees,
@@ -43,7 +31,7 @@ from bioscara_gym.hardware.transmission import (
 
 F32_MAX = 3.4028234663852886e38
 
-# SPEC.md kinematics: reduction, (min, max) limits, max velocity.
+# docs/model.md kinematics: reduction, (min, max) limits, max velocity.
 REDUCTIONS = {
     "j1": (35.0, (-3.04647, 3.04647), 1.0),
     "j2": (-2 * math.pi / 0.004, (-0.0016, 0.338), 0.03),
@@ -53,93 +41,110 @@ REDUCTIONS = {
 
 bytes_ = st.integers(min_value=0, max_value=255)
 
+#: One register of each payload format.
+F32_REG = Reg.SETRPM
+I32_REG = Reg.MOVESTEPS
+U32_REG = Reg.SETUP
+U8_REG = Reg.SETCURRENT
+
 
 # ------------------------------------------------------------------ codec
+def test_every_used_register_has_a_payload_of_at_most_four_bytes() -> None:
+    for reg in PAYLOAD_FORMAT:
+        assert 1 <= codec.payload_size(reg) <= 4
+
+
+def test_register_without_a_format_is_the_firmwares_raw_uint32() -> None:
+    assert codec.payload_size(Reg.GETDRIVERRPM) == 4
+    assert codec.decode(Reg.GETDRIVERRPM, b"\x01\x02\x03\x04") == 0x04030201
+
+
 @given(st.floats(width=32, allow_nan=False, allow_infinity=False))
 def test_f32_round_trips(value: float) -> None:
-    data = encode_f32(value)
+    data = codec.encode(F32_REG, value)
     assert len(data) == 4
-    assert decode_f32(data) == value
+    assert codec.decode(F32_REG, data) == value
 
 
 @given(st.integers(min_value=-(2**31), max_value=2**31 - 1))
 def test_i32_round_trips(value: int) -> None:
-    data = encode_i32(value)
+    data = codec.encode(I32_REG, value)
     assert len(data) == 4
-    assert decode_i32(data) == value
+    assert codec.decode(I32_REG, data) == value
 
 
 @given(st.integers(min_value=0, max_value=2**32 - 1))
 def test_u32_round_trips(value: int) -> None:
-    data = encode_u32(value)
+    data = codec.encode(U32_REG, value)
     assert len(data) == 4
-    assert decode_u32(data) == value
+    assert codec.decode(U32_REG, data) == value
 
 
 @given(bytes_)
 def test_u8_round_trips(value: int) -> None:
-    data = encode_u8(value)
+    data = codec.encode(U8_REG, value)
     assert len(data) == 1
-    assert decode_u8(data) == value
+    assert codec.decode(U8_REG, data) == value
 
 
 @given(st.binary(min_size=4, max_size=4))
 def test_i32_decode_then_encode_gives_the_same_bytes(data: bytes) -> None:
-    assert encode_i32(decode_i32(data)) == data
+    assert codec.encode(I32_REG, codec.decode(I32_REG, data)) == data
 
 
 @given(st.one_of(st.integers(max_value=-(2**31) - 1), st.integers(min_value=2**31)))
 def test_i32_rejects_out_of_range(value: int) -> None:
-    with pytest.raises(InvalidArgumentError, match="int32"):
-        encode_i32(value)
+    with pytest.raises(InvalidArgumentError, match="MOVESTEPS"):
+        codec.encode(I32_REG, value)
 
 
 @given(st.one_of(st.integers(max_value=-1), st.integers(min_value=2**32)))
 def test_u32_rejects_out_of_range(value: int) -> None:
-    with pytest.raises(InvalidArgumentError, match="uint32"):
-        encode_u32(value)
+    with pytest.raises(InvalidArgumentError, match="SETUP"):
+        codec.encode(U32_REG, value)
 
 
 @given(st.one_of(st.integers(max_value=-1), st.integers(min_value=256)))
 def test_u8_rejects_out_of_range(value: int) -> None:
-    with pytest.raises(InvalidArgumentError, match="uint8"):
-        encode_u8(value)
-
-
-@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
-def test_f32_rejects_non_finite(value: float) -> None:
-    with pytest.raises(InvalidArgumentError):
-        encode_f32(value)
+    with pytest.raises(InvalidArgumentError, match="SETCURRENT"):
+        codec.encode(U8_REG, value)
 
 
 @given(st.floats(min_value=3.5e38, allow_infinity=False) | st.floats(max_value=-3.5e38, allow_infinity=False))
 def test_f32_rejects_values_beyond_float32_range(value: float) -> None:
     with pytest.raises(InvalidArgumentError):
-        encode_f32(value)
+        codec.encode(F32_REG, value)
 
 
 def test_f32_accepts_largest_float32() -> None:
-    assert decode_f32(encode_f32(F32_MAX)) == F32_MAX
-    assert decode_f32(encode_f32(-F32_MAX)) == -F32_MAX
+    assert codec.decode(F32_REG, codec.encode(F32_REG, F32_MAX)) == F32_MAX
+    assert codec.decode(F32_REG, codec.encode(F32_REG, -F32_MAX)) == -F32_MAX
+
+
+def test_encode_error_names_joint_and_register() -> None:
+    with pytest.raises(InvalidArgumentError, match=r"^j3: MOVESTEPS payload 1.5") as info:
+        codec.encode(Reg.MOVESTEPS, 1.5, joint="j3")  # type: ignore[arg-type]
+    assert info.value.joint == "j3"
+    assert info.value.register is Reg.MOVESTEPS
 
 
 @pytest.mark.parametrize(
-    ("encode", "value", "data"),
+    ("reg", "value", "data"),
     [
-        (encode_f32, 1.0, b"\x00\x00\x80\x3f"),
-        (encode_f32, -2.0, b"\x00\x00\x00\xc0"),
-        (encode_f32, 0.5, b"\x00\x00\x00\x3f"),
-        (encode_i32, 1, b"\x01\x00\x00\x00"),
-        (encode_i32, -200, b"\x38\xff\xff\xff"),
-        (encode_i32, -1, b"\xff\xff\xff\xff"),
-        (encode_u32, 0x04030201, b"\x01\x02\x03\x04"),
-        (encode_u32, 7700, b"\x14\x1e\x00\x00"),  # SETUP drive 20, hold 30
-        (encode_u8, 0x2A, b"\x2a"),
+        (F32_REG, 1.0, b"\x00\x00\x80\x3f"),
+        (F32_REG, -2.0, b"\x00\x00\x00\xc0"),
+        (F32_REG, 0.5, b"\x00\x00\x00\x3f"),
+        (I32_REG, 1, b"\x01\x00\x00\x00"),
+        (I32_REG, -200, b"\x38\xff\xff\xff"),
+        (I32_REG, -1, b"\xff\xff\xff\xff"),
+        (U32_REG, 0x04030201, b"\x01\x02\x03\x04"),
+        (U32_REG, 7700, b"\x14\x1e\x00\x00"),  # SETUP drive 20, hold 30
+        (U8_REG, 0x2A, b"\x2a"),
     ],
     ids=["f32_1", "f32_-2", "f32_0.5", "i32_1", "i32_-200", "i32_-1", "u32_bytes", "u32_setup", "u8"],
 )
-def test_encoding_is_little_endian(encode: Callable[[Any], bytes], value: float, data: bytes) -> None:
-    assert encode(value) == data
+def test_encoding_is_little_endian(reg: Reg, value: float, data: bytes) -> None:
+    assert codec.encode(reg, value) == data
 
 
 @given(bytes_, bytes_, bytes_, bytes_)
@@ -154,7 +159,7 @@ def test_unpack_bytes_round_trips(value: int) -> None:
 
 @given(bytes_, bytes_, bytes_, bytes_)
 def test_pack_bytes_puts_byte0_first_on_the_wire(b0: int, b1: int, b2: int, b3: int) -> None:
-    assert encode_u32(pack_bytes(b0, b1, b2, b3)) == bytes((b0, b1, b2, b3))
+    assert codec.encode(Reg.HOME, pack_bytes(b0, b1, b2, b3)) == bytes((b0, b1, b2, b3))
 
 
 def test_pack_bytes_defaults_missing_bytes_to_zero() -> None:
@@ -255,10 +260,5 @@ def test_rpm_to_velocity_known_value() -> None:
 
 
 def test_one_motor_turn_is_200_steps() -> None:
-    assert degrees_to_steps(360.0) == 200.0
+    assert steps_to_degrees(200) == pytest.approx(360.0, rel=1e-15)
     assert steps_to_degrees(1.0) == 1.8
-
-
-@given(st.floats(min_value=-1e6, max_value=1e6))
-def test_steps_round_trip(deg: float) -> None:
-    assert steps_to_degrees(degrees_to_steps(deg)) == pytest.approx(deg, rel=1e-12, abs=1e-12)

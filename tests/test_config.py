@@ -23,9 +23,9 @@ from bioscara_gym.hardware.config import (
     config_to_dict,
     load_config,
 )
-from bioscara_gym.hardware.errors import ConfigError
+from bioscara_gym.hardware.errors import ConfigError, InvalidArgumentError
 
-# SPEC.md tables, row by row: address, type, reduction, (min, max), max vel,
+# docs/model.md tables, row by row: address, type, reduction, (min, max), max vel,
 # max acc, stall threshold, hold current, drive current,
 # homing (speed, threshold, current, acceleration).
 SPEC_JOINTS: dict[str, dict[str, Any]] = {
@@ -93,7 +93,7 @@ def default_dict(default_config: ArmConfig) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------
-# Packaged defaults equal SPEC.md.
+# Packaged defaults equal docs/model.md.
 # --------------------------------------------------------------------------
 
 
@@ -107,7 +107,7 @@ def test_default_config_has_joints_j1_to_j4_in_order(
 
 @pytest.mark.parametrize("name", sorted(SPEC_JOINTS))
 def test_default_joint_matches_spec(default_config: ArmConfig, name: str) -> None:
-    """Every default joint field equals the SPEC.md tables."""
+    """Every default joint field equals the docs/model.md tables."""
     spec = SPEC_JOINTS[name]
     joint = default_config.joint(name)
     assert joint.name == name
@@ -131,7 +131,7 @@ def test_default_homing_speeds_home_to_the_max_end_stop(
 
 
 def test_default_gripper_matches_spec(default_config: ArmConfig) -> None:
-    """The default gripper equals the SPEC.md gripper line."""
+    """The default gripper equals the docs/model.md gripper table."""
     assert default_config.gripper == GripperConfig(
         reduction=3333.3,
         offset=0.058,
@@ -258,6 +258,12 @@ def test_config_is_hashable(default_config: ArmConfig) -> None:
 def test_unknown_joint_lookup_names_known_joints(default_config: ArmConfig) -> None:
     """ArmConfig.joint() of an unknown name lists the known joints."""
     with pytest.raises(ConfigError, match=r"unknown joint 'j9'; known joints: j1, j2"):
+        default_config.joint("j9")
+
+
+def test_unknown_joint_lookup_is_also_an_invalid_argument(default_config: ArmConfig) -> None:
+    """A caller of the driver layer may catch it as InvalidArgumentError, as the console does."""
+    with pytest.raises(InvalidArgumentError, match=r"unknown joint 'j9'; known joints: j1, j2"):
         default_config.joint("j9")
 
 

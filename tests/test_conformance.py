@@ -1,4 +1,4 @@
-"""The joint contract (SPEC.md "The host driver's rules"), on every backend.
+"""The joint contract (docs/arm.md, "The joint driver's rules"), on every backend.
 
 Every test runs on every rig of ``rigs.RIG_FACTORIES`` (the ``rig`` fixture);
 tests that need a feature a rig lacks are skipped with the reason. Time is the
@@ -25,8 +25,8 @@ from bioscara_gym.hardware.errors import (
     NotInitError,
     StalledError,
 )
-from bioscara_gym.hardware.registers import POWER_UP_FLAGS, Flag, Reg
-from bioscara_gym.hardware.transmission import HOMING_RPM_MAX, HOMING_RPM_MIN, rpm_to_velocity
+from bioscara_gym.hardware.registers import HOMING_RPM_MAX, HOMING_RPM_MIN, POWER_UP_FLAGS, Flag, Reg
+from bioscara_gym.hardware.transmission import rpm_to_velocity
 
 #: Host control period while a test "runs" the joint, seconds.
 CONTROL_PERIOD_S = 0.01

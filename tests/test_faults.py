@@ -22,10 +22,10 @@ from rigs import J1, J2, EmulatedJoint, build_emulated
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, Fault, FaultPlan
 from bioscara_gym.hardware.errors import CommError, ErrType, JointError, NotInitError
-from bioscara_gym.hardware.firmware import TICK_S, JointFirmware
+from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.registers import TICK_S, Flag, Reg
 
 MakeJ1 = Callable[..., EmulatedJoint]
 

@@ -1,4 +1,4 @@
-"""The emulated joint firmware, byte by byte (SPEC.md "The joint's I2C protocol", "Firmware behaviour").
+"""The emulated joint firmware, byte by byte (docs/protocol.md, docs/firmware.md).
 
 No driver here: tests write the bytes a master would write to
 :meth:`JointFirmware.transfer` and read the bytes it answers. The stall
@@ -13,17 +13,17 @@ import struct
 
 import pytest
 
+from bioscara_gym.hardware import firmware as firmware_module
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.codec import pack_bytes
 from bioscara_gym.hardware.firmware import (
     MICROSTEPS_PER_DEG,
-    TICK_S,
     FirmwareCore,
     JointFirmware,
     stall_threshold,
 )
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import PAYLOAD_FORMAT, Flag, Reg
+from bioscara_gym.hardware.registers import PAYLOAD_FORMAT, TICK_S, Flag, Reg
 
 POWER_UP = 0b00001100
 #: SPEC j1 homing, at the motor: 10 RPM, sensitivity 30, current 15 %.
@@ -149,7 +149,7 @@ def feed(core: FirmwareCore, motor: FakeMotor, errors: list[float]) -> list[bool
     for e in errors:
         motor.set_error(e)
         core.tick()
-        out.append(core.has(Flag.STALL))
+        out.append(bool(core.flags & Flag.STALL))
     return out
 
 
@@ -584,6 +584,22 @@ def test_stall_threshold_is_10x_sensitivity_plus_90_in_mid_band(
     assert stall_threshold(omega, sensitivity) == expected
 
 
+def test_live_stall_detector_uses_stall_threshold(
+    guarded_core: FirmwareCore, fake_motor: FakeMotor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rule tested above is the one the main loop applies, with the motor's speed in rad/s."""
+    seen: list[tuple[float, int]] = []
+
+    def spy(omega_rad_s: float, sensitivity: int) -> float:
+        seen.append((omega_rad_s, sensitivity))
+        return stall_threshold(omega_rad_s, sensitivity)
+
+    monkeypatch.setattr(firmware_module, "stall_threshold", spy)
+    fake_motor.velocity_dps = math.degrees(20.0)
+    feed(guarded_core, fake_motor, [0.0])
+    assert seen == [(pytest.approx(20.0), 6)]
+
+
 def test_sustained_error_trips_when_the_low_pass_crosses_the_threshold(
     guarded_core: FirmwareCore, fake_motor: FakeMotor
 ) -> None:
@@ -628,7 +644,7 @@ def test_stall_trip_resets_the_filter_and_holds_the_motor(
     guarded_core: FirmwareCore, fake_motor: FakeMotor
 ) -> None:
     feed(guarded_core, fake_motor, [100.0] * 9)
-    assert guarded_core.has(Flag.STALL)
+    assert guarded_core.flags & Flag.STALL
     assert guarded_core._filter_x == 0.0  # internal state: not observable over the bus
     assert guarded_core._filter_last == 0.0
     assert guarded_core.pid_error == 0.0
@@ -648,4 +664,4 @@ def test_stall_detection_paused_while_a_blocking_command_runs(
     for _ in range(20):
         guarded_core.tick()
         fake_motor.set_error(100.0)
-    assert not guarded_core.has(Flag.STALL)
+    assert not guarded_core.flags & Flag.STALL

@@ -1,6 +1,6 @@
-"""Tests of the gripper drivers (SPEC.md "Gripper").
+"""Tests of the gripper drivers (docs/arm.md, "The gripper").
 
-Duty cycles are worked out by hand from SPEC.md's gripper numbers
+Duty cycles are worked out by hand from the gripper numbers in docs/model.md
 (reduction 3333.3 deg/m, offset 0.058 m, limits 0.04-0.12 m, backup 0.08 m):
 ``alpha = 3333.3 * (w - 0.058)`` deg, ``on_us = alpha / 90 * 500 + 1500``,
 ``duty_ns = round(on_us * 1000)``, period 20 ms.
@@ -36,8 +36,9 @@ from bioscara_gym.hardware.gripper import (
     Gripper,
     GripperStateWarning,
     MockGripper,
+    read_saved_width,
+    save_width,
     servo_duty_cycle_ns,
-    servo_duty_percent,
 )
 
 SPEC = {
@@ -187,7 +188,7 @@ def test_servo_duty_cycle_ns_for_known_angles(angle_deg: float, duty_ns: int) ->
 @pytest.mark.parametrize(("angle_deg", "percent"), [(0.0, 7.5), (90.0, 10.0), (-90.0, 5.0)])
 def test_servo_duty_percent_for_known_angles(angle_deg: float, percent: float) -> None:
     """Duty percent = on-time / 20 ms period * 100."""
-    assert servo_duty_percent(angle_deg) == pytest.approx(percent)
+    assert servo_duty_cycle_ns(angle_deg) / PWM_PERIOD_NS * 100.0 == pytest.approx(percent)
 
 
 @pytest.mark.parametrize("angle_deg", [-270.0, 3400.0, math.nan, math.inf])
@@ -541,6 +542,34 @@ def test_atomic_write_leaves_no_temp_files(enabled: BaseGripper, state_file: Pat
         enabled.enable()
     assert leftover_files(state_file.parent) == []
     assert saved_width(state_file) == 0.07
+
+
+def test_save_width_then_read_saved_width_round_trips(state_file: Path) -> None:
+    """The public pair writes and reads the gripper's own state-file format."""
+    save_width(state_file, 0.095)
+    assert json.loads(state_file.read_text()) == {"width_m": 0.095}
+    assert read_saved_width(state_file) == 0.095
+
+
+def test_read_saved_width_reads_what_disable_saved(enabled: BaseGripper, state_file: Path) -> None:
+    enabled.set_position(0.1)
+    enabled.disable()
+    assert read_saved_width(state_file) == 0.1
+
+
+@pytest.mark.parametrize("content", [None, b"", b"[0.08]", b'{"width": 0.08}', b'{"width_m": true}'])
+def test_read_saved_width_is_none_without_a_usable_file(state_file: Path, content: bytes | None) -> None:
+    """Missing or unusable state files give None, without a warning."""
+    if content is not None:
+        state_file.parent.mkdir(parents=True)
+        state_file.write_bytes(content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_saved_width(state_file) is None
+
+
+def test_read_saved_width_of_no_file_is_none() -> None:
+    assert read_saved_width(None) is None
 
 
 def test_failed_replace_keeps_previous_file(

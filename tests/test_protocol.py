@@ -1,9 +1,9 @@
-"""Byte-level tests of the real joint driver (SPEC.md "The joint's I2C protocol").
+"""Byte-level tests of the real joint driver (docs/protocol.md).
 
 The driver :class:`Joint` runs against ``scripted_bus`` (``conftest.py``): a
 fake bus that records every transfer as ``(address, written bytes, read
 length)`` and answers from a queue of canned replies. Expected bytes are built
-here with :mod:`struct` from SPEC.md's formulas, not with the driver's codec.
+here with :mod:`struct` from the formulas in docs/model.md, not with the driver's codec.
 
 A read writes ``[REG]`` and reads payload + flags; a command writes
 ``[REG][payload]`` and reads the flags byte. Flags: bit 0 STALL, bit 1 BUSY,
@@ -39,7 +39,7 @@ from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.registers import Flag, Reg
 from bioscara_gym.hardware.transmission import velocity_to_rpm
 
-# SPEC.md kinematics and stepper tables: address, reduction, limits.
+# docs/model.md kinematics and stepper tables: address, reduction, limits.
 JOINTS: dict[str, dict[str, float | int]] = {
     "j1": dict(address=0x11, reduction=35.0, min=-3.04647, max=3.04647),
     "j2": dict(address=0x12, reduction=-1570.7963267948967, min=-0.0016, max=0.338),
@@ -55,7 +55,7 @@ NOT_HOMED = 0x04
 NOT_ENABLED = 0x08
 POWER_UP = NOT_HOMED | NOT_ENABLED
 
-# Register bytes, spelled out from SPEC.md's table.
+# Register bytes, spelled out from the table in docs/protocol.md.
 PING = b"\x0f"
 SETUP = b"\x10"
 SETRPM = b"\x11"
@@ -107,7 +107,7 @@ def clock() -> ManualClock:
 
 @pytest.fixture
 def make_joint(scripted_bus: Any, clock: ManualClock) -> Callable[..., Joint]:
-    """Build an un-initialized driver for one of SPEC.md's joints on the scripted bus."""
+    """Build an un-initialized driver for one of the arm's joints (docs/model.md) on the scripted bus."""
 
     def make(name: str = "j1", retries: int = 2) -> Joint:
         spec = JOINTS[name]

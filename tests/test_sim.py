@@ -1,7 +1,7 @@
 """The MuJoCo arm behind firmware-faithful joints (issue "MuJoCo model ... firmware-faithful joints").
 
-The firmware rules of SPEC.md ("Firmware behaviour the emulator must
-reproduce") act on MuJoCo physics here: homing pushes the link into its end
+The firmware rules of docs/firmware.md (the behaviour the emulator must
+reproduce) act on MuJoCo physics here: homing pushes the link into its end
 stop, stall detection trips on the lag of a link held by an obstacle or
 starved of torque, the deadman stops a joint in simulated time. The joint
 contract itself (refusals, flags, offsets) is ``test_conformance.py``'s, which
@@ -27,8 +27,7 @@ from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.errors import StalledError
-from bioscara_gym.hardware.firmware import DEADMAN_S, HOMING_SETTLE_S, TICK_S
-from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.registers import DEADMAN_S, HOMING_SETTLE_S, TICK_S, Flag
 from bioscara_gym.hardware.sim import ArmSim
 from bioscara_gym.hardware.transmission import rpm_to_velocity, velocity_to_rpm
 

@@ -20,6 +20,7 @@ from bioscara_gym.hardware.errors import (
     NotHomedError,
     NotInitError,
     StalledError,
+    UnknownJointError,
     error_to_string,
 )
 from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
@@ -66,6 +67,7 @@ __all__ = [
     "Reg",
     "SMBusI2C",
     "StalledError",
+    "UnknownJointError",
     "WallClock",
     "error_to_string",
     "load_config",

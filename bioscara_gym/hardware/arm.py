@@ -1,6 +1,6 @@
 """The arm layer: what ros2_control's hardware interface did on the original stack.
 
-Lifecycle (SPEC.md "The arm layer")::
+Lifecycle (docs/arm.md, "The arm layer")::
 
     UNCONFIGURED --configure--> INACTIVE --activate--> ACTIVE
     ACTIVE --deactivate--> INACTIVE --cleanup--> UNCONFIGURED
@@ -471,7 +471,7 @@ class Arm:
 
         Position and velocity commands are clamped to the joint's limits
         (position range, ±max velocity). Of a home command only the sign
-        counts (seed 000, ``write()``): +1 homes to the max end stop, -1 to
+        counts (docs/arm.md, "Home command"): +1 homes to the max end stop, -1 to
         the min one, with the speed, sensitivity, current and acceleration of
         the joint's configuration; 0 aborts a running homing.
 

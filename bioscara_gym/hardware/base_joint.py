@@ -16,23 +16,28 @@ from bioscara_gym.hardware.errors import (
     NotInitError,
     StalledError,
 )
-from bioscara_gym.hardware.registers import ACK, POWER_UP_FLAGS, BrakeMode, Flag, Reg
-from bioscara_gym.hardware.transmission import (
+from bioscara_gym.hardware.registers import (
+    ACK,
+    CURRENT_MAX_PCT,
+    FLAG_BUSY,
+    FLAG_NOT_ENABLED,
+    FLAG_NOT_HOMED,
+    FLAG_STALL,
     HOMING_RPM_MAX,
     HOMING_RPM_MIN,
+    POWER_UP_FLAGS,
+    SENSITIVITY_MAX,
+    BrakeMode,
+    Flag,
+    Reg,
+)
+from bioscara_gym.hardware.transmission import (
     degrees_to_position,
     position_to_degrees,
     rate_to_degrees,
     rpm_to_velocity,
     velocity_to_rpm,
 )
-
-# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
-_STALL = int(Flag.STALL)
-_BUSY = int(Flag.BUSY)
-_NOT_HOMED = int(Flag.NOT_HOMED)
-_NOT_ENABLED = int(Flag.NOT_ENABLED)
-
 
 #: Poll period of :meth:`BaseJoint.home` while the joint is BUSY, seconds.
 BUSY_POLL_S = 0.01
@@ -50,12 +55,13 @@ class BaseJoint(abc.ABC):
     :meth:`is_homed`, :meth:`is_enabled`, :meth:`is_stalled`, :meth:`is_busy`.
 
     Subclasses provide the two register-level primitives :meth:`_command` and
-    :meth:`_query`; the host rules of SPEC.md (refusals before any traffic,
-    homing bounds and offsets, positions 0.0 while not homed) live here once.
+    :meth:`_query`; the host rules of the C++ API's ``BaseJoint`` (refusals
+    before any traffic, homing bounds and offsets, positions 0.0 while not
+    homed; see ``docs/arm.md``) live here once.
 
     Args:
         name: Joint name used in messages (``"j1"``).
-        reduction: Motor turns per joint unit, signed (SPEC.md kinematics).
+        reduction: Motor turns per joint unit, signed (see ``docs/model.md``).
         min: Lower joint limit (rad or m); the offset after homing negative.
         max: Upper joint limit (rad or m); the offset after homing positive.
         clock: Time source for waiting on blocking commands.
@@ -71,9 +77,9 @@ class BaseJoint(abc.ABC):
     ) -> None:
         """Create the joint object; nothing is sent before :meth:`init`."""
         if not math.isfinite(reduction) or reduction == 0.0:
-            raise InvalidArgumentError(f"{name}: reduction {reduction} must be finite and non-zero")
+            raise InvalidArgumentError(f"reduction {reduction} must be finite and non-zero", joint=name)
         if not min < max:
-            raise InvalidArgumentError(f"{name}: min {min} must be below max {max}")
+            raise InvalidArgumentError(f"min {min} must be below max {max}", joint=name)
         self.name = name
         self.reduction = float(reduction)
         self.min = float(min)
@@ -104,22 +110,23 @@ class BaseJoint(abc.ABC):
     # --------------------------------------------------------------- helpers
     def _require_init(self) -> None:
         if not self._initialized:
-            raise NotInitError(f"{self.name}: joint not initialized; call init() first")
+            raise NotInitError("joint not initialized; call init() first", joint=self.name)
 
     def _require_enabled(self) -> None:
         self._require_init()
-        if self._flags & _NOT_ENABLED:
-            raise NotEnabledError(f"{self.name}: joint not enabled; call enable() first")
+        if self._flags & FLAG_NOT_ENABLED:
+            raise NotEnabledError("joint not enabled; call enable() first", joint=self.name)
 
     def _require_homed(self) -> None:
         self._require_enabled()
-        if self._flags & _NOT_HOMED:
-            raise NotHomedError(f"{self.name}: joint not homed; home it before moving")
+        if self._flags & FLAG_NOT_HOMED:
+            raise NotHomedError("joint not homed; home it before moving", joint=self.name)
 
     def _require_no_blocking(self) -> None:
-        if self._current_b_cmd is not Reg.NONE and self._flags & _BUSY:
+        if self._current_b_cmd is not Reg.NONE and self._flags & FLAG_BUSY:
             raise IncorrectStateError(
-                f"{self.name}: {self._current_b_cmd.name} is still running; stop it first"
+                f"{self._current_b_cmd.name} is still running; stop it first",
+                joint=self.name,
             )
 
     def _send(self, reg: Reg, value: float | int) -> int:
@@ -135,23 +142,33 @@ class BaseJoint(abc.ABC):
     def _send_motion(self, reg: Reg, value: float | int) -> None:
         """Send a motion command and raise if the reply says it was not taken."""
         flags = self._send(reg, value)
-        if flags & _STALL:
-            raise StalledError(f"{self.name}: joint stalled; re-enable it to clear the stall")
-        if flags & _NOT_ENABLED:
+        if flags & FLAG_STALL:
+            raise StalledError(
+                "joint stalled; re-enable it to clear the stall", joint=self.name, register=reg
+            )
+        if flags & FLAG_NOT_ENABLED:
             raise NotEnabledError(
-                f"{self.name}: joint reports not enabled (deadman or disable); re-enable it"
+                "joint reports not enabled (deadman or disable); re-enable it",
+                joint=self.name,
+                register=reg,
             )
 
-    @staticmethod
-    def _check_percent(name: str, what: str, value: int) -> int:
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 100:
-            raise InvalidArgumentError(f"{name}: {what} {value!r} must be an integer percent 0-100")
+    def _check_percent(self, what: str, value: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= CURRENT_MAX_PCT:
+            raise InvalidArgumentError(
+                f"{what} {value!r} must be an integer percent 0-{CURRENT_MAX_PCT}", joint=self.name
+            )
+        return value
+
+    def _check_sensitivity(self, what: str, value: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SENSITIVITY_MAX:
+            raise InvalidArgumentError(f"{what} {value!r} must be 0-{SENSITIVITY_MAX}", joint=self.name)
         return value
 
     def _check_finite(self, what: str, value: float) -> float:
         value = float(value)
         if not math.isfinite(value):
-            raise InvalidArgumentError(f"{self.name}: {what} {value} must be finite")
+            raise InvalidArgumentError(f"{what} {value} must be finite", joint=self.name)
         return value
 
     # ------------------------------------------------------------ lifecycle
@@ -169,7 +186,9 @@ class BaseJoint(abc.ABC):
         try:
             ack = self._get(Reg.PING)
             if ack != ACK:
-                raise CommError(f"{self.name}: PING answered {ack!r}, expected {ACK!r} ('O')")
+                raise CommError(
+                    f"PING answered {ack!r}, expected {ACK!r} ('O')", joint=self.name, register=Reg.PING
+                )
             self._offset_known = False
             self._load_offset()
         except BaseException:
@@ -183,7 +202,7 @@ class BaseJoint(abc.ABC):
         Called by :meth:`init` and again before positions are used, so a homed
         joint whose first reply lost its flags still gets its offset.
         """
-        if not self._offset_known and not self._flags & _NOT_HOMED:
+        if not self._offset_known and not self._flags & FLAG_NOT_HOMED:
             self.offset = float(self._get(Reg.HOMEOFFSET))
             self._offset_known = True
 
@@ -221,11 +240,13 @@ class BaseJoint(abc.ABC):
             InvalidArgumentError: A current outside 0-100.
             NotEnabledError: The joint still reports not enabled afterwards.
         """
-        self._check_percent(self.name, "drive current", drive_current)
-        self._check_percent(self.name, "hold current", hold_current)
+        self._check_percent("drive current", drive_current)
+        self._check_percent("hold current", hold_current)
         flags = self._send(Reg.SETUP, pack_bytes(drive_current, hold_current))
-        if flags & _NOT_ENABLED:
-            raise NotEnabledError(f"{self.name}: failed to enable; the joint still reports not enabled")
+        if flags & FLAG_NOT_ENABLED:
+            raise NotEnabledError(
+                "failed to enable; the joint still reports not enabled", joint=self.name, register=Reg.SETUP
+            )
 
     def disable(self) -> None:
         """Stop, set hold and drive current to 0 and let the joint freewheel."""
@@ -264,12 +285,12 @@ class BaseJoint(abc.ABC):
         if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
             unit = "m/s" if abs(self.reduction) > 500 else "rad/s"
             raise InvalidArgumentError(
-                f"{self.name}: homing speed {velocity:g} {unit} is {abs(rpm):.3g} RPM at the "
-                f"motor; must be between {HOMING_RPM_MIN:g} and {HOMING_RPM_MAX:g} RPM"
+                f"homing speed {velocity:g} {unit} is {abs(rpm):.3g} RPM at the "
+                f"motor; must be between {HOMING_RPM_MIN:g} and {HOMING_RPM_MAX:g} RPM",
+                joint=self.name,
             )
-        if isinstance(sensitivity, bool) or not isinstance(sensitivity, int) or not 0 <= sensitivity <= 255:
-            raise InvalidArgumentError(f"{self.name}: homing sensitivity {sensitivity!r} must be 0-255")
-        self._check_percent(self.name, "homing current", current)
+        self._check_sensitivity("homing sensitivity", sensitivity)
+        self._check_percent("homing current", current)
         self._require_enabled()
         self._require_no_blocking()
         direction = 1 if rpm > 0 else 0
@@ -308,12 +329,14 @@ class BaseJoint(abc.ABC):
         velocity = self._check_finite("homing velocity", velocity)
         if velocity == 0.0:
             raise InvalidArgumentError(
-                f"{self.name}: homing velocity must be non-zero; its sign picks the end stop"
+                "homing velocity must be non-zero; its sign picks the end stop",
+                joint=self.name,
             )
         self._require_init()
         if self._current_b_cmd not in (Reg.NONE, Reg.HOME):
             raise IncorrectStateError(
-                f"{self.name}: {self._current_b_cmd.name} is running; cannot adopt a homing"
+                f"{self._current_b_cmd.name} is running; cannot adopt a homing",
+                joint=self.name,
             )
         self._homing_offset = self.max if velocity > 0 else self.min
         self._current_b_cmd = Reg.HOME
@@ -326,8 +349,8 @@ class BaseJoint(abc.ABC):
         """
         self._current_b_cmd = Reg.NONE
         self.get_flags()
-        if self._flags & _NOT_HOMED:
-            raise NotHomedError(f"{self.name}: homing did not complete (aborted or failed)")
+        if self._flags & FLAG_NOT_HOMED:
+            raise NotHomedError("homing did not complete (aborted or failed)", joint=self.name)
         self.offset = self._homing_offset
         self._offset_known = True
         self._send(Reg.HOMEOFFSET, self.offset)
@@ -340,11 +363,12 @@ class BaseJoint(abc.ABC):
                 stopped first).
         """
         start = self.clock.now()
-        while self.get_flags() & _BUSY:
+        while self.get_flags() & FLAG_BUSY:
             if timeout_s is not None and self.clock.now() - start > timeout_s:
                 self.stop()
                 raise IncorrectStateError(
-                    f"{self.name}: still busy after {timeout_s:g} s; stopped the joint"
+                    f"still busy after {timeout_s:g} s; stopped the joint",
+                    joint=self.name,
                 )
             self.clock.sleep(period_s)
 
@@ -369,7 +393,7 @@ class BaseJoint(abc.ABC):
     def get_position(self) -> float:
         """Joint position in rad or m; 0.0 (no error) while not homed."""
         deg = self._get(Reg.ANGLEMOVED)
-        if self._flags & _NOT_HOMED:
+        if self._flags & FLAG_NOT_HOMED:
             return 0.0
         self._load_offset()
         return degrees_to_position(float(deg), self.reduction, self.offset)
@@ -414,7 +438,7 @@ class BaseJoint(abc.ABC):
             StalledError: The reply says the joint is stalled.
         """
         if isinstance(steps, bool) or not isinstance(steps, int):
-            raise InvalidArgumentError(f"{self.name}: steps {steps!r} must be an integer")
+            raise InvalidArgumentError(f"steps {steps!r} must be an integer", joint=self.name)
         self._require_enabled()
         self._send_motion(Reg.MOVESTEPS, steps)
 
@@ -445,18 +469,18 @@ class BaseJoint(abc.ABC):
 
     def set_drive_current(self, current: int) -> None:
         """Drive current, percent 0-100; 0 sets NOT_ENABLED."""
-        self._send(Reg.SETCURRENT, self._check_percent(self.name, "drive current", current))
+        self._send(Reg.SETCURRENT, self._check_percent("drive current", current))
 
     def set_hold_current(self, current: int) -> None:
         """Hold current, percent 0-100; 0 sets NOT_ENABLED."""
-        self._send(Reg.SETHOLDCURRENT, self._check_percent(self.name, "hold current", current))
+        self._send(Reg.SETHOLDCURRENT, self._check_percent("hold current", current))
 
     def set_brake_mode(self, mode: int) -> None:
         """Brake mode when idle: 0 freewheel, 1 coolbrake, 2 hardbrake."""
         try:
             mode = BrakeMode(mode)
         except ValueError as e:
-            raise InvalidArgumentError(f"{self.name}: brake mode {mode!r} must be 0, 1 or 2") from e
+            raise InvalidArgumentError(f"brake mode {mode!r} must be 0, 1 or 2", joint=self.name) from e
         self._send(Reg.SETBRAKEMODE, int(mode))
 
     def set_max_acceleration(self, acceleration: float) -> None:
@@ -467,21 +491,19 @@ class BaseJoint(abc.ABC):
         """
         acceleration = self._check_finite("max acceleration", acceleration)
         if acceleration <= 0:
-            raise InvalidArgumentError(f"{self.name}: max acceleration {acceleration} must be > 0")
+            raise InvalidArgumentError(f"max acceleration {acceleration} must be > 0", joint=self.name)
         self._send(Reg.SETMAXACCELERATION, abs(rate_to_degrees(acceleration, self.reduction)))
 
     def set_max_velocity(self, velocity: float) -> None:
         """Maximum velocity, rad/s or m/s (> 0); sent as deg/s like the acceleration."""
         velocity = self._check_finite("max velocity", velocity)
         if velocity <= 0:
-            raise InvalidArgumentError(f"{self.name}: max velocity {velocity} must be > 0")
+            raise InvalidArgumentError(f"max velocity {velocity} must be > 0", joint=self.name)
         self._send(Reg.SETMAXVELOCITY, abs(rate_to_degrees(velocity, self.reduction)))
 
     def enable_stallguard(self, sensitivity: int) -> None:
         """Enable stall detection with threshold 10 x ``sensitivity`` (0-255); clears STALL."""
-        if isinstance(sensitivity, bool) or not isinstance(sensitivity, int) or not 0 <= sensitivity <= 255:
-            raise InvalidArgumentError(f"{self.name}: stall sensitivity {sensitivity!r} must be 0-255")
-        self._send(Reg.ENABLESTALLGUARD, sensitivity)
+        self._send(Reg.ENABLESTALLGUARD, self._check_sensitivity("stall sensitivity", sensitivity))
 
     # ---------------------------------------------------------------- flags
     def get_flags(self) -> Flag:
@@ -496,19 +518,19 @@ class BaseJoint(abc.ABC):
 
     def is_homed(self) -> bool:
         """Homed, per the last transaction's flags."""
-        return not self._flags & _NOT_HOMED
+        return not self._flags & FLAG_NOT_HOMED
 
     def is_enabled(self) -> bool:
         """Enabled, per the last transaction's flags (check STALL too)."""
-        return not self._flags & _NOT_ENABLED
+        return not self._flags & FLAG_NOT_ENABLED
 
     def is_stalled(self) -> bool:
         """Stalled, per the last transaction's flags."""
-        return bool(self._flags & _STALL)
+        return bool(self._flags & FLAG_STALL)
 
     def is_busy(self) -> bool:
         """A blocking command runs, per the last transaction's flags."""
-        return bool(self._flags & _BUSY)
+        return bool(self._flags & FLAG_BUSY)
 
     @property
     def current_blocking_command(self) -> Reg:

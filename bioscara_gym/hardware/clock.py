@@ -50,5 +50,3 @@ class ManualClock:
         """Advance time by ``dt`` seconds (negative values are ignored)."""
         if dt > 0:
             self._t += dt
-
-    advance = sleep

@@ -1,85 +1,65 @@
-"""Little-endian payload encoding of the joint protocol.
+"""Payload encoding of the joint protocol, driven by :data:`~.registers.PAYLOAD_FORMAT`.
 
-Every payload is at most four bytes: ``float32``, ``int32``, ``uint32`` or
-``uint8``, little-endian (the joints are ARM Cortex-M, the host memcpy's them).
+Every payload is at most four bytes, ``float32``, ``int32``, ``uint32`` or
+``uint8``, little-endian (the joints are ARM Cortex-M; both sides ``memcpy``
+the bytes). The driver (:class:`~bioscara_gym.hardware.joint.Joint`) and the
+firmware emulation (:class:`~bioscara_gym.hardware.firmware.JointFirmware`)
+both encode and decode through :func:`encode` and :func:`decode`, so each
+register's format is written once, in the register table.
+
+SETUP and HOME carry four separate bytes in their ``uint32``;
+:func:`pack_bytes` and :func:`unpack_bytes` build and split it.
 """
 
 from __future__ import annotations
 
-import math
 import struct
 
 from bioscara_gym.hardware.errors import InvalidArgumentError
+from bioscara_gym.hardware.registers import PAYLOAD_FORMAT, Reg
 
-_F32 = struct.Struct("<f")
-_I32 = struct.Struct("<i")
-_U32 = struct.Struct("<I")
-_F32_MAX = 3.4028234663852886e38
-
-
-def encode_f32(value: float) -> bytes:
-    """Encode a float32, little-endian.
-
-    Raises:
-        InvalidArgumentError: ``value`` is NaN, infinite or beyond float32 range.
-    """
-    if not math.isfinite(value) or abs(value) > _F32_MAX:
-        raise InvalidArgumentError(f"{value!r} cannot be sent as a finite float32")
-    return _F32.pack(value)
+#: How the firmware reads a register that has no entry in the table: its
+#: four-byte value buffer, as a uint32.
+_RAW = struct.Struct("<I")
+_STRUCTS: dict[int, struct.Struct] = {int(reg): struct.Struct(fmt) for reg, fmt in PAYLOAD_FORMAT.items()}
 
 
-def decode_f32(data: bytes) -> float:
-    """Decode a little-endian float32 from exactly four bytes."""
-    return _F32.unpack(data)[0]
+def payload_size(reg: Reg | int) -> int:
+    """Size in bytes of the payload of ``reg`` (4 for a register without a format)."""
+    return _STRUCTS.get(reg, _RAW).size
 
 
-def encode_i32(value: int) -> bytes:
-    """Encode a signed 32-bit integer, little-endian.
+def encode(reg: Reg, value: float | int, *, joint: str | None = None) -> bytes:
+    """Encode ``value`` in the payload format of ``reg``.
+
+    Args:
+        reg: A register of :data:`~.registers.PAYLOAD_FORMAT`.
+        value: The payload value (a float for float32, an int otherwise).
+        joint: Name of the joint, for the error message.
+
+    Returns:
+        The payload bytes, little-endian.
 
     Raises:
-        InvalidArgumentError: ``value`` does not fit in int32.
+        InvalidArgumentError: ``value`` does not fit the format (out of range,
+            or a float where an integer is expected); carries ``joint`` and
+            ``register``.
     """
-    if not -(2**31) <= value < 2**31:
-        raise InvalidArgumentError(f"{value} does not fit in int32")
-    return _I32.pack(value)
+    try:
+        return _STRUCTS[reg].pack(value)
+    except (struct.error, OverflowError) as e:
+        raise InvalidArgumentError(f"{reg.name} payload {value!r}: {e}", joint=joint, register=reg) from e
 
 
-def decode_i32(data: bytes) -> int:
-    """Decode a little-endian int32 from exactly four bytes."""
-    return _I32.unpack(data)[0]
+def decode(reg: Reg | int, data: bytes) -> float | int:
+    """Decode the payload of ``reg`` from exactly :func:`payload_size` bytes.
 
-
-def encode_u32(value: int) -> bytes:
-    """Encode an unsigned 32-bit integer, little-endian.
+    A register without a format decodes as the firmware's raw uint32.
 
     Raises:
-        InvalidArgumentError: ``value`` does not fit in uint32.
+        struct.error: ``data`` has the wrong length.
     """
-    if not 0 <= value < 2**32:
-        raise InvalidArgumentError(f"{value} does not fit in uint32")
-    return _U32.pack(value)
-
-
-def decode_u32(data: bytes) -> int:
-    """Decode a little-endian uint32 from exactly four bytes."""
-    return _U32.unpack(data)[0]
-
-
-def encode_u8(value: int) -> bytes:
-    """Encode one unsigned byte.
-
-    Raises:
-        InvalidArgumentError: ``value`` is outside 0-255.
-    """
-    if not 0 <= value <= 255:
-        raise InvalidArgumentError(f"{value} does not fit in uint8 (0-255)")
-    return bytes((value,))
-
-
-def decode_u8(data: bytes) -> int:
-    """Decode one unsigned byte."""
-    (value,) = data
-    return value
+    return _STRUCTS.get(reg, _RAW).unpack(data)[0]
 
 
 def pack_bytes(b0: int, b1: int = 0, b2: int = 0, b3: int = 0) -> int:
@@ -87,6 +67,9 @@ def pack_bytes(b0: int, b1: int = 0, b2: int = 0, b3: int = 0) -> int:
 
     Used by SETUP (byte0 drive current, byte1 hold current) and HOME (byte0
     direction, byte1 speed RPM, byte2 sensitivity, byte3 current).
+
+    Raises:
+        InvalidArgumentError: A byte is outside 0-255.
     """
     for i, b in enumerate((b0, b1, b2, b3)):
         if not 0 <= b <= 255:

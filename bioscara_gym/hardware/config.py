@@ -5,8 +5,9 @@ The configuration is a tree of frozen dataclasses (:class:`ArmConfig` holding
 dataclass checks its own invariants when it is built, so an ``ArmConfig`` that
 exists is valid; YAML is only the file format. :func:`load_config` reads a YAML
 file (or, with no path, the packaged ``default_config.yaml``, whose numbers are
-those of SPEC.md), :func:`config_from_dict` builds a configuration from plain
-data and :func:`config_to_dict` turns one back into plain data.
+those of the arm's parameter file and URDF, see ``docs/model.md``),
+:func:`config_from_dict` builds a configuration from plain data and
+:func:`config_to_dict` turns one back into plain data.
 
 Every validation failure raises :class:`~bioscara_gym.hardware.errors.ConfigError`
 whose message names the source, the joint, the field and the expectation, e.g.
@@ -61,7 +62,16 @@ from typing import Any
 
 import yaml
 
-from bioscara_gym.hardware.errors import ConfigError
+from bioscara_gym.hardware.errors import ConfigError, UnknownJointError
+from bioscara_gym.hardware.registers import (
+    CURRENT_MAX_PCT,
+    HOMING_RPM_MAX,
+    HOMING_RPM_MIN,
+    I2C_ADDRESS_MAX,
+    I2C_ADDRESS_MIN,
+    SENSITIVITY_MAX,
+)
+from bioscara_gym.hardware.transmission import velocity_to_rpm
 
 __all__ = [
     "GRIPPER_NAME",
@@ -80,22 +90,6 @@ GRIPPER_NAME = "gripper"
 
 #: Allowed values of :attr:`JointConfig.joint_type`.
 JOINT_TYPES = ("revolute", "prismatic")
-
-#: 7-bit I2C addresses a device may use (0x00-0x02 and 0x78-0x7F are reserved
-#: by the I2C specification).
-I2C_ADDRESS_MIN = 0x03
-I2C_ADDRESS_MAX = 0x77
-
-#: The driver's homing speed bounds in motor RPM, exclusive (SPEC.md "The
-#: host driver's rules": ``1.0 < |rpm| < 250.0``; the firmware takes the speed
-#: as one unsigned byte).
-HOMING_RPM_MIN = 1.0
-HOMING_RPM_MAX = 250.0
-
-#: Currents are percent of the driver's 2.5 A output (SPEC.md).
-CURRENT_MAX = 100
-#: Stall and homing thresholds are one unsigned byte (SPEC.md).
-THRESHOLD_MAX = 255
 
 _PACKAGE = "bioscara_gym.hardware"
 _DEFAULT_CONFIG = "default_config.yaml"
@@ -232,8 +226,8 @@ class HomingConfig:
                 "homing.speed must be non-zero (its sign picks the end stop: + homes to max, - to min)"
             )
         _set(self, "speed", speed)
-        _integer(self.threshold, "homing.threshold", high=THRESHOLD_MAX)
-        _integer(self.current, "homing.current", high=CURRENT_MAX, unit=" %")
+        _integer(self.threshold, "homing.threshold", high=SENSITIVITY_MAX)
+        _integer(self.current, "homing.current", high=CURRENT_MAX_PCT, unit=" %")
         _set(self, "acceleration", _positive(self.acceleration, "homing.acceleration"))
 
 
@@ -311,9 +305,9 @@ class JointConfig:
             "max_acceleration",
             _positive(self.max_acceleration, "max_acceleration", f"{unit}/s²"),
         )
-        _integer(self.stall_threshold, "stall_threshold", high=THRESHOLD_MAX)
-        _integer(self.hold_current, "hold_current", high=CURRENT_MAX, unit=" %")
-        _integer(self.drive_current, "drive_current", high=CURRENT_MAX, unit=" %")
+        _integer(self.stall_threshold, "stall_threshold", high=SENSITIVITY_MAX)
+        _integer(self.hold_current, "hold_current", high=CURRENT_MAX_PCT, unit=" %")
+        _integer(self.drive_current, "drive_current", high=CURRENT_MAX_PCT, unit=" %")
         if not isinstance(self.homing, HomingConfig):
             raise ConfigError(f"homing must be a HomingConfig, got {_type_name(self.homing)}")
         rpm = self.homing_rpm()
@@ -328,10 +322,11 @@ class JointConfig:
         """Return the signed motor speed of homing in RPM.
 
         Returns:
-            ``rad2deg(reduction × homing.speed) / 6`` (SPEC.md "Velocity
-            command"); the sign is the motor's direction.
+            ``rad2deg(reduction × homing.speed) / 6``, as the velocity
+            command (:func:`~bioscara_gym.hardware.transmission.velocity_to_rpm`);
+            the sign is the motor's direction.
         """
-        return math.degrees(self.reduction * self.homing.speed) / 6.0
+        return velocity_to_rpm(self.homing.speed, self.reduction)
 
 
 @dataclass(frozen=True)
@@ -489,13 +484,15 @@ class ArmConfig:
             The joint's configuration.
 
         Raises:
-            ConfigError: If there is no joint called ``name``; the message
-                lists the known joints.
+            UnknownJointError: If there is no joint called ``name`` (a
+                :class:`~bioscara_gym.hardware.errors.ConfigError` and an
+                :class:`~bioscara_gym.hardware.errors.InvalidArgumentError`);
+                the message lists the known joints.
         """
         for joint in self.joints:
             if joint.name == name:
                 return joint
-        raise ConfigError(f"unknown joint {name!r}; known joints: {', '.join(self.names)}")
+        raise UnknownJointError(f"unknown joint {name!r}; known joints: {', '.join(self.names)}")
 
 
 # --------------------------------------------------------------------------
@@ -675,7 +672,7 @@ def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
 
     Args:
         path: The file to read; ``None`` loads the packaged
-            ``default_config.yaml`` (the values of SPEC.md).
+            ``default_config.yaml`` (the arm's own values).
 
     Returns:
         The validated configuration.

@@ -17,6 +17,7 @@ import numpy as np
 
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.firmware import JointFirmware
+from bioscara_gym.hardware.registers import I2C_ADDRESS_MAX, I2C_ADDRESS_MIN
 
 
 class Fault(Enum):
@@ -110,8 +111,10 @@ class EmulatedI2CBus:
     ) -> None:
         """Attach the devices."""
         for address in devices:
-            if not 0x03 <= address <= 0x77:
-                raise ValueError(f"device address {address:#04x} is outside 0x03-0x77")
+            if not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
+                raise ValueError(
+                    f"device address {address:#04x} is outside {I2C_ADDRESS_MIN:#04x}-{I2C_ADDRESS_MAX:#04x}"
+                )
         self.devices = dict(devices)
         self.faults = faults or FaultPlan()
         self._rng = np.random.default_rng(self.faults.seed)

@@ -89,9 +89,14 @@ class JointError(Exception):
         self.joint = joint
         self.register = register
         text = message or error_to_string(self.code)
-        if joint is not None and not text.startswith(f"{joint}:"):
-            text = f"{joint}: {text}"
+        label = self._label()
+        if label is not None and not text.startswith(f"{label}:"):
+            text = f"{label}: {text}"
         super().__init__(text)
+
+    def _label(self) -> str | None:
+        """What the message is prefixed with: the joint's name."""
+        return self.joint
 
 
 class NotHomedError(JointError):
@@ -119,9 +124,31 @@ class NotInitError(JointError):
 
 
 class CommError(JointError):
-    """A bus transaction failed after all retries."""
+    """A bus transaction failed after all retries.
+
+    Attributes:
+        address: The 7-bit I2C address of the transaction, if any; with
+            ``joint`` the message is prefixed ``"j1 (0x11): ..."``.
+    """
 
     code = ErrType.COMM_ERROR
+
+    def __init__(
+        self,
+        message: str = "",
+        *,
+        joint: str | None = None,
+        register: IntEnum | None = None,
+        address: int | None = None,
+    ) -> None:
+        """Create the error; the arguments are those of :class:`JointError`, plus ``address``."""
+        self.address = address
+        super().__init__(message, joint=joint, register=register)
+
+    def _label(self) -> str | None:
+        if self.joint is not None and self.address is not None:
+            return f"{self.joint} ({self.address:#04x})"
+        return self.joint
 
 
 class InvalidArgumentError(JointError, ValueError):
@@ -140,35 +167,45 @@ class ArmStateError(IncorrectStateError):
     """A request that the arm's lifecycle state or command mode does not allow."""
 
 
-_BY_CODE: dict[ErrType, type[JointError]] = {
-    cls.code: cls
-    for cls in (
-        NotHomedError,
-        NotEnabledError,
-        StalledError,
-        NotInitError,
-        CommError,
-        InvalidArgumentError,
-        IncorrectStateError,
-    )
-}
-
-
-def error_for_code(code: ErrType, message: str = "") -> JointError:
-    """Build the exception that matches ``code`` (``JointError`` for ERROR).
-
-    Args:
-        code: The error code.
-        message: Message for the exception.
-
-    Returns:
-        An instance of the subclass for ``code``.
-    """
-    cls = _BY_CODE.get(ErrType(code))
-    if cls is None:
-        return JointError(message, code=ErrType(code))
-    return cls(message)
-
-
 class ConfigError(ValueError):
     """A configuration file or value is invalid; the message names the field."""
+
+
+class MissingExtraError(ImportError):
+    """An optional dependency is not installed; the message names the extra to install.
+
+    Attributes:
+        extra: The extra, e.g. ``"sim"`` for ``pip install 'bioscara-gym[sim]'``.
+    """
+
+    def __init__(self, what: str, extra: str) -> None:
+        """Say what needs the extra, and how to install it."""
+        super().__init__(f"{what} needs the [{extra}] extra: pip install 'bioscara-gym[{extra}]'")
+        self.extra = extra
+
+
+def require_extra(module: str, what: str, extra: str) -> None:
+    """Import ``module``, or raise :class:`MissingExtraError` naming ``extra``.
+
+    Args:
+        module: The module the feature needs, e.g. ``"mujoco"``.
+        what: The feature, for the message (``"the sim backend"``).
+        extra: The extra that installs it (``"sim"``).
+    """
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name is not None and e.name.split(".")[0] != module.split(".")[0]:
+            raise  # the module is there but something it needs is broken: show that
+        raise MissingExtraError(what, extra) from e
+
+
+class UnknownJointError(InvalidArgumentError, ConfigError):
+    """A joint name that the configuration does not have; the message lists the known ones.
+
+    Both an :class:`InvalidArgumentError` (a bad request to the driver layer)
+    and a :class:`ConfigError` (raised by
+    :meth:`~bioscara_gym.hardware.config.ArmConfig.joint`).
+    """

@@ -1,4 +1,4 @@
-"""Emulation of the joint firmware (SPEC.md "Firmware behaviour").
+"""Emulation of the joint firmware (``docs/firmware.md``).
 
 Two layers, so the rules exist once:
 
@@ -11,9 +11,13 @@ Two layers, so the rules exist once:
   keeps it in step with an injectable clock; ``EmulatedI2CBus`` routes bytes to
   it.
 
-Units inside the firmware are the motor's: degrees, deg/s, RPM. SPEC.md does
-not name the PID error's unit; we read it as 1/16 microsteps (3200 per
-revolution). That is the reading under which the arm's own parameters are
+The protocol's numbers (timings, stall-detector constants) are in
+:mod:`~bioscara_gym.hardware.registers` with their sources; what is only an
+emulation choice stays here.
+
+Units inside the firmware are the motor's: degrees, deg/s, RPM. The firmware
+and its documentation do not name the PID error's unit; we read it as 1/16
+microsteps (3200 per revolution). That is the reading under which the arm's own parameters are
 coherent: homing thresholds of 25-50 are 1.6-3 full steps, just past the
 stepper's pull-out lag of one full step, so homing trips when the motor slips
 against the end stop, and stall thresholds of 60-150 (3.75-9.4 full steps)
@@ -24,56 +28,61 @@ the same numbers would trip during ordinary acceleration.
 from __future__ import annotations
 
 import math
-import struct
 from enum import Enum
 
+from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.codec import unpack_bytes
-from bioscara_gym.hardware.motor import Motor
+from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
 from bioscara_gym.hardware.registers import (
     ACK,
     BLOCKING_COMMANDS,
+    DEADMAN_S,
+    FLAG_BUSY,
+    FLAG_MASK,
+    FLAG_NOT_ENABLED,
+    FLAG_NOT_HOMED,
+    FLAG_STALL,
+    HOMING_SETTLE_S,
     MAX_PAYLOAD,
-    PAYLOAD_FORMAT,
     POWER_UP_FLAGS,
     READ_REGISTERS,
+    STALL_MID_SPEED_BAND,
+    STALL_MID_SPEED_OFFSET,
+    STALL_SLOPE,
+    STALL_SPIKE_LIMIT,
+    STALL_TAU_S,
+    STALL_THRESHOLD_PER_SENSITIVITY,
+    TICK_S,
     Flag,
     Reg,
 )
+from bioscara_gym.hardware.transmission import steps_to_degrees
 
-# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
-_STALL = int(Flag.STALL)
-_BUSY = int(Flag.BUSY)
-_NOT_HOMED = int(Flag.NOT_HOMED)
-_NOT_ENABLED = int(Flag.NOT_ENABLED)
+__all__ = [
+    # Timings re-exported for older imports; their home is registers.
+    "DEADMAN_S",
+    "HOMING_SETTLE_S",
+    "MICROSTEPS_PER_DEG",
+    "MICROSTEPS_PER_FULL_STEP",
+    "TICK_S",
+    "FirmwareCore",
+    "JointFirmware",
+    "Mode",
+    "stall_threshold",
+]
 
-
-#: Main-loop period of the firmware in seconds.
-TICK_S = 0.01
+#: PID-error units per full step: 1/16 microsteps (our reading, see the module docstring).
+MICROSTEPS_PER_FULL_STEP = 16
 #: PID-error units (1/16 microsteps) per motor degree: 200 full steps x 16 per turn.
-MICROSTEPS_PER_DEG = 200 * 16 / 360.0
-#: Deadman: an enabled joint moving in velocity mode stops after this silence.
-DEADMAN_S = 0.05
-#: Homing waits this long after the hard stop before it starts to move.
-HOMING_SETTLE_S = 0.5
-#: Stall detection: jumps above this (microsteps per tick) are spikes.
-SPIKE_LIMIT = 100.0
-#: Stall detection low-pass time constant in seconds.
-STALL_TAU_S = 0.1
-#: Extra threshold while 12 <= |omega| <= 450 rad/s (motor), from the firmware.
-STALL_MID_SPEED_OFFSET = 90.0
-STALL_MID_SPEED_BAND = (12.0, 450.0)
-#: Slope of the speed-adaptive threshold (0 in the shipped firmware).
-STALL_SLOPE = 0.0
+MICROSTEPS_PER_DEG = MICROSTEPS_PER_FULL_STEP / FULL_STEP_DEG
 #: Defaults before the host sets limits (not documented; our choice).
 DEFAULT_MAX_VELOCITY_DPS = 1000.0
 DEFAULT_MAX_ACCELERATION_DPS2 = 2000.0
 DEFAULT_CURRENT_PCT = 0
 
-_ALL_BITS = _STALL | _BUSY | _NOT_HOMED | _NOT_ENABLED
 _LOWPASS_GAIN = TICK_S / STALL_TAU_S
 _LOWPASS_KEEP = 1.0 - _LOWPASS_GAIN
-_MID_LO, _MID_HI = STALL_MID_SPEED_BAND
 _RAD_PER_DEG = math.pi / 180.0
 
 
@@ -95,17 +104,18 @@ class _Blocking(Enum):
 
 
 def stall_threshold(omega_rad_s: float, sensitivity: int) -> float:
-    """Speed-adaptive stall threshold in microsteps.
+    """Speed-adaptive stall threshold in microsteps, as the stall detector uses it.
 
     Args:
         omega_rad_s: Measured motor speed in rad/s.
         sensitivity: The ENABLESTALLGUARD payload (threshold is 10x it).
 
     Returns:
-        ``slope*|omega| + 10*sensitivity``, plus 90 inside 12-450 rad/s.
+        ``slope*|omega| + 10*sensitivity``, plus 90 inside 12-450 rad/s
+        (the constants of :mod:`~bioscara_gym.hardware.registers`).
     """
     w = abs(omega_rad_s)
-    threshold = STALL_SLOPE * w + 10.0 * sensitivity
+    threshold = STALL_SLOPE * w + STALL_THRESHOLD_PER_SENSITIVITY * sensitivity
     lo, hi = STALL_MID_SPEED_BAND
     if lo <= w <= hi:
         threshold += STALL_MID_SPEED_OFFSET
@@ -168,15 +178,11 @@ class FirmwareCore:
         self._sent = (math.nan, math.nan)
         self._apply()
 
-    def has(self, flag: Flag | int) -> bool:
-        """Whether ``flag`` is set."""
-        return bool(self.flags & flag)
-
     def _set(self, flag: int, on: bool = True) -> None:
         if on:
             self.flags |= flag
         else:
-            self.flags &= ~flag & _ALL_BITS
+            self.flags &= ~flag & FLAG_MASK
 
     @property
     def pid_error(self) -> float:
@@ -236,7 +242,7 @@ class FirmwareCore:
         self.last_rx = now
 
     def _may_move(self) -> bool:
-        return not self.flags & (_STALL | _NOT_ENABLED)
+        return not self.flags & (FLAG_STALL | FLAG_NOT_ENABLED)
 
     def _hard_stop(self) -> None:
         self.mode = Mode.IDLE
@@ -247,7 +253,7 @@ class FirmwareCore:
 
     def _apply(self) -> None:
         """Send the current set-point velocity and torque to the motor."""
-        if self.flags & _NOT_ENABLED and self.drive_current == 0:
+        if self.flags & FLAG_NOT_ENABLED and self.drive_current == 0:
             torque = 0.0
         elif self._blocking is _Blocking.HOME_RUN:
             torque = self._homing[3] / 100.0
@@ -265,11 +271,11 @@ class FirmwareCore:
         self.drive_current = min(drive, 100)
         self.hold_current = min(hold, 100)
         self.stallguard = False
-        self._set(_STALL | _NOT_ENABLED, False)
+        self._set(FLAG_STALL | FLAG_NOT_ENABLED, False)
         self._hard_stop()
 
     def _cmd_set_rpm(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & _NOT_HOMED or self.busy:
+        if not self._may_move() or self.flags & FLAG_NOT_HOMED or self.busy:
             return
         self.mode = Mode.VELOCITY
         self.target_rpm = float(value)
@@ -278,10 +284,10 @@ class FirmwareCore:
         if not self._may_move() or self.busy:
             return
         self.mode = Mode.POSITION
-        self.target_deg = self.motor.setpoint_deg + int(value) * 1.8
+        self.target_deg = self.motor.setpoint_deg + steps_to_degrees(int(value))
 
     def _cmd_move_to_angle(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & _NOT_HOMED or self.busy:
+        if not self._may_move() or self.flags & FLAG_NOT_HOMED or self.busy:
             return
         self.mode = Mode.POSITION
         self.target_deg = self.encoder_zero + float(value)
@@ -289,13 +295,13 @@ class FirmwareCore:
     def _cmd_set_current(self, value: float | int) -> None:
         self.drive_current = min(int(value), 100)
         if self.drive_current == 0:
-            self._set(_NOT_ENABLED)
+            self._set(FLAG_NOT_ENABLED)
         self._apply()
 
     def _cmd_set_hold_current(self, value: float | int) -> None:
         self.hold_current = min(int(value), 100)
         if self.hold_current == 0:
-            self._set(_NOT_ENABLED)
+            self._set(FLAG_NOT_ENABLED)
         self._apply()
 
     def _cmd_set_max_acceleration(self, value: float | int) -> None:
@@ -310,17 +316,17 @@ class FirmwareCore:
         self.stallguard = True
         self.stall_sensitivity = int(value)
         self._filter_x = self._filter_last = 0.0
-        self._set(_STALL, False)
+        self._set(FLAG_STALL, False)
 
     def _cmd_set_brake_mode(self, value: float | int) -> None:
         self.brake_mode = int(value)
 
     def _cmd_disable_closed_loop(self, value: float | int) -> None:
-        self._set(_NOT_ENABLED)
+        self._set(FLAG_NOT_ENABLED)
 
     def _cmd_stop(self, value: float | int) -> None:
         if self._blocking in (_Blocking.HOME_SETTLE, _Blocking.HOME_RUN):
-            self._set(_NOT_HOMED)  # homing ends as aborted
+            self._set(FLAG_NOT_HOMED)  # homing ends as aborted
         self._end_blocking()
         self._hard_stop()
 
@@ -352,11 +358,11 @@ class FirmwareCore:
     # --------------------------------------------------------------- blocking
     def _start_blocking(self, reg: int, value: float | int) -> None:
         """``set_flags_for_blocking_handler``: BUSY now, work in the main loop."""
-        self._set(_BUSY)
+        self._set(FLAG_BUSY)
         self._blocking_reg = reg
         self._blocking_arg = value
         if reg == Reg.HOME:
-            self._set(_NOT_HOMED)
+            self._set(FLAG_NOT_HOMED)
             direction, rpm, sensitivity, current = unpack_bytes(int(value))
             self._homing = (1 if direction == 1 else -1, float(rpm), sensitivity, current)
             self._blocking = _Blocking.HOME_SETTLE
@@ -370,7 +376,7 @@ class FirmwareCore:
     def _end_blocking(self) -> None:
         self._blocking = _Blocking.NONE
         self._blocking_reg = Reg.NONE
-        self._set(_BUSY, False)
+        self._set(FLAG_BUSY, False)
 
     def _run_blocking(self) -> None:
         """One main-loop tick of the running blocking command."""
@@ -390,7 +396,7 @@ class FirmwareCore:
             if abs(self.pid_error) > self._homing[2]:
                 self.motor.hold_here()
                 self.encoder_zero = self.motor.position_deg
-                self._set(_NOT_HOMED | _STALL, False)
+                self._set(FLAG_NOT_HOMED | FLAG_STALL, False)
                 self._end_blocking()
                 self._hard_stop()
         elif state is _Blocking.ORIENTATION_OUT:
@@ -422,12 +428,12 @@ class FirmwareCore:
             if (
                 self.mode is Mode.VELOCITY
                 and self.target_rpm != 0.0
-                and not self.flags & _NOT_ENABLED
+                and not self.flags & FLAG_NOT_ENABLED
                 and self.time - self.last_rx > DEADMAN_S + 1e-9
             ):
                 self.target_rpm = 0.0
-                self._set(_NOT_ENABLED)
-            if self.stallguard and not self.flags & _STALL:
+                self._set(FLAG_NOT_ENABLED)
+            if self.stallguard and not self.flags & FLAG_STALL:
                 self._detect_stall()
         else:
             self._run_blocking()
@@ -438,15 +444,11 @@ class FirmwareCore:
         u = abs(self.pid_error)
         last = self._filter_last
         self._filter_last = u
-        if abs(u - last) > SPIKE_LIMIT:
+        if abs(u - last) > STALL_SPIKE_LIMIT:
             u = last  # spike filter: keep the previous sample
         x = self._filter_x = _LOWPASS_KEEP * self._filter_x + _LOWPASS_GAIN * u
-        w = abs(self.motor.velocity_dps) * _RAD_PER_DEG
-        threshold = STALL_SLOPE * w + 10.0 * self.stall_sensitivity  # = stall_threshold(), inlined
-        if _MID_LO <= w <= _MID_HI:
-            threshold += STALL_MID_SPEED_OFFSET
-        if x > threshold:
-            self._set(_STALL)
+        if x > stall_threshold(self.motor.velocity_dps * _RAD_PER_DEG, self.stall_sensitivity):
+            self._set(FLAG_STALL)
             self._filter_x = self._filter_last = 0.0
             self._hard_stop()
 
@@ -475,7 +477,7 @@ class FirmwareCore:
             v -= acc_step
         else:
             v = target
-        if self.flags & _NOT_ENABLED and self.drive_current == 0:
+        if self.flags & FLAG_NOT_ENABLED and self.drive_current == 0:
             v = 0.0
         self.sp_velocity = v
         self._apply()
@@ -555,8 +557,7 @@ class JointFirmware:
             reg = data[0]
             payload = data[1 : 1 + MAX_PAYLOAD]
             if len(data) == 1 and reg in READ_REGISTERS:
-                value = core.read(reg, now)
-                tx = struct.pack(PAYLOAD_FORMAT[Reg(reg)], value)
+                tx = codec.encode(Reg(reg), core.read(reg, now))
             elif len(data) == 1 and reg not in BLOCKING_COMMANDS and reg in _KNOWN:
                 core.touch(now)  # a known command without payload: nothing to do
             else:
@@ -571,13 +572,9 @@ _KNOWN = frozenset(int(r) for r in Reg if r is not Reg.NONE)  # NONE is host-onl
 
 
 def _decode(reg: int, payload: bytes) -> float | int:
-    """Decode a payload as the firmware's ``readValue`` (memcpy) would."""
-    fmt = PAYLOAD_FORMAT.get(Reg(reg)) if reg in _KNOWN else None
-    if fmt is None:
-        fmt = "<I"
-    size = struct.calcsize(fmt)
-    raw = (payload + bytes(size))[:size]
-    (value,) = struct.unpack(fmt, raw)
+    """Decode a payload as the firmware's ``readValue`` (memcpy into a zeroed value) would."""
+    size = codec.payload_size(reg)
+    value = codec.decode(reg, (payload + bytes(size))[:size])
     if isinstance(value, float) and not math.isfinite(value):
         return 0.0
     return value

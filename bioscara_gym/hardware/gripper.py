@@ -1,7 +1,8 @@
 """Gripper drivers: a hobby servo that sets the finger width, with no feedback.
 
 The width ``w`` in m maps to the servo angle ``alpha`` in degrees through
-``alpha = reduction * (w - offset)`` (SPEC.md "Gripper"); commanded widths are
+``alpha = reduction * (w - offset)`` (the C++ ``Gripper`` driver, see
+``docs/arm.md``); commanded widths are
 clamped to ``[min, max]``. The servo reports nothing back, so
 :meth:`BaseGripper.get_position` returns the last commanded width, and the
 last width is kept across restarts in a small state file.
@@ -16,7 +17,8 @@ the new file, never a half-written one. On :meth:`BaseGripper.enable` it is
 read back; when it is missing, unreadable, not that JSON object, or holds a
 width that is non-finite or outside ``[min, max]``, the backup initial width
 is used and a :class:`GripperStateWarning` names the file and the reason.
-Extra keys are ignored.
+Extra keys are ignored. :func:`read_saved_width` and :func:`save_width` read
+and write the format for other code (the console shows the saved width).
 
 Backends:
 
@@ -55,8 +57,9 @@ __all__ = [
     "Gripper",
     "GripperStateWarning",
     "MockGripper",
+    "read_saved_width",
+    "save_width",
     "servo_duty_cycle_ns",
-    "servo_duty_percent",
     "servo_pulse_us",
 ]
 
@@ -64,9 +67,9 @@ __all__ = [
 PWM_FREQUENCY_HZ = 50
 #: PWM period in ns, ``1e9 / 50`` (``RPI_PWM::start``: ``per = 1E9 / frequency``).
 PWM_PERIOD_NS = 1_000_000_000 // PWM_FREQUENCY_HZ
-#: Pulse on-time in µs at 0 degrees (SPEC.md "Gripper": ``α/90 × 500 + 1500``).
+#: Pulse on-time in µs at 0 degrees (C++ ``Gripper`` driver: ``α/90 × 500 + 1500``).
 SERVO_CENTER_PULSE_US = 1500.0
-#: Pulse on-time change in µs per 90 degrees (SPEC.md "Gripper").
+#: Pulse on-time change in µs per 90 degrees (C++ ``Gripper`` driver).
 SERVO_PULSE_US_PER_90_DEG = 500.0
 
 #: Key of the width in the state file.
@@ -94,7 +97,7 @@ class GripperStateWarning(UserWarning):
 def servo_pulse_us(angle_deg: float) -> float:
     """Servo pulse on-time in µs for a servo angle in degrees.
 
-    ``on_time_us = angle_deg / 90 * 500 + 1500`` (SPEC.md "Gripper").
+    ``on_time_us = angle_deg / 90 * 500 + 1500`` (the C++ ``Gripper`` driver).
 
     Args:
         angle_deg: Servo angle in degrees; 0 is the servo's centre.
@@ -136,19 +139,72 @@ def servo_duty_cycle_ns(angle_deg: float) -> int:
     return round(servo_pulse_us(angle_deg) * 1000.0)
 
 
-def servo_duty_percent(angle_deg: float) -> float:
-    """PWM duty cycle in percent (0-100) for a servo angle in degrees.
+class _UnusableStateFile(Exception):
+    """The state file holds no usable width; the message names the file and the reason."""
 
-    Args:
-        angle_deg: Servo angle in degrees.
+    def __init__(self, message: str, missing: bool = False) -> None:
+        super().__init__(message)
+        self.missing = missing
 
-    Returns:
-        ``on_time / period * 100``.
+
+def _read_width(path: Path) -> float:
+    """Read the width in m from a state file, as stored (not range-checked).
 
     Raises:
-        InvalidArgumentError: As :func:`servo_pulse_us`.
+        _UnusableStateFile: The file is missing, unreadable, not JSON or not
+            ``{"width_m": <number>}``.
     """
-    return servo_pulse_us(angle_deg) * 1000.0 / PWM_PERIOD_NS * 100.0
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as e:
+        raise _UnusableStateFile(f"state file {path} does not exist (first run?)", missing=True) from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise _UnusableStateFile(f"cannot read state file {path} ({e})") from e
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise _UnusableStateFile(f"state file {path} is not valid JSON ({e})") from e
+    value = data.get(_STATE_KEY) if isinstance(data, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _UnusableStateFile(
+            f'state file {path} does not hold {{"{_STATE_KEY}": <number>}} (got {text.strip()[:80]!r})'
+        )
+    return float(value)
+
+
+def read_saved_width(path: str | os.PathLike[str] | None) -> float | None:
+    """The width in m saved in a gripper state file, or ``None`` if there is none.
+
+    Reads the format of the module docstring without warning; the width is
+    returned as stored (a gripper checks it against its limits on ``enable()``).
+
+    Args:
+        path: The state file; ``None`` (no persistence) gives ``None``.
+
+    Returns:
+        The saved width in m, or ``None`` when the file is missing,
+        unreadable or not ``{"width_m": <number>}``.
+    """
+    if path is None:
+        return None
+    try:
+        return _read_width(Path(path))
+    except _UnusableStateFile:
+        return None
+
+
+def save_width(path: str | os.PathLike[str], width_m: float) -> None:
+    """Write a width in m to a gripper state file, atomically.
+
+    Args:
+        path: The state file; its directory is created if needed.
+        width_m: The width in m (finite).
+
+    Raises:
+        OSError: The file could not be written.
+        ValueError: ``width_m`` is not finite (JSON has no NaN).
+    """
+    atomic_write_text(path, json.dumps({_STATE_KEY: width_m}, allow_nan=False) + "\n")
 
 
 def _finite(value: float, what: str, name: str) -> float:
@@ -156,9 +212,9 @@ def _finite(value: float, what: str, name: str) -> float:
     try:
         value = float(value)
     except (TypeError, ValueError) as e:
-        raise InvalidArgumentError(f"{name}: {what} {value!r} is not a number") from e
+        raise InvalidArgumentError(f"{what} {value!r} is not a number", joint=name) from e
     if not math.isfinite(value):
-        raise InvalidArgumentError(f"{name}: {what} {value!r} is not finite")
+        raise InvalidArgumentError(f"{what} {value!r} is not finite", joint=name)
     return value
 
 
@@ -223,12 +279,14 @@ class BaseGripper(abc.ABC):
         self._max_m = _finite(max, "max width", name)
         if not self._min_m < self._max_m:
             raise InvalidArgumentError(
-                f"{name}: width limits [{self._min_m:g}, {self._max_m:g}] m; min must be less than max"
+                f"width limits [{self._min_m:g}, {self._max_m:g}] m; min must be less than max",
+                joint=name,
             )
         backup = _finite(backup_init_pos, "backup initial width", name)
         if not self._min_m <= backup <= self._max_m:
             raise InvalidArgumentError(
-                f"{name}: backup initial width {backup:g} m is outside [{self._min_m:g}, {self._max_m:g}] m"
+                f"backup initial width {backup:g} m is outside [{self._min_m:g}, {self._max_m:g}] m",
+                joint=name,
             )
         self._backup_init_pos_m = backup
         self._state_file = Path(state_file) if state_file is not None else None
@@ -422,7 +480,8 @@ class BaseGripper(abc.ABC):
         self._require_init()
         if not self._enabled:
             raise NotEnabledError(
-                f"{self._name}: set_position({width_m!r}) while disabled; call enable() first"
+                f"set_position({width_m!r}) while disabled; call enable() first",
+                joint=self._name,
             )
         width_m = self.clamp_width(width_m)
         self.set_servo_position(self.width_to_angle_deg(width_m))
@@ -501,13 +560,13 @@ class BaseGripper(abc.ABC):
     def _require_init(self) -> None:
         """Raise :class:`NotInitError` unless initialised."""
         if not self._initialized:
-            raise NotInitError(f"{self._name}: not initialized; call init() first")
+            raise NotInitError("not initialized; call init() first", joint=self._name)
 
     def _check_reduction(self, reduction: float) -> float:
         """Return ``reduction`` if finite and non-zero, else raise."""
         reduction = _finite(reduction, "reduction", self._name)
         if reduction == 0.0:
-            raise InvalidArgumentError(f"{self._name}: reduction must be non-zero")
+            raise InvalidArgumentError("reduction must be non-zero", joint=self._name)
         return reduction
 
     def _warn_state(self, message: str) -> None:
@@ -522,28 +581,11 @@ class BaseGripper(abc.ABC):
             return self._backup_init_pos_m
         fallback = f"using the backup initial width {self._backup_init_pos_m:g} m"
         try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            self._warn_state(
-                f"state file {path} does not exist (first run?); {fallback}; it is written on disable()"
-            )
+            width_m = _read_width(path)
+        except _UnusableStateFile as e:
+            hint = "; it is written on disable()" if e.missing else ""
+            self._warn_state(f"{e}; {fallback}{hint}")
             return self._backup_init_pos_m
-        except (OSError, UnicodeDecodeError) as e:
-            self._warn_state(f"cannot read state file {path} ({e}); {fallback}")
-            return self._backup_init_pos_m
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            self._warn_state(f"state file {path} is not valid JSON ({e}); {fallback}")
-            return self._backup_init_pos_m
-        value = data.get(_STATE_KEY) if isinstance(data, dict) else None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            self._warn_state(
-                f'state file {path} does not hold {{"{_STATE_KEY}": <number>}} '
-                f"(got {text.strip()[:80]!r}); {fallback}"
-            )
-            return self._backup_init_pos_m
-        width_m = float(value)
         if not math.isfinite(width_m) or not self._min_m <= width_m <= self._max_m:
             self._warn_state(
                 f"state file {path} holds width {width_m!r} m, outside "
@@ -557,9 +599,8 @@ class BaseGripper(abc.ABC):
         path = self._state_file
         if path is None:
             return
-        text = json.dumps({_STATE_KEY: width_m}, allow_nan=False) + "\n"
         try:
-            atomic_write_text(path, text)
+            save_width(path, width_m)
         except OSError as e:
             self._warn_state(
                 f"cannot save width {width_m:g} m to state file {path} ({e}); "
@@ -617,10 +658,11 @@ class Gripper(BaseGripper):
         super().__init__(reduction, offset, min, max, backup_init_pos, state_file, name)
         for label, value in (("pwm_chip", pwm_chip), ("pwm_channel", pwm_channel)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise InvalidArgumentError(f"{name}: {label} {value!r} must be a non-negative integer")
+                raise InvalidArgumentError(f"{label} {value!r} must be a non-negative integer", joint=name)
         if not math.isfinite(export_timeout_s) or export_timeout_s < 0:
             raise InvalidArgumentError(
-                f"{name}: export_timeout_s {export_timeout_s!r} must be finite and >= 0"
+                f"export_timeout_s {export_timeout_s!r} must be finite and >= 0",
+                joint=name,
             )
         self._pwm_channel = pwm_channel
         self._chip_path = Path(sysfs_root) / f"pwmchip{pwm_chip}"
@@ -647,7 +689,8 @@ class Gripper(BaseGripper):
             missing = FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT))
             missing.filename = str(self._chip_path)
             raise CommError(
-                f"{self._name}: PWM chip {self._chip_path} does not exist; {_OVERLAY_HINT}"
+                f"PWM chip {self._chip_path} does not exist; {_OVERLAY_HINT}",
+                joint=self._name,
             ) from missing
         if not self._pwm_path.is_dir():
             self._write(self._chip_path / "export", self._pwm_channel)
@@ -661,10 +704,11 @@ class Gripper(BaseGripper):
         while not (period.is_file() and os.access(period, os.W_OK)):
             if self._clock.now() >= deadline:
                 raise CommError(
-                    f"{self._name}: {period} is not writable "
+                    f"{period} is not writable "
                     f"{self._export_timeout_s:g} s after exporting channel "
                     f"{self._pwm_channel} via "
-                    f"{self._chip_path / 'export'}; {_PERMISSION_HINT}"
+                    f"{self._chip_path / 'export'}; {_PERMISSION_HINT}",
+                    joint=self._name,
                 )
             self._clock.sleep(_EXPORT_POLL_S)
 
@@ -687,14 +731,16 @@ class Gripper(BaseGripper):
                 os.close(fd)
         except PermissionError as e:
             raise CommError(
-                f"{self._name}: permission denied writing {value} to {path}; {_PERMISSION_HINT}"
+                f"permission denied writing {value} to {path}; {_PERMISSION_HINT}",
+                joint=self._name,
             ) from e
         except FileNotFoundError as e:
             raise CommError(
-                f"{self._name}: {path} does not exist; was the channel unexported? call init() again"
+                f"{path} does not exist; was the channel unexported? call init() again",
+                joint=self._name,
             ) from e
         except OSError as e:
-            raise CommError(f"{self._name}: writing {value} to {path} failed: {e.strerror or e}") from e
+            raise CommError(f"writing {value} to {path} failed: {e.strerror or e}", joint=self._name) from e
 
 
 class MockGripper(BaseGripper):

@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import math
-import struct
 
+from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import CommError, InvalidArgumentError
-from bioscara_gym.hardware.registers import ACK, FLAGS_SIZE, PAYLOAD_FORMAT, Reg
+from bioscara_gym.hardware.registers import (
+    ACK,
+    FLAGS_SIZE,
+    I2C_ADDRESS_MAX,
+    I2C_ADDRESS_MIN,
+    RESERVED_FLAG_BITS,
+    Reg,
+)
 from bioscara_gym.hardware.stats import CommStats
-
-_RESERVED_FLAG_BITS = 0xF0
 
 
 class _BadReply(Exception):
@@ -20,7 +25,7 @@ class _BadReply(Exception):
 
 
 class Joint(BaseJoint):
-    """A joint on the I2C bus (address 0x11-0x14 on the Bioscara).
+    """A joint on the I2C bus (address 0x11-0x14 on the Bioscara, see the configuration).
 
     Every call is one combined write-then-read transaction: a read writes
     ``[REG]`` and reads ``payload + 1`` bytes, a command writes
@@ -53,18 +58,21 @@ class Joint(BaseJoint):
     ) -> None:
         """Create the driver; nothing is sent before :meth:`init`."""
         super().__init__(name, reduction, min, max, clock)
-        if not 0x03 <= address <= 0x77:
-            raise InvalidArgumentError(f"{name}: I2C address {address:#04x} is outside 0x03-0x77")
+        if not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
+            raise InvalidArgumentError(
+                f"I2C address {address:#04x} is outside {I2C_ADDRESS_MIN:#04x}-{I2C_ADDRESS_MAX:#04x}",
+                joint=name,
+            )
         if retries < 0:
-            raise InvalidArgumentError(f"{name}: retries {retries} must be >= 0")
+            raise InvalidArgumentError(f"retries {retries} must be >= 0", joint=name)
         self.address = address
         self.bus = bus
         self.retries = retries
         self.stats = CommStats()
 
-    def _transfer(self, reg: Reg, data: bytes, fmt: str | None) -> tuple[float | int, int]:
+    def _transfer(self, reg: Reg, data: bytes, read_payload: bool) -> tuple[float | int, int]:
         """One transaction with retries; returns the decoded payload (0 if none) and flags."""
-        size = struct.calcsize(fmt) if fmt else 0
+        size = codec.payload_size(reg) if read_payload else 0
         read_len = size + FLAGS_SIZE
         last: Exception | None = None
         for _ in range(self.retries + 1):
@@ -72,12 +80,12 @@ class Joint(BaseJoint):
                 reply = self.bus.transfer(self.address, data, read_len)
                 if len(reply) != read_len:
                     raise _BadReply(f"reply of {len(reply)} bytes, expected {read_len}")
-                if reply[-1] & _RESERVED_FLAG_BITS:
+                if reply[-1] & RESERVED_FLAG_BITS:
                     raise _BadReply(f"flags byte {reply[-1]:#04x} has reserved bits set")
-                value = struct.unpack(fmt, reply[:size])[0] if fmt else 0
+                value = codec.decode(reg, reply[:size]) if read_payload else 0
                 if isinstance(value, float) and not math.isfinite(value):
                     raise _BadReply(f"value {value} is not finite")
-                if reg == Reg.PING and fmt and value != ACK:
+                if reg == Reg.PING and read_payload and value != ACK:
                     raise _BadReply(f"PING answered {value!r}, expected {ACK!r} ('O')")
             except (OSError, _BadReply) as e:
                 self.stats.record(ok=False)
@@ -86,18 +94,18 @@ class Joint(BaseJoint):
             self.stats.record(ok=True)
             return value, reply[-1]
         raise CommError(
-            f"{self.name} ({self.address:#04x}): {reg.name} failed after "
-            f"{self.retries + 1} attempts: {last}. Check wiring, power and the address"
+            f"{reg.name} failed after {self.retries + 1} attempts: {last}. "
+            "Check wiring, power and the address",
+            joint=self.name,
+            register=reg,
+            address=self.address,
         ) from last
 
     def _command(self, reg: Reg, value: float | int) -> int:
         """Write ``[REG][payload]``, read the flags byte."""
-        try:
-            payload = struct.pack(PAYLOAD_FORMAT[reg], value)
-        except (struct.error, OverflowError) as e:
-            raise InvalidArgumentError(f"{self.name}: {reg.name} payload {value!r}: {e}") from e
-        return self._transfer(reg, bytes((reg,)) + payload, None)[1]
+        payload = codec.encode(reg, value, joint=self.name)
+        return self._transfer(reg, bytes((reg,)) + payload, read_payload=False)[1]
 
     def _query(self, reg: Reg) -> tuple[float | int, int]:
         """Write ``[REG]``, read the payload and the flags byte."""
-        return self._transfer(reg, bytes((reg,)), PAYLOAD_FORMAT[reg])
+        return self._transfer(reg, bytes((reg,)), read_payload=True)

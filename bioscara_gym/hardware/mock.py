@@ -11,16 +11,17 @@ from __future__ import annotations
 
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock
-from bioscara_gym.hardware.registers import ACK, POWER_UP_FLAGS, Flag, Reg
-
-# Flag bits as plain ints: IntFlag arithmetic is slow in the per-tick hot path.
-_STALL = int(Flag.STALL)
-_BUSY = int(Flag.BUSY)
-_NOT_HOMED = int(Flag.NOT_HOMED)
-_NOT_ENABLED = int(Flag.NOT_ENABLED)
-
-
-_ALL = int(_STALL | _BUSY | _NOT_HOMED | _NOT_ENABLED)
+from bioscara_gym.hardware.registers import (
+    ACK,
+    FLAG_BUSY,
+    FLAG_MASK,
+    FLAG_NOT_ENABLED,
+    FLAG_NOT_HOMED,
+    FLAG_STALL,
+    POWER_UP_FLAGS,
+    Reg,
+)
+from bioscara_gym.hardware.transmission import steps_to_degrees
 
 
 class MockJoint(BaseJoint):
@@ -61,34 +62,34 @@ class MockJoint(BaseJoint):
         if self._homing_done_at is not None and now >= self._homing_done_at:
             self._homing_done_at = None
             self._angle_deg = 0.0
-            self.device_flags &= ~(_BUSY | _NOT_HOMED) & _ALL
-        if self._rpm and not self.device_flags & (_NOT_ENABLED | _BUSY):
+            self.device_flags &= ~(FLAG_BUSY | FLAG_NOT_HOMED) & FLAG_MASK
+        if self._rpm and not self.device_flags & (FLAG_NOT_ENABLED | FLAG_BUSY):
             self._angle_deg += self._rpm * 6.0 * dt
 
     def _command(self, reg: Reg, value: float | int) -> int:
         self._advance()
         f = self.device_flags
         if reg == Reg.SETUP:
-            f &= ~(_NOT_ENABLED | _STALL) & _ALL
+            f &= ~(FLAG_NOT_ENABLED | FLAG_STALL) & FLAG_MASK
         elif reg in (Reg.SETCURRENT, Reg.SETHOLDCURRENT, Reg.DISABLECLOSEDLOOP) and value == 0:
-            f |= _NOT_ENABLED
+            f |= FLAG_NOT_ENABLED
             self._rpm = 0.0
-        elif reg == Reg.SETRPM and not f & (_NOT_ENABLED | _NOT_HOMED):
+        elif reg == Reg.SETRPM and not f & (FLAG_NOT_ENABLED | FLAG_NOT_HOMED):
             self._rpm = float(value)
-        elif reg == Reg.MOVETOANGLE and not f & (_NOT_ENABLED | _NOT_HOMED):
+        elif reg == Reg.MOVETOANGLE and not f & (FLAG_NOT_ENABLED | FLAG_NOT_HOMED):
             self._rpm = 0.0
             self._angle_deg = float(value)
-        elif reg == Reg.MOVESTEPS and not f & _NOT_ENABLED:
-            self._angle_deg += int(value) * 1.8
+        elif reg == Reg.MOVESTEPS and not f & FLAG_NOT_ENABLED:
+            self._angle_deg += steps_to_degrees(int(value))
         elif reg == Reg.STOP:
             self._rpm = 0.0
             if self._homing_done_at is not None:
                 self._homing_done_at = None
-                f = (f | _NOT_HOMED) & ~_BUSY & _ALL
+                f = (f | FLAG_NOT_HOMED) & ~FLAG_BUSY & FLAG_MASK
         elif reg == Reg.HOME:
             self._rpm = 0.0
             self._homing_done_at = self.clock.now() + self.homing_time_s
-            f |= _BUSY | _NOT_HOMED
+            f |= FLAG_BUSY | FLAG_NOT_HOMED
         elif reg == Reg.CHECKORIENTATION:
             pass  # finishes at once: nothing moves
         elif reg == Reg.HOMEOFFSET:
@@ -103,7 +104,7 @@ class MockJoint(BaseJoint):
         elif reg == Reg.ANGLEMOVED:
             value = self._angle_deg
         elif reg == Reg.GETENCODERRPM:
-            value = 0.0 if self.device_flags & (_NOT_ENABLED | _BUSY) else self._rpm
+            value = 0.0 if self.device_flags & (FLAG_NOT_ENABLED | FLAG_BUSY) else self._rpm
         elif reg == Reg.HOMEOFFSET:
             value = self._home_offset
         else:

@@ -14,7 +14,8 @@ from typing import Protocol, runtime_checkable
 
 #: Torque of the NEMA 17 motors at 100 % of the driver's 2.5 A output, N*m.
 TORQUE_AT_FULL_CURRENT_NM = 0.5
-#: Motor degrees per full step.
+#: Motor degrees per full step: 200 full steps a turn, the unit of MOVESTEPS
+#: (firmware; C++ API).
 FULL_STEP_DEG = 1.8
 
 

@@ -28,13 +28,10 @@ from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
-from bioscara_gym.hardware.firmware import TICK_S, FirmwareCore
+from bioscara_gym.hardware.firmware import FirmwareCore
 from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.motor import FULL_STEP_DEG
-from bioscara_gym.hardware.registers import Reg
-
-#: Joint names of the model, in order.
-JOINT_NAMES = ("j1", "j2", "j3", "j4")
+from bioscara_gym.hardware.registers import TICK_S, Reg
 
 
 class MujocoMotor:

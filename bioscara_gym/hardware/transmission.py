@@ -1,4 +1,4 @@
-"""Joint <-> actuator transmission and unit conversions (SPEC.md "Units").
+"""Joint <-> actuator transmission and unit conversions (``docs/model.md``).
 
 Joint side: rad, rad/s, rad/s^2 (revolute) or m, m/s, m/s^2 (prismatic).
 Actuator side, what goes over the bus: degrees, RPM, deg/s, deg/s^2.
@@ -10,11 +10,7 @@ from __future__ import annotations
 
 import math
 
-#: Full steps per motor revolution (1.8 degree stepper).
-STEPS_PER_REV = 200
-#: Homing RPM must lie strictly inside these bounds (host rule, SPEC.md).
-HOMING_RPM_MIN = 1.0
-HOMING_RPM_MAX = 250.0
+from bioscara_gym.hardware.motor import FULL_STEP_DEG
 
 
 def joint_to_actuator(value: float, reduction: float, offset: float = 0.0) -> float:
@@ -52,11 +48,6 @@ def rate_to_degrees(value: float, reduction: float) -> float:
     return math.degrees(reduction * value)
 
 
-def degrees_to_steps(deg: float) -> float:
-    """Motor degrees to full steps (200 per revolution)."""
-    return deg * STEPS_PER_REV / 360.0
-
-
 def steps_to_degrees(steps: float) -> float:
-    """Full steps to motor degrees."""
-    return steps * 360.0 / STEPS_PER_REV
+    """MOVESTEPS full steps to motor degrees (1.8 degrees a step, 200 a turn)."""
+    return steps * FULL_STEP_DEG
