@@ -29,9 +29,9 @@ import math
 import os
 import select
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, TextIO
+from typing import TextIO
 
 from rich import box
 from rich.console import Console, Group, RenderableType
@@ -40,20 +40,13 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from bioscara_gym.console.format import flags_text, format_position, format_velocity, joint_unit
+from bioscara_gym.console.session import CYCLE_S, Session
+from bioscara_gym.console.targets import resolve_target
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.errors import JointError
 from bioscara_gym.hardware.registers import Flag
 
-if TYPE_CHECKING:
-    from bioscara_gym.console.session import Session
-
-#: Style of each flag, in the order flags are listed.
-FLAG_STYLES: tuple[tuple[Flag, str], ...] = (
-    (Flag.STALL, "bold red"),
-    (Flag.BUSY, "yellow"),
-    (Flag.NOT_HOMED, "magenta"),
-    (Flag.NOT_ENABLED, "dim"),
-)
 #: Keys of the dashboard and what they do.
 KEYS: dict[str, str] = {
     "e": "enable all",
@@ -70,38 +63,6 @@ BAR_WIDTH = 21
 
 
 # ---------------------------------------------------------------- pieces
-def joint_unit(joint_type: str) -> str:
-    """Position unit of a joint type: ``rad`` (revolute) or ``m`` (prismatic)."""
-    return "m" if joint_type == "prismatic" else "rad"
-
-
-def format_position(value: float | None, unit: str) -> str:
-    """``"+1.2346 rad"``, or ``"-"`` when unknown (not homed)."""
-    return "-" if value is None else f"{_unsigned_zero(value):+.4f} {unit}"
-
-
-def format_velocity(value: float, unit: str) -> str:
-    """``"+0.0300 rad/s"``; values that round to zero show as ``+0.0000``."""
-    return f"{_unsigned_zero(value):+.4f} {unit}/s"
-
-
-def _unsigned_zero(value: float, digits: int = 4) -> float:
-    rounded = round(value, digits)
-    return 0.0 if rounded == 0 else rounded
-
-
-def flags_text(flags: Flag | int) -> Text:
-    """The set flags by name, each in its colour; ``OK`` in green when none is set."""
-    flags = Flag(flags)
-    text = Text()
-    for flag, style in FLAG_STYLES:
-        if flags & flag:
-            if text:
-                text.append(" ")
-            text.append(str(flag.name), style=style)
-    return text if text else Text("OK", style="green")
-
-
 def position_bar(value: float | None, low: float, high: float, width: int = BAR_WIDTH) -> Text:
     """A marker ``●`` on a track from ``low`` to ``high``; a dotted track when unknown.
 
@@ -311,7 +272,7 @@ class MonitorApp:
 
     def __post_init__(self) -> None:
         """Pick up homings already running and the bus counters to rate against."""
-        self.homing_since = dict.fromkeys(self.session.homing())
+        self.homing_since = dict.fromkeys(self.session.arm.homing_names())
         self._mark()
 
     def _totals(self) -> dict[str, tuple[int, int]]:
@@ -329,8 +290,6 @@ class MonitorApp:
 
     def step(self, dt: float) -> None:
         """Cycle the arm for ``dt`` seconds (in cycles of at most 40 ms), then update the rates."""
-        from bioscara_gym.console.session import CYCLE_S
-
         n = max(1, math.ceil(dt / CYCLE_S - 1e-9))
         finished: dict[str, bool] = {}
         error = ""
@@ -436,9 +395,9 @@ class MonitorApp:
     def close(self) -> None:
         """Leaving the dashboard: abort homings still running (best effort)."""
         with contextlib.suppress(JointError):
-            running = self.session.homing()
+            running = self.session.arm.homing_names()
             if running:
-                self.session.abort_homing(running)
+                self.session.arm.abort_homing(running)
 
 
 def handle_key(app: MonitorApp, key: str) -> None:
@@ -448,42 +407,66 @@ def handle_key(app: MonitorApp, key: str) -> None:
     message. An error from the arm disables everything (the console's
     on-error rule) and is shown in the message; the dashboard keeps running.
     """
-    from bioscara_gym.console.session import resolve_target
-
-    key = key.lower()
-    if key not in KEYS:
+    action = _KEY_ACTIONS.get(key.lower())
+    if action is None:
         return
-    session = app.session
     try:
-        if key == "q":
-            app.running = False
-        elif key == "e":
-            busy = [n for n, j in session.arm.joints.items() if j.is_busy()]
-            names = session.enable(resolve_target(session.config, None), skip_busy=True)
-            app.message = f"enabled {', '.join(names)}" + (
-                f"; {', '.join(busy)} busy, left as is" if busy else ""
-            )
-        elif key == "d":
-            names = session.disable(resolve_target(session.config, None))
-            app.homing_since.clear()
-            app.message = f"disabled {', '.join(names)}"
-        elif key == "h":
-            names = app.start_homing()
-            app.message = (
-                f"homing {', '.join(names)}" if names else "nothing to home (enable the arm first: e)"
-            )
-        elif key == "a":
-            aborted = session.abort_homing(session.arm.names)
-            for name in aborted:
-                app.homing_since.pop(name, None)
-            app.message = f"aborted homing of {', '.join(aborted)}" if aborted else "no homing is running"
-        elif key == "r":
-            app.reset_stats()
-            app.message = "bus statistics reset"
+        action(app)
     except (JointError, ValueError) as e:
-        session.disable_all_safely()
+        app.session.disable_all_safely()
         app.homing_since.clear()
         app.message = f"error: {e}; everything disabled"
+
+
+def _quit(app: MonitorApp) -> None:
+    """``q``: leave the dashboard."""
+    app.running = False
+
+
+def _enable_all(app: MonitorApp) -> None:
+    """``e``: enable every joint and the gripper, leaving busy joints as they are."""
+    session = app.session
+    busy = [n for n, j in session.arm.joints.items() if j.is_busy()]
+    names = session.enable(resolve_target(session.config, None), skip_busy=True)
+    app.message = f"enabled {', '.join(names)}" + (f"; {', '.join(busy)} busy, left as is" if busy else "")
+
+
+def _disable_all(app: MonitorApp) -> None:
+    """``d``: disable every joint and the gripper (running homings stop)."""
+    names = app.session.disable(resolve_target(app.session.config, None))
+    app.homing_since.clear()
+    app.message = f"disabled {', '.join(names)}"
+
+
+def _home_unhomed(app: MonitorApp) -> None:
+    """``h``: start homing every enabled, idle joint not yet homed."""
+    names = app.start_homing()
+    app.message = f"homing {', '.join(names)}" if names else "nothing to home (enable the arm first: e)"
+
+
+def _abort_homing(app: MonitorApp) -> None:
+    """``a``: abort every running homing."""
+    aborted = app.session.arm.abort_homing(app.session.arm.names)
+    for name in aborted:
+        app.homing_since.pop(name, None)
+    app.message = f"aborted homing of {', '.join(aborted)}" if aborted else "no homing is running"
+
+
+def _reset_stats(app: MonitorApp) -> None:
+    """``r``: zero the since-reset bus counters."""
+    app.reset_stats()
+    app.message = "bus statistics reset"
+
+
+#: What each key of :data:`KEYS` does.
+_KEY_ACTIONS: dict[str, Callable[[MonitorApp], None]] = {
+    "e": _enable_all,
+    "d": _disable_all,
+    "h": _home_unhomed,
+    "a": _abort_homing,
+    "r": _reset_stats,
+    "q": _quit,
+}
 
 
 # ------------------------------------------------------------------ loop

@@ -1,0 +1,408 @@
+"""Operator console: ``bioscara status|ping|enable|disable|home|move|gripper|monitor``.
+
+What the RViz panel of the original stack (arm and gripper up and down, joint
+states, homing) and MH5's terminal dashboard (per-joint bars, communication
+statistics) did, at a terminal and on every backend. Every subcommand takes
+
+=================== ==========================================================
+``--backend NAME``  ``emulated`` (default: the real driver over the emulated
+                    bus, so anyone can try it), ``sim``, ``mock`` or ``i2c``
+``--config FILE``   arm configuration YAML (default: the packaged one)
+``--bus N``         I2C bus number for ``i2c`` (default: the config's)
+``--state FILE``    keep the simulated arm's state in FILE between commands
+=================== ==========================================================
+
+A command opens a :class:`~bioscara_gym.console.session.Session` (backend,
+:class:`~bioscara_gym.hardware.arm.Arm` configured, the state file restored),
+does its one thing and closes it. Joints and the gripper are named as in the
+configuration; ``enable`` and ``disable`` also take a group (``all``, ``arm``,
+``gripper`` by default; ``groups`` in the configuration).
+
+Safe-state policy (what each command leaves behind):
+
+- ``status`` and ``ping`` send nothing that changes the arm.
+- ``enable`` leaves the named joints enabled and holding still (no command
+  interface active, set points at the measured position): that is its
+  purpose. Nothing moves; the console never uses velocity mode, and the
+  firmware's deadman covers velocity mode where others use it. ``disable``
+  leaves them back-drivable.
+- ``home`` and ``move`` wait until the motion is over (homed, or the target
+  reached) and the joint holds still; a timeout aborts the motion.
+  ``home --no-wait`` (only with ``--state``) leaves the homing running for
+  a later ``monitor`` (which finishes it) or ``home --abort``.
+- ``gripper WIDTH`` leaves the servo driven at the width (a gripper holding
+  an object must keep holding it).
+- ``monitor`` aborts any homing still running when it quits; joints stay as
+  the operator left them.
+- Any error (a refused request such as an unknown joint, a value outside the
+  limits or a busy joint, a stall, a bus failure) and Ctrl-C run the arm
+  layer's on-error transition: every joint and the gripper are disabled
+  (a running homing is stopped), then the command exits non-zero with one
+  line naming the problem.
+
+State between invocations (``--state FILE``, ``emulated`` and ``sim`` only):
+without it every command starts from a powered-up arm (not homed, not
+enabled), so ``enable`` then ``home`` then ``status`` needs it. The file is
+written after every command, also a failed one; its format and what it
+keeps are described in :mod:`bioscara_gym.console.state`. The ``mock``
+backend does not persist (``--state`` is refused), nor does ``i2c``: the
+real arm keeps its own state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+from pathlib import Path
+
+from rich import box
+from rich.console import Console
+from rich.table import Table
+
+from bioscara_gym.console.dashboard import MonitorApp, key_source, run_monitor
+from bioscara_gym.console.format import flags_text, format_position, format_velocity, joint_unit
+from bioscara_gym.console.session import Session
+from bioscara_gym.console.targets import HOMING_DIRECTIONS, ConsoleOptions, resolve_joints, resolve_target
+from bioscara_gym.errors import ConsoleUsageError
+from bioscara_gym.hardware.backends import BACKENDS
+from bioscara_gym.hardware.config import GRIPPER_NAME
+from bioscara_gym.hardware.errors import JointError
+from bioscara_gym.hardware.registers import Flag
+
+#: One ``ping`` reply: device, address (``"-"`` without a bus), ``"OK"`` or the error, flags.
+PingReply = tuple[str, str, str, Flag | None]
+
+
+# ------------------------------------------------------------------ output
+def make_console() -> Console:
+    """A console for command output: at least 120 columns when not a terminal (pipes, logs)."""
+    con = Console(highlight=False)
+    if not con.is_terminal:
+        con = Console(highlight=False, width=max(120, con.width))
+    return con
+
+
+def _table(*columns: tuple[str, str]) -> Table:
+    """A table in the console's style with the given (title, justify) columns."""
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
+    for title, justify in columns:
+        table.add_column(title, justify=justify)  # type: ignore[arg-type]
+    return table
+
+
+def lifecycle_line(session: Session) -> str:
+    """The line above the status table: lifecycle, backend, simulated time, state file."""
+    parts = [f"arm {session.arm.state.value}", f"backend {session.backend.name}"]
+    if session.is_simulated():
+        parts.append(f"simulated time {session.backend.clock.now():.2f} s")
+    if session.options.state is not None:
+        parts.append(f"state {session.options.state}")
+    return " · ".join(parts)
+
+
+def status_table(session: Session) -> Table:
+    """The ``bioscara status`` table: one row per joint and the gripper."""
+    arm = session.arm
+    stats = session.backend.comm_stats()
+    table = _table(
+        ("joint", "left"),
+        ("position", "right"),
+        ("velocity", "right"),
+        ("enabled", "left"),
+        ("homed", "left"),
+        ("flags", "left"),
+        ("bus tx", "right"),
+        ("bus errors", "right"),
+    )
+    for cfg in session.config.joints:
+        st = arm.joint_states[cfg.name]
+        unit = joint_unit(cfg.joint_type)
+        s = stats.get(cfg.name)
+        table.add_row(
+            cfg.name,
+            format_position(st.position if st.homed else None, unit),
+            format_velocity(st.velocity, unit),
+            _yes_no(arm.joints[cfg.name].is_enabled()),
+            "homing…" if st.homing else _yes_no(st.homed),
+            flags_text(st.flags),
+            "-" if s is None else str(s.total_transactions),
+            "-" if s is None else str(s.total_errors),
+        )
+    gripper_enabled = _yes_no(session.backend.gripper.is_enabled)
+    table.add_row(GRIPPER_NAME, f"{session.gripper_width():.4f} m", "", gripper_enabled, "", "", "", "")
+    return table
+
+
+def _yes_no(value: bool) -> str:
+    """``yes`` or ``no``."""
+    return "yes" if value else "no"
+
+
+def ping_devices(session: Session) -> list[PingReply]:
+    """PING every joint separately (opening and closing the ones not open) and set up the gripper."""
+    on_bus = session.backend.name in ("emulated", "i2c")
+    replies = [
+        _ping_joint(session, cfg.name, f"0x{cfg.address:02X}" if on_bus else "-")
+        for cfg in session.config.joints
+    ]
+    return [*replies, _ping_gripper(session)]
+
+
+def _ping_joint(session: Session, name: str, address: str) -> PingReply:
+    """PING one joint: its flags if it answered, else the error."""
+    joint = session.arm.joints[name]
+    was_open = joint.initialized
+    try:
+        if was_open:
+            joint.get_flags()
+        else:
+            joint.init()
+        return (name, address, "OK", joint.flags)
+    except JointError as e:
+        return (name, address, str(e), None)
+    finally:
+        if not was_open:
+            joint.deinit()
+
+
+def _ping_gripper(session: Session) -> PingReply:
+    """Set the gripper up and release it again (the servo has no reply to wait for)."""
+    gripper = session.backend.gripper
+    try:
+        if not gripper.is_initialized:
+            gripper.init()
+            gripper.deinit()
+        return (GRIPPER_NAME, "-", "OK", None)
+    except JointError as e:
+        return (GRIPPER_NAME, "-", str(e), None)
+
+
+def ping_table(replies: list[PingReply]) -> Table:
+    """The ``bioscara ping`` table: one row per device."""
+    table = _table(("device", "left"), ("address", "left"), ("reply", "left"), ("flags", "left"))
+    for name, address, reply, flags in replies:
+        table.add_row(name, address, reply, "" if flags is None else flags_text(flags))
+    return table
+
+
+# ---------------------------------------------------------------- commands
+def cmd_status(args: argparse.Namespace) -> int:
+    """``bioscara status``."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        con.print(lifecycle_line(session))
+        con.print(status_table(session))
+    return 0
+
+
+def cmd_ping(args: argparse.Namespace) -> int:
+    """``bioscara ping``: exit 1 if any joint did not answer."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args), configure=False) as session:
+        replies = ping_devices(session)
+    con.print(ping_table(replies))
+    missing = [name for name, _, reply, _ in replies if reply != "OK"]
+    if missing:
+        con.print(f"no answer from {', '.join(missing)}")
+        return 1
+    con.print(f"all {len(replies)} devices answered")
+    return 0
+
+
+def cmd_enable(args: argparse.Namespace) -> int:
+    """``bioscara enable [JOINT|GROUP]``."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        names = session.enable(resolve_target(session.config, args.target))
+        con.print(f"enabled {', '.join(names)}; holding still · arm {session.arm.state.value}")
+    return 0
+
+
+def cmd_disable(args: argparse.Namespace) -> int:
+    """``bioscara disable [JOINT|GROUP]``."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        names = session.disable(resolve_target(session.config, args.target))
+        con.print(f"disabled {', '.join(names)} · arm {session.arm.state.value}")
+    return 0
+
+
+def cmd_home(args: argparse.Namespace) -> int:
+    """``bioscara home [JOINT|GROUP] [--direction +|-] [--abort] [--no-wait]``."""
+    con = make_console()
+    options = ConsoleOptions.from_args(args)
+    if args.no_wait and options.state is None:
+        raise ConsoleUsageError("--no-wait needs --state FILE, so that a later command can finish the homing")
+    with Session(options) as session:
+        if args.abort:
+            _abort_homing(con, session, args.target)
+            return 0
+        names = _joints_to_home(session, args.target)
+        if not names:
+            con.print("every joint is homed; name a joint to home it again")
+        elif args.no_wait:
+            _start_homing(con, session, names, HOMING_DIRECTIONS.get(args.direction))
+        else:
+            _home_and_wait(con, session, names, HOMING_DIRECTIONS.get(args.direction), args.timeout)
+    return 0
+
+
+def _joints_to_home(session: Session, target: str | None) -> tuple[str, ...]:
+    """The joints named, or (no name) every joint not yet homed."""
+    names = resolve_joints(session.config, target)
+    if target is None:
+        names = tuple(n for n in names if not session.arm.joints[n].is_homed())
+    return names
+
+
+def _abort_homing(con: Console, session: Session, target: str | None) -> None:
+    """``home --abort``: abort the named joints' homings and say which."""
+    aborted = session.arm.abort_homing(resolve_joints(session.config, target))
+    con.print(f"aborted homing of {', '.join(aborted)} (not homed)" if aborted else "no homing is running")
+
+
+def _start_homing(con: Console, session: Session, names: tuple[str, ...], direction: int | None) -> None:
+    """``home --no-wait``: start the homings and say where each runs."""
+    for name, speed in session.start_homing(names, direction).items():
+        unit = joint_unit(session.config.joint(name).joint_type)
+        con.print(f"{name} homing toward {_end(speed)} at {abs(speed):g} {unit}/s (left running)")
+
+
+def _home_and_wait(
+    con: Console, session: Session, names: tuple[str, ...], direction: int | None, timeout_s: float | None
+) -> None:
+    """``home``: home the joints, then say where each homed and how long it took."""
+    clock = session.backend.clock
+    start = clock.now()
+    label = f"homing {', '.join(names)}"
+    with con.status(label + "…") if con.is_terminal else contextlib.nullcontext():
+        speeds = session.home(names, direction, timeout_s)
+    for name, speed in speeds.items():
+        unit = joint_unit(session.config.joint(name).joint_type)
+        position = session.arm.joint_states[name].position
+        con.print(f"{name} homed at {_end(speed)}: {position:+.4f} {unit}")
+    con.print(f"{label} took {clock.now() - start:.2f} s")
+
+
+def _end(speed: float) -> str:
+    """The end stop a homing at ``speed`` runs to: ``max`` or ``min``."""
+    return "max" if speed > 0 else "min"
+
+
+def cmd_move(args: argparse.Namespace) -> int:
+    """``bioscara move JOINT VALUE``."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        clock = session.backend.clock
+        start = clock.now()
+        position = session.move(args.joint, args.value, args.timeout)
+        unit = joint_unit(session.config.joint(args.joint).joint_type)
+        took = clock.now() - start
+        con.print(f"{args.joint} at {position:+.4f} {unit} (target {args.value:+.4f}) after {took:.2f} s")
+    return 0
+
+
+def cmd_gripper(args: argparse.Namespace) -> int:
+    """``bioscara gripper WIDTH``."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        width = session.set_gripper(args.width)
+        con.print(f"gripper at {width:.4f} m (servo driven)")
+    return 0
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """``bioscara monitor``."""
+    _check_monitor_args(args)
+    con = make_console()
+    with key_source() as keys:
+        if keys is None and args.duration is None:
+            raise ConsoleUsageError("monitor reads keys from a terminal; without one pass --duration S")
+        with Session(ConsoleOptions.from_args(args)) as session:
+            app = MonitorApp(session, rate_hz=args.rate)
+            try:
+                run_monitor(app, con, keys, duration_s=args.duration)
+            finally:
+                app.close()
+    return 0
+
+
+def _check_monitor_args(args: argparse.Namespace) -> None:
+    """Refuse a refresh rate or duration that is not a positive number."""
+    if args.rate <= 0 or not math.isfinite(args.rate):
+        raise ConsoleUsageError(f"--rate {args.rate:g} must be a positive number of refreshes per second")
+    if args.duration is not None and not args.duration > 0:
+        raise ConsoleUsageError(f"--duration {args.duration:g} must be positive")
+
+
+# ------------------------------------------------------------------ parser
+def _common(parser: argparse.ArgumentParser) -> None:
+    """Add the options every operator subcommand takes."""
+    parser.add_argument(
+        "--backend", choices=BACKENDS, default="emulated", help="arm backend (default: emulated)"
+    )
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
+    )
+    parser.add_argument(
+        "--bus", type=int, metavar="N", help="I2C bus number for --backend i2c (default: the config's)"
+    )
+    parser.add_argument(
+        "--state",
+        type=Path,
+        metavar="FILE",
+        help="keep the simulated arm's state in FILE between commands (emulated, sim)",
+    )
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the operator subcommands: status, ping, enable, disable, home, move, gripper, monitor."""
+    p = sub.add_parser("status", help="lifecycle, joint states, gripper and bus statistics")
+    _common(p)
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("ping", help="ping every joint (exit 1 if one does not answer)")
+    _common(p)
+    p.set_defaults(func=cmd_ping)
+
+    for name, verb in (("enable", "enable"), ("disable", "disable")):
+        p = sub.add_parser(name, help=f"{verb} a joint, the gripper or a group (default: all)")
+        p.add_argument("target", nargs="?", metavar="JOINT|GROUP", help="joint, 'gripper' or group")
+        _common(p)
+        p.set_defaults(func=cmd_enable if name == "enable" else cmd_disable)
+
+    p = sub.add_parser("home", help="home joints with the configured homing parameters")
+    p.add_argument("target", nargs="?", metavar="JOINT|GROUP", help="default: every joint not yet homed")
+    p.add_argument(
+        "--direction", choices=("+", "-"), help="+ homes to the max end stop, - to min (default: configured)"
+    )
+    p.add_argument("--abort", action="store_true", help="abort a running homing instead")
+    p.add_argument("--no-wait", action="store_true", help="start homing and return (needs --state)")
+    p.add_argument(
+        "--timeout", type=float, metavar="S", help="seconds (default: the whole range at homing speed)"
+    )
+    _common(p)
+    p.set_defaults(func=cmd_home)
+
+    p = sub.add_parser("move", help="move a homed, enabled joint to a position and wait")
+    p.add_argument("joint", metavar="JOINT")
+    p.add_argument("value", type=float, metavar="VALUE", help="rad (m for the prismatic j2)")
+    p.add_argument("--timeout", type=float, metavar="S", help="seconds (default: from the joint's limits)")
+    _common(p)
+    p.set_defaults(func=cmd_move)
+
+    p = sub.add_parser("gripper", help="set the gripper width (enables the servo)")
+    p.add_argument("width", type=float, metavar="WIDTH", help="m")
+    _common(p)
+    p.set_defaults(func=cmd_gripper)
+
+    p = sub.add_parser("monitor", help="live dashboard; keys e/d enable/disable, h home, a abort, q quit")
+    p.add_argument(
+        "--rate", type=float, default=10.0, metavar="HZ", help="refreshes per second (default: 10)"
+    )
+    p.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (needed without a terminal)"
+    )
+    _common(p)
+    p.set_defaults(func=cmd_monitor)

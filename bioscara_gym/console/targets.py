@@ -1,0 +1,117 @@
+"""What a console command names: the common options, joints and groups, homing directions."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+from bioscara_gym.errors import ConsoleUsageError
+from bioscara_gym.hardware.backends import BACKENDS
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
+from bioscara_gym.hardware.errors import InvalidArgumentError
+
+#: Backends whose state ``--state`` can keep.
+PERSISTENT_BACKENDS = ("emulated", "sim")
+#: ``--direction`` to the Arm's homing direction: ``+`` to the max end stop, ``-`` to min.
+HOMING_DIRECTIONS = {"+": 1, "-": -1}
+
+
+@dataclass(frozen=True)
+class ConsoleOptions:
+    """The options every operator subcommand shares.
+
+    Attributes:
+        backend: Backend name (see :data:`~bioscara_gym.hardware.backends.BACKENDS`).
+        config: Arm configuration YAML, ``None`` for the packaged default.
+        bus: I2C bus number overriding the configuration's.
+        state: State file for the simulated backends, ``None`` for none.
+    """
+
+    backend: str = "emulated"
+    config: Path | None = None
+    bus: int | None = None
+    state: Path | None = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> ConsoleOptions:
+        """Take the common options from parsed arguments."""
+        return cls(backend=args.backend, config=args.config, bus=args.bus, state=args.state)
+
+    def check(self) -> None:
+        """Refuse an unknown backend, and ``--state`` with a backend that has no state to keep.
+
+        Raises:
+            ConsoleUsageError: The options do not go together.
+        """
+        backend = self.backend
+        if backend not in BACKENDS:
+            raise ConsoleUsageError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+        if self.state is not None and backend not in PERSISTENT_BACKENDS:
+            reason = (
+                "mock state does not persist" if backend == "mock" else "the real arm keeps its own state"
+            )
+            raise ConsoleUsageError(
+                f"--state works with the {' and '.join(PERSISTENT_BACKENDS)} backends; {reason}"
+            )
+
+
+@dataclass(frozen=True)
+class Target:
+    """Devices a joint or group name stands for.
+
+    Attributes:
+        joints: Joint names, in configuration order.
+        gripper: Whether the gripper is included.
+    """
+
+    joints: tuple[str, ...]
+    gripper: bool
+
+    @property
+    def names(self) -> list[str]:
+        """The joints, then ``gripper`` if included: the names the Arm's enable and disable take."""
+        return [*self.joints, *([GRIPPER_NAME] if self.gripper else [])]
+
+
+def resolve_target(config: ArmConfig, name: str | None) -> Target:
+    """Resolve a joint, ``gripper`` or group name.
+
+    Args:
+        config: The arm configuration (joints and groups).
+        name: A joint name, ``"gripper"``, a group name, or ``None`` for
+            the group ``all`` (every joint and the gripper if not configured).
+
+    Returns:
+        The joints (configuration order) and whether the gripper is included.
+
+    Raises:
+        InvalidArgumentError: Unknown name; the message lists joints and groups.
+    """
+    if name is None:
+        if "all" not in config.groups:
+            return Target(config.names, True)
+        name = "all"
+    if name in config.names:
+        return Target((name,), False)
+    if name == GRIPPER_NAME:
+        return Target((), True)
+    members = config.groups.get(name)
+    if members is None:
+        raise InvalidArgumentError(
+            f"unknown joint or group {name!r}; joints: {', '.join((*config.names, GRIPPER_NAME))}; "
+            f"groups: {', '.join(config.groups) or 'none'}"
+        )
+    return Target(tuple(n for n in config.names if n in members), GRIPPER_NAME in members)
+
+
+def resolve_joints(config: ArmConfig, name: str | None) -> tuple[str, ...]:
+    """The joints of a joint or group name (as :func:`resolve_target`), for homing.
+
+    Raises:
+        InvalidArgumentError: Unknown name, or the name stands for the gripper only.
+    """
+    target = resolve_target(config, name)
+    if not target.joints:
+        raise InvalidArgumentError(f"{name}: the gripper has no homing; name a joint or a group of joints")
+    return target.joints
