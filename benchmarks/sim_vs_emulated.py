@@ -23,13 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-from bioscara_gym.training.evaluate import EvalStats, make_eval_env, run_episodes
-from bioscara_gym.training.metadata import check_metadata
 from rich.console import Console
 from rich.table import Table
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.training.evaluate import EvalStats, make_eval_env, run_episodes
+from bioscara_gym.training.metadata import check_metadata
 
 TARGET_GAP_POINTS = 5.0
 

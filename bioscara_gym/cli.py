@@ -77,7 +77,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model, write_json
 
     if args.expert:
-        from bioscara_gym.training.train import resolve_env_id
+        from bioscara_gym.training.metadata import resolve_env_id
 
         env_id = resolve_env_id(args.env)
         stats = evaluate_expert(
@@ -139,7 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Modules that add subcommands: each has ``register(subparsers)`` and sets ``func``.
-EXTRA_COMMAND_MODULES = ("bioscara_gym.training.deploy", "bioscara_gym.console.session")
+EXTRA_COMMAND_MODULES = (
+    "bioscara_gym.training.deploy",
+    "bioscara_gym.training.export",
+    "bioscara_gym.console.commands",
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

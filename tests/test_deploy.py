@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,9 +22,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
-from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployArgs, Deployment
-from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
-from bioscara_gym.training.safety import Interrupted, SignalGuard
 from rich.console import Console
 from rigs import place_obstacle
 
@@ -31,6 +29,9 @@ from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployArgs, Deployment
+from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
+from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 REACH = "Bioscara-Reach-v0"
 
@@ -134,8 +135,9 @@ class PushJ1:
 def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
     import torch
-    from bioscara_gym.training.features import GoalErrorExtractor
     from stable_baselines3 import SAC, HerReplayBuffer
+
+    from bioscara_gym.training.features import GoalErrorExtractor
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("sac")
@@ -360,7 +362,7 @@ def test_signal_to_a_running_deploy_disables_every_joint(tmp_path: Path, signum:
 
 # --------------------------------------------------------------------- ONNX
 def test_onnx_actions_equal_sb3_predict(sac_model: Path, onnx_file: Path) -> None:
-    from bioscara_gym.training.evaluate import load_model
+    from bioscara_gym.training.algos import load_model
     from bioscara_gym.training.export import OnnxPolicy
 
     model, _ = load_model(sac_model)
@@ -400,3 +402,35 @@ def test_deploy_runs_an_onnx_policy_without_torch(tmp_path: Path, onnx_file: Pat
     assert proc.returncode == 0, proc.stderr
     summary = read_log(log)[-1]
     assert summary["stop_reason"] == "completed" and summary["cycles"] == 50
+
+
+def test_deploy_onnx_on_mock_imports_no_torch_sb3_or_mujoco(tmp_path: Path, onnx_file: Path) -> None:
+    log = tmp_path / "run.jsonl"
+    heavy = ("torch", "stable_baselines3", "mujoco")
+    script = textwrap.dedent(
+        f"""
+        import sys
+
+        class _Blocked:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in {heavy!r}:
+                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
+                return None
+
+        sys.meta_path.insert(0, _Blocked())
+        from bioscara_gym.cli import main
+
+        code = main(["deploy", "--onnx", {str(onnx_file)!r}, "--backend", "mock", "--episodes", "1",
+                     "--log", {str(log)!r}])
+        print("loaded:", sorted(m for m in sys.modules if m.split(".")[0] in {heavy!r}))
+        sys.exit(code)
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "loaded: []" in proc.stdout
+    summary = read_log(log)[-1]
+    assert summary["stop_reason"] == "completed" and summary["cycles"] == 50
+    assert_every_joint_disabled(summary)

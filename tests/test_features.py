@@ -6,8 +6,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from bioscara_gym.training.features import GoalErrorExtractor
 from gymnasium import spaces
+
+from bioscara_gym.training.features import GoalErrorExtractor
 
 
 def _goal_space(obs: int = 5, goal: int = 3) -> spaces.Dict:

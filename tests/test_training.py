@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
+import textwrap
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +23,14 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
+from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
+
+from bioscara_gym.cli import EXIT_INTERRUPTED, main
+from bioscara_gym.errors import HyperparamError, MetadataError, MissingExtraError, TrainingError
+from bioscara_gym.training.algos import ALGOS
 from bioscara_gym.training.features import GoalErrorExtractor
 from bioscara_gym.training.hyperparams import (
     EXTRA_KEYS,
@@ -33,16 +44,10 @@ from bioscara_gym.training.metadata import (
     build_metadata,
     check_metadata,
     read_metadata,
+    resolve_env_id,
     write_metadata,
 )
-from bioscara_gym.training.train import ALGOS, STATE_NAME, SuccessEvalCallback, _algo_kwargs, resolve_env_id
-from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
-from stable_baselines3.common.buffers import DictReplayBuffer
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
-
-from bioscara_gym.cli import EXIT_INTERRUPTED, main
-from bioscara_gym.errors import HyperparamError, MetadataError, TrainingError
+from bioscara_gym.training.train import STATE_NAME, SuccessEvalCallback, _algo_kwargs
 
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")
@@ -684,3 +689,61 @@ def test_read_metadata_refuses_a_file_that_is_not_json(tmp_path: Path) -> None:
     (tmp_path / METADATA_NAME).write_text("{not json", encoding="utf-8")
     with pytest.raises(MetadataError, match="cannot read"):
         read_metadata(tmp_path / "model.zip")
+
+
+# ------------------------------------------------------------ missing extras
+def _cli_without(blocked: tuple[str, ...], argv: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``bioscara ARGV`` in a fresh interpreter in which importing ``blocked`` fails."""
+    script = textwrap.dedent(
+        f"""
+        import sys
+
+        class _Blocked:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in {blocked!r}:
+                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
+                return None
+
+        sys.meta_path.insert(0, _Blocked())
+        from bioscara_gym.cli import main
+
+        sys.exit(main({argv!r}))
+        """
+    )
+    return subprocess.run(
+        [sys.executable, "-c", script], cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+
+
+TRAIN_HINT = "bioscara train needs the [train] extra: pip install 'bioscara-gym[train]'"
+
+
+@pytest.mark.parametrize(
+    ("blocked", "argv", "hint"),
+    [
+        (("torch",), ["train", "--timesteps", "10", "--out", "run"], TRAIN_HINT),
+        (("stable_baselines3",), ["train", "--timesteps", "10", "--out", "run"], TRAIN_HINT),
+        (("torch",), ["eval", "--model", "run/model.zip", "--episodes", "1"], TRAIN_HINT),
+        (("torch",), ["export", "--model", "run/model.zip", "--onnx", "p.onnx"], TRAIN_HINT),
+        (
+            ("onnxruntime",),
+            ["deploy", "--onnx", "p.onnx", "--backend", "mock"],
+            "deploy --onnx needs the [onnx] extra: pip install 'bioscara-gym[onnx]'",
+        ),
+    ],
+    ids=["train-no-torch", "train-no-sb3", "eval-no-torch", "export-no-torch", "deploy-onnx-no-ort"],
+)
+def test_a_missing_extra_is_one_line_naming_it(
+    tmp_path: Path, blocked: tuple[str, ...], argv: list[str], hint: str
+) -> None:
+    result = _cli_without(blocked, argv, tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == f"bioscara {argv[0]}: error: {hint}"
+
+
+def test_a_broken_dependency_is_not_reported_as_a_missing_extra() -> None:
+    from bioscara_gym.training.extras import needs_train
+
+    with pytest.raises(ModuleNotFoundError) as caught, needs_train():
+        raise ModuleNotFoundError("No module named 'sympy'", name="sympy")
+    assert not isinstance(caught.value, MissingExtraError)

@@ -1,4 +1,4 @@
-"""``bioscara deploy``: run a policy on the arm, safely; ``bioscara export``: policy to ONNX.
+"""``bioscara deploy``: run a policy on the arm, safely.
 
 Reads top to bottom, as a deployment runs:
 
@@ -10,12 +10,12 @@ Reads top to bottom, as a deployment runs:
 4. **home** the joints that are not homed (a joint homed before a host
    restart keeps its offset, read back from HOMEOFFSET on configure).
 5. **run** the episodes with the env the policy was trained on, on the
-   chosen backend, through :class:`~bioscara_gym.training.safety.SafetyLayer`, at a fixed
-   rate; every cycle goes to the run log.
+   chosen backend, through :class:`~bioscara_gym.training.deploy_safety.SafetyLayer`,
+   at a fixed rate; every cycle goes to the run log.
 6. **deactivate** (joints disabled, gripper width saved) and **clean up**.
 
 Any stop (NaN action, stall, bus error, deadman, Ctrl-C/SIGTERM) ends in
-:func:`~bioscara_gym.training.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
+:func:`~bioscara_gym.hardware.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
 sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
 the arm is left disabled in every case. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
@@ -41,15 +41,16 @@ written and flushed per record, so it is complete after Ctrl-C:
 On ``mock`` and ``emulated`` time is simulated: ``period_s`` is simulated and
 the loop runs as fast as the host can unless ``--realtime`` paces it on the
 wall clock; on ``i2c`` the backend waits on a fixed schedule.
+
+Only ``--model`` imports torch and stable-baselines3, only ``--onnx``
+onnxruntime; nothing here imports MuJoCo (the ``emulated`` backend does).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,36 +59,33 @@ from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
-from bioscara_gym.training.metadata import check_metadata, read_metadata
-from bioscara_gym.training.safety import (
-    DeadmanGuard,
-    Interrupted,
-    SafetyLayer,
-    SafetyStop,
-    SignalGuard,
-    StopReason,
-    final_state,
-    joint_named_in,
-    safe_stop,
-)
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from bioscara_gym.errors import DeployError, MetadataError
-from bioscara_gym.hardware.arm import Lifecycle
+from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import CommError, JointError
+from bioscara_gym.hardware.joint import Joint
+from bioscara_gym.hardware.safety import (
+    DeadmanGuard,
+    SafeStopReport,
+    SafetyStop,
+    StopReason,
+    final_state,
+    safe_stop,
+)
+from bioscara_gym.training.deploy_log import LoopStats, RunLog
+from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
+from bioscara_gym.training.metadata import check_metadata, read_metadata
+from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 #: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``).
 DEPLOY_BACKENDS = ("i2c", "emulated", "mock")
-#: A cycle is an overrun when its period exceeds the nominal one by this fraction.
-OVERRUN_TOLERANCE = 0.1
 #: Overrun warnings printed before they are only counted.
 OVERRUN_WARNINGS = 5
-#: fsync the log at least this often (every line is flushed), s.
-FSYNC_INTERVAL_S = 1.0
 #: Exit codes: refused before touching the arm, stopped by the safety layer.
 EXIT_REFUSED = 2
 EXIT_SAFETY_STOP = 3
@@ -139,98 +137,47 @@ class DeployArgs:
     state_file: Path | None = None
 
 
-# -------------------------------------------------------------------- run log
-def _jsonable(value: Any) -> Any:
-    """Numbers, arrays and dicts as strict JSON (non-finite floats as strings)."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | np.ndarray):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, bool | np.bool_):
-        return bool(value)
-    if isinstance(value, int | np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        f = float(value)
-        return f if math.isfinite(f) else str(f)
-    if value is None or isinstance(value, str):
-        return value
-    return str(value)
-
-
-class RunLog:
-    """JSON Lines, one ``write`` and flush per record, fsync'd every second and on close.
-
-    Args:
-        path: The log file (parents created; an existing file is replaced).
-    """
-
-    def __init__(self, path: Path) -> None:
-        """Open ``path`` for writing."""
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
-        self._synced = time.monotonic()
-        self.lines = 0
-
-    def write(self, record: dict[str, Any]) -> None:
-        """Append one record as a line."""
-        self._f.write(json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n")
-        self._f.flush()
-        self.lines += 1
-        now = time.monotonic()
-        if now - self._synced >= FSYNC_INTERVAL_S:
-            os.fsync(self._f.fileno())
-            self._synced = now
-
-    def close(self) -> None:
-        """Flush, fsync and close."""
-        if not self._f.closed:
-            self._f.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
-
-
-# ------------------------------------------------------------------- timing
 @dataclass
-class LoopStats:
-    """Period, jitter and overruns of the control loop.
+class Outcome:
+    """How a run ended: what the summary and the exit code say.
 
-    ``period`` is on the backend's clock (simulated on ``mock``/``emulated``,
-    the wall clock on ``i2c``), ``wall_period`` on the host's wall clock,
-    ``work`` the host time the policy and the step took. The first cycle of
-    each episode has no period (it follows a reset).
+    Attributes:
+        reason: Why it ended.
+        message: One line for the operator.
+        joint: The joint concerned, if one is.
+        exit_code: The CLI's exit code.
+        stop_report: What the safe stop did (``None`` if the run completed).
     """
 
-    nominal_s: float
-    periods: list[float] = field(default_factory=list)
-    wall_periods: list[float] = field(default_factory=list)
-    work: list[float] = field(default_factory=list)
-    silences: list[float] = field(default_factory=list)
-    overruns: int = 0
+    reason: StopReason = StopReason.COMPLETED
+    message: str = "completed"
+    joint: str | None = None
+    exit_code: int = 0
+    stop_report: SafeStopReport | None = None
 
-    def summary(self) -> dict[str, float | int | None]:
-        """Mean, max and standard deviation (jitter) of each series."""
 
-        def stats(xs: list[float], name: str) -> dict[str, float | None]:
-            a = np.asarray(xs)
-            if a.size == 0:
-                return {f"{name}_mean_s": None, f"{name}_max_s": None, f"{name}_jitter_s": None}
-            return {
-                f"{name}_mean_s": float(a.mean()),
-                f"{name}_max_s": float(a.max()),
-                f"{name}_jitter_s": float(a.std()),
-            }
+@dataclass
+class EpisodeClock:
+    """One episode's timing from cycle to cycle, on the backend's clock and the wall clock."""
 
-        return {
-            "rate_hz": 1.0 / self.nominal_s,
-            **stats(self.periods, "period"),
-            **stats(self.wall_periods, "wall_period"),
-            "work_mean_s": float(np.mean(self.work)) if self.work else None,
-            "work_max_s": float(np.max(self.work)) if self.work else None,
-            "max_silence_s": float(np.max(self.silences)) if self.silences else None,
-            "overruns": self.overruns,
-        }
+    prev_wall: float | None = None
+    prev_clock: float | None = None
+    deadline: float = field(default_factory=time.perf_counter)
+
+    def tick(self, clock_now: float) -> tuple[float, float | None, float | None]:
+        """Start a cycle: its wall time and its periods on both clocks (``None`` for the first)."""
+        t_wall = time.perf_counter()
+        period = None if self.prev_clock is None else clock_now - self.prev_clock
+        wall_period = None if self.prev_wall is None else t_wall - self.prev_wall
+        self.prev_wall, self.prev_clock = t_wall, clock_now
+        return t_wall, period, wall_period
+
+    def pace(self, dt: float) -> None:
+        """Sleep until the next cycle is due on the wall clock (``--realtime``)."""
+        self.deadline = max(self.deadline + dt, time.perf_counter() - dt)
+        pause = self.deadline - time.perf_counter()
+        if pause > 0:
+            time.sleep(pause)
 
 
 # ------------------------------------------------------------------ policies
@@ -248,11 +195,12 @@ def _env_id(env: gym.Env) -> str:
 def load_policy(args: DeployArgs) -> tuple[Callable[[gym.Env], Policy], dict[str, Any] | None, str]:
     """A factory of the policy (given the env), its metadata and a description.
 
-    Only ``--model`` imports torch and stable-baselines3.
+    Only ``--model`` imports torch and stable-baselines3, only ``--onnx`` onnxruntime.
 
     Raises:
         DeployError: No policy source, or more than one.
         MetadataError: ``--model`` without a readable ``metadata.json``.
+        MissingExtraError: The extra the policy source needs is not installed.
     """
     sources = [s for s in (args.model is not None, args.onnx is not None, args.expert) if s]
     if len(sources) != 1:
@@ -266,9 +214,9 @@ def load_policy(args: DeployArgs) -> tuple[Callable[[gym.Env], Policy], dict[str
 
         onnx_policy = OnnxPolicy(args.onnx)
         return (lambda env: onnx_policy), onnx_policy.metadata, f"ONNX {args.onnx}"
-    from bioscara_gym.training.evaluate import load_model, sb3_policy
-
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
+    from bioscara_gym.training.algos import load_model, sb3_policy
+
     model, metadata = load_model(Path(args.model))
     sb3 = sb3_policy(model)
     return (lambda env: sb3), metadata, f"{str(metadata.get('algo', 'sb3')).upper()} {args.model}"
@@ -320,50 +268,26 @@ class Deployment:
         self._t0 = time.perf_counter()
         self._gripper_width: float | None = None
         self._early_phases: list[dict[str, Any]] = []
+        self._log: RunLog | None = None
+        self._signals = SignalGuard()
+        self._guard: DeadmanGuard | None = None
+        self._stats: LoopStats | None = None
+        self._counts = {"episodes": 0, "successes": 0, "cycles": 0}
 
     # --------------------------------------------------------------- output
-    def _phase(self, name: str, detail: str, log: RunLog | None = None) -> None:
+    def _phase(self, name: str, detail: str) -> None:
         """Print a phase; log it (phases before the log opens are logged when it does)."""
         self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)}")
-        t = self.env.unwrapped.backend.clock.now() if self.env is not None else None
+        t = self.env.unwrapped.arm.backend.clock.now() if self.env is not None else None
         record = {"type": "phase", "phase": name, "detail": detail, "t": t}
-        if log is None:
+        if self._log is None:
             self._early_phases.append(record)
         else:
-            log.write(record)
+            self._log.write(record)
 
     def _starting(self, name: str, detail: str) -> None:
         """Print that a phase starts (a failure in it is printed right after)."""
         self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)} ...")
-
-    # ----------------------------------------------------------------- build
-    def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
-        args = self.args
-        kwargs: dict[str, Any] = dict(metadata.get("env_kwargs", {})) if metadata else {}
-        if metadata:
-            env_id = metadata.get("env_id")
-            if args.env is not None:
-                env_id = args.env  # checked against the metadata below
-        else:
-            env_id = args.env or "Bioscara-Reach-v0"
-        config = load_config(args.config)
-        if args.bus is not None:
-            config = dataclasses.replace(config, bus=args.bus)
-        options: dict[str, Any] = {}
-        state_file = args.state_file
-        if state_file is None and args.backend != "i2c":
-            state_file = self.log_path.parent / "gripper.json"
-        if state_file is not None:
-            options["state_file"] = state_file
-        if args.faults:
-            options["faults"] = FaultPlan.parse(args.faults)
-        kwargs.update(backend=args.backend, backend_options=options, config=config, render_mode=None)
-        if args.rate is not None:
-            kwargs["control_freq"] = float(args.rate)
-        try:
-            return gym.make(env_id, **kwargs)
-        except gym.error.Error as e:
-            raise DeployError(f"cannot make env {env_id!r}: {e}") from e
 
     # ------------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:
@@ -374,47 +298,100 @@ class Deployment:
                 (code 3); the arm is safe and the summary is attached.
             Interrupted: SIGINT/SIGTERM; the arm is safe, ``self.summary`` is set.
         """
-        args = self.args
-        if self._policy_override is not None:
-            given = self._policy_override
-            make_policy: Callable[[gym.Env], Policy] = lambda env: given  # noqa: E731
-            metadata, description = self._metadata_override, "given policy"
-        else:
-            make_policy, metadata, description = load_policy(args)
+        make_policy, metadata, description = self._load_policy()
         env = self.env = self._make_env(metadata)
         try:
-            env_id = _env_id(env)
-            self.console.print(
-                f"[bold]deploy[/bold]     {escape(description)} -> {_describe_env(env)} on {args.backend}"
-            )
-            if metadata is not None:
-                try:
-                    check_metadata(metadata, env, env_id)
-                except MetadataError as e:
-                    raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
-                self._phase("check", "policy metadata matches the env; nothing sent to the arm yet")
-            else:
-                self._phase("check", "no metadata to check (scripted policy)")
-            return self._run(env, env_id, make_policy(env), description)
+            target = f"{_describe_env(env)} on {self.args.backend}"
+            self.console.print(f"[bold]deploy[/bold]     {escape(description)} -> {target}")
+            self._check(env, metadata)
+            return self._run(env, make_policy(env), description)
         finally:
             env.close()
 
-    def _run(self, env: gym.Env, env_id: str, policy: Policy, description: str) -> dict[str, Any]:
+    def _load_policy(self) -> tuple[Callable[[gym.Env], Policy], dict[str, Any] | None, str]:
+        """Load the policy: the one given to the constructor, else the one the arguments name."""
+        if self._policy_override is None:
+            return load_policy(self.args)
+        given = self._policy_override
+        return (lambda env: given), self._metadata_override, "given policy"
+
+    def _check(self, env: gym.Env, metadata: dict[str, Any] | None) -> None:
+        """Refuse a policy trained for another env, before anything is sent to the arm."""
+        if metadata is None:
+            self._phase("check", "no metadata to check (scripted policy)")
+            return
+        try:
+            check_metadata(metadata, env, _env_id(env))
+        except MetadataError as e:
+            raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
+        self._phase("check", "policy metadata matches the env; nothing sent to the arm yet")
+
+    def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
+        """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet."""
         args = self.args
+        kwargs: dict[str, Any] = dict(metadata.get("env_kwargs", {})) if metadata else {}
+        if metadata:
+            env_id = args.env if args.env is not None else metadata.get("env_id")  # checked in _check
+        else:
+            env_id = args.env or "Bioscara-Reach-v0"
+        config = load_config(args.config)
+        if args.bus is not None:
+            config = dataclasses.replace(config, bus=args.bus)
+        kwargs.update(backend=args.backend, backend_options=self._backend_options(), config=config)
+        kwargs["render_mode"] = None
+        if args.rate is not None:
+            kwargs["control_freq"] = float(args.rate)
+        try:
+            return gym.make(env_id, **kwargs)
+        except gym.error.Error as e:
+            raise DeployError(f"cannot make env {env_id!r}: {e}") from e
+
+    def _backend_options(self) -> dict[str, Any]:
+        """The backend's options: the gripper state file and the emulated bus's faults."""
+        args = self.args
+        options: dict[str, Any] = {}
+        state_file = args.state_file
+        if state_file is None and args.backend != "i2c":
+            state_file = self.log_path.parent / "gripper.json"
+        if state_file is not None:
+            options["state_file"] = state_file
+        if args.faults:
+            options["faults"] = FaultPlan.parse(args.faults)
+        return options
+
+    def _run(self, env: gym.Env, policy: Policy, description: str) -> dict[str, Any]:
+        """Bring up, run and shut down; every way out makes the arm safe first."""
+        arm = env.unwrapped.arm
+        self._log = RunLog(self.log_path)
+        self._stats = LoopStats(nominal_s=env.unwrapped.dt)
+        outcome = Outcome()
+        try:
+            self._write_header(env, description)
+            with self._signals:
+                try:
+                    self._bring_up(env)
+                    self._episodes(env, policy)
+                    self._shut_down(arm)
+                except BaseException as e:
+                    outcome = self._stop_safely(e, arm)
+                    if not isinstance(e, Exception | KeyboardInterrupt):
+                        raise
+                finally:
+                    with self._signals.shielded():
+                        self._finish(env, outcome)
+        finally:
+            self._log.close()
+        return self._report(outcome)
+
+    def _write_header(self, env: gym.Env, description: str) -> None:
+        """Open the log with the run's header and the phases printed before it."""
         u = env.unwrapped
-        arm, backend = u.arm, u.backend
-        log = RunLog(self.log_path)
-        stats = LoopStats(nominal_s=u.dt)
-        counts = {"episodes": 0, "successes": 0, "cycles": 0}
-        reason, message, joint, exit_code = StopReason.COMPLETED, "completed", None, 0
-        guard: DeadmanGuard | None = None
-        signals = SignalGuard()
-        stop_report = None
-        log.write(
+        args = self.args
+        self._log.write(
             {
                 "type": "header",
                 "policy": description,
-                "env_id": env_id,
+                "env_id": _env_id(env),
                 "backend": args.backend,
                 "rate_hz": u.control_freq,
                 "control_mode": u.control_mode,
@@ -426,289 +403,246 @@ class Deployment:
             }
         )
         for record in self._early_phases:
-            log.write(record)
-        try:
-            with signals:
-                try:
-                    self._bring_up(env, log)
-                    guard = DeadmanGuard(backend)
-                    safety = SafetyLayer(env, guard)
-                    self._phase(
-                        "run",
-                        f"{args.episodes} episode(s) at {u.control_freq:g} Hz, log {self.log_path}",
-                        log,
-                    )
-                    self._episodes(env, policy, safety, signals, log, stats, counts)
-                    with signals.shielded():
-                        arm.deactivate()
-                        self._gripper_width = arm.gripper.get_position()
-                        saved = "saved" if arm.gripper.state_file else "not kept (no state file)"
-                        self._phase(
-                            "deactivate",
-                            f"joints disabled, gripper width {self._gripper_width:.3f} m {saved}",
-                            log,
-                        )
-                        arm.cleanup()
-                        self._phase("cleanup", "joints and gripper disconnected", log)
-                except BaseException as e:  # every way out makes the arm safe first
-                    with signals.shielded():
-                        reason, message, joint, exit_code = self._classify(e, arm)
-                        stop_report = safe_stop(arm)  # the arm first, then the words
-                        self._gripper_width = stop_report.gripper_width_m
-                        self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(message)}")
-                        log.write(
-                            {"type": "stop", "reason": reason.value, "message": message, "joint": joint}
-                        )
-                        if not isinstance(e, Exception | KeyboardInterrupt):
-                            raise
-                finally:
-                    with signals.shielded():
-                        if guard is not None:
-                            guard.detach()
-                        if arm.state is not Lifecycle.FINALIZED:
-                            arm.shutdown()
-                        self.summary = self._summary(
-                            env, stats, counts, reason, message, joint, exit_code, stop_report
-                        )
-                        log.write({"type": "summary", **self.summary})
-        finally:
-            log.close()
-        self._print_summary()
-        if reason is StopReason.COMPLETED:
-            return self.summary
-        disabled = self._disabled_line()
-        self.console.print(disabled)
-        if reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
-            raise Interrupted(exit_code - 128)
-        raise DeployError(f"safe stop: {message}", exit_code, self.summary)
+            self._log.write(record)
 
-    @staticmethod
-    def _classify(e: BaseException, arm: Any) -> tuple[StopReason, str, str | None, int]:
-        if isinstance(e, SafetyStop):
-            return e.reason, str(e), e.joint, EXIT_SAFETY_STOP
-        if isinstance(e, Interrupted):
-            return e.reason, f"{e} received", None, e.exit_code
-        if isinstance(e, KeyboardInterrupt):
-            return StopReason.INTERRUPTED, "SIGINT received", None, 130
-        if isinstance(e, CommError):
-            return (
-                StopReason.COMM_ERROR,
-                f"communication error: {e}",
-                joint_named_in(e, arm.names),
-                EXIT_SAFETY_STOP,
-            )
-        if isinstance(e, JointError):
-            return StopReason.JOINT_ERROR, f"joint error: {e}", joint_named_in(e, arm.names), EXIT_SAFETY_STOP
-        return StopReason.ERROR, f"{type(e).__name__}: {e}", None, 1
-
-    # ---------------------------------------------------------------- phases
-    def _bring_up(self, env: gym.Env, log: RunLog) -> None:
+    # ---------------------------------------------------------------- bring up
+    def _bring_up(self, env: gym.Env) -> None:
+        """Configure, activate and home the arm phase by phase, then claim the control mode."""
         u = env.unwrapped
-        arm = u.arm
-        addressed = ", ".join(
-            f"{n} {j.address:#04x}" if hasattr(j, "address") else n for n, j in arm.joints.items()
-        )
-        self._starting("configure", f"connecting and pinging {addressed}")
-        arm.configure()
-        self._phase("configure", "every joint answered", log)
+        arm: Arm = u.arm
+        self._configure(arm)
         homed_before = [n for n in arm.names if arm.joint_states[n].homed]
         self._starting("activate", "enabling joints, stall detection and limits")
         arm.activate()
-        self._phase("activate", "joints enabled, stall detection and limits set", log)
-        todo = [n for n in arm.names if n not in homed_before]
+        self._phase("activate", "joints enabled, stall detection and limits set")
+        self._home(arm, [n for n in arm.names if n not in homed_before], homed_before)
+        u.bring_up()  # configured, active and homed: only the command mode's claim is left
+
+    def _configure(self, arm: Arm) -> None:
+        """Connect and ping every joint."""
+        addressed = ", ".join(
+            f"{n} {j.address:#04x}" if isinstance(j, Joint) else n for n, j in arm.joints.items()
+        )
+        self._starting("configure", f"connecting and pinging {addressed}")
+        arm.configure()
+        self._phase("configure", "every joint answered")
+
+    def _home(self, arm: Arm, todo: list[str], homed_before: list[str]) -> None:
+        """Home the joints in ``todo``; those homed before keep the offset read on configure."""
         if homed_before:
-            self._phase(
-                "home", f"{', '.join(homed_before)} homed before: offset restored from HOMEOFFSET", log
-            )
+            self._phase("home", f"{', '.join(homed_before)} homed before: offset restored from HOMEOFFSET")
         if todo:
-            t0 = u.backend.clock.now()
+            clock = arm.backend.clock
+            t0 = clock.now()
             self._starting("home", f"homing {', '.join(todo)}")
             arm.home(todo)
-            self._phase("home", f"{', '.join(todo)} homed in {u.backend.clock.now() - t0:.1f} s", log)
-        from bioscara_gym.envs.base import JOINT_MODE
+            self._phase("home", f"{', '.join(todo)} homed in {clock.now() - t0:.1f} s")
 
-        mode = JOINT_MODE[u.control_mode]
-        for name in u.joint_names:
-            arm.claim(name, mode)
+    # -------------------------------------------------------------- episodes
+    def _episodes(self, env: gym.Env, policy: Policy) -> None:
+        """Run every episode behind the safety layer."""
+        self._guard = DeadmanGuard(env.unwrapped.arm.backend)
+        safety = SafetyLayer(env, self._guard)
+        self._phase(
+            "run",
+            f"{self.args.episodes} episode(s) at {env.unwrapped.control_freq:g} Hz, log {self.log_path}",
+        )
+        for ep in range(self.args.episodes):
+            self._run_episode(env, policy, safety, ep)
 
-    def _episodes(
+    def _run_episode(self, env: gym.Env, policy: Policy, safety: SafetyLayer, ep: int) -> None:
+        """Reset, then one cycle after another until the episode ends."""
+        obs, info = env.reset(seed=self.args.seed + ep)
+        if hasattr(policy, "reset"):
+            policy.reset()
+        self._guard.restart()
+        clock = EpisodeClock()
+        total, steps, done = 0.0, 0, False
+        while not done:
+            with self._signals.deferred():
+                self._signals.check()
+                obs, reward, terminated, truncated, info = self._cycle(
+                    env, policy, safety, clock, ep, steps, obs
+                )
+                total += float(reward)
+                steps += 1
+                if self.args.realtime:
+                    clock.pace(env.unwrapped.dt)
+            done = terminated or truncated
+        self._end_episode(ep, info, steps, total)
+
+    def _cycle(
         self,
         env: gym.Env,
         policy: Policy,
         safety: SafetyLayer,
-        signals: SignalGuard,
-        log: RunLog,
-        stats: LoopStats,
-        counts: dict[str, int],
-    ) -> None:
-        args = self.args
-        u = env.unwrapped
-        arm, clock = u.arm, u.backend.clock
-        dt = u.dt
-        names = u.joint_names
-        paced_wall = args.realtime or args.backend == "i2c"
-        for ep in range(args.episodes):
-            obs, info = env.reset(seed=args.seed + ep)
-            if hasattr(policy, "reset"):
-                policy.reset()
-            safety.guard.restart()
-            prev_wall = prev_clock = None
-            deadline = time.perf_counter()
-            total, steps = 0.0, 0
-            while True:
-                with signals.deferred():
-                    signals.check()
-                    if self.on_cycle is not None:
-                        self.on_cycle(counts["cycles"], env)
-                    t_wall, t_clock = time.perf_counter(), clock.now()
-                    period = None if prev_clock is None else t_clock - prev_clock
-                    wall_period = None if prev_wall is None else t_wall - prev_wall
-                    prev_wall, prev_clock = t_wall, t_clock
-                    raw = policy(obs)
-                    try:
-                        (obs, reward, terminated, truncated, info), check = safety.step(raw)
-                    except SafetyStop:
-                        log.write(
-                            {
-                                "type": "cycle",
-                                "cycle": counts["cycles"],
-                                "episode": ep,
-                                "step": steps,
-                                "t": t_clock,
-                                "action": np.asarray(raw, dtype=np.float64),
-                                "flags": {n: int(arm.joint_states[n].flags) for n in names},
-                                "stopped": True,
-                            }
-                        )
-                        raise
-                    work = time.perf_counter() - t_wall
-                    overrun = self._account(stats, dt, period, wall_period, work, check.silence_s, paced_wall)
-                    if overrun:
-                        self._warn_overrun(stats, counts["cycles"], dt, wall_period if paced_wall else period)
-                    states = arm.joint_states
-                    log.write(
-                        {
-                            "type": "cycle",
-                            "cycle": counts["cycles"],
-                            "episode": ep,
-                            "step": steps,
-                            "t": t_clock,
-                            "period_s": period,
-                            "wall_period_s": wall_period,
-                            "work_s": work,
-                            "silence_s": check.silence_s,
-                            "overrun": overrun,
-                            "action": np.asarray(raw, dtype=np.float64),
-                            "clamped": check.clamped,
-                            "commands": {n: arm.commands[n] for n in names},
-                            "q": {n: states[n].position for n in names},
-                            "qd": {n: states[n].velocity for n in names},
-                            "flags": {n: int(states[n].flags) for n in names},
-                            "reward": reward,
-                        }
-                    )
-                    counts["cycles"] += 1
-                    total += float(reward)
-                    steps += 1
-                    if args.realtime:
-                        deadline = max(deadline + dt, time.perf_counter() - dt)
-                        pause = deadline - time.perf_counter()
-                        if pause > 0:
-                            time.sleep(pause)
-                if terminated or truncated:
-                    break
-            success = bool(info.get("is_success", False))
-            counts["episodes"] += 1
-            counts["successes"] += success
-            log.write(
-                {
-                    "type": "episode",
-                    "episode": ep,
-                    "success": success,
-                    "distance": info.get("distance"),
-                    "steps": steps,
-                    "return": total,
-                    "stalled": bool(info.get("stalled", False)),
-                }
+        clock: EpisodeClock,
+        ep: int,
+        step: int,
+        obs: dict[str, np.ndarray],
+    ) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """One control cycle: the policy's action through the safety layer, accounted and logged."""
+        if self.on_cycle is not None:
+            self.on_cycle(self._counts["cycles"], env)
+        arm = env.unwrapped.arm
+        t_clock = arm.backend.clock.now()
+        t_wall, period, wall_period = clock.tick(t_clock)
+        raw = policy(obs)
+        where = {"cycle": self._counts["cycles"], "episode": ep, "step": step, "t": t_clock}
+        try:
+            result, check = safety.step(raw)
+        except SafetyStop:
+            flags = {n: int(arm.joint_states[n].flags) for n in env.unwrapped.joint_names}
+            self._log.write(
+                {"type": "cycle", **where, "action": _floats(raw), "flags": flags, "stopped": True}
             )
-            self.console.print(
-                f"{'':<10} episode {ep + 1}/{args.episodes}: {'success' if success else 'miss'}, "
-                f"distance {info.get('distance', math.nan) * 1000:.1f} mm, {steps} steps"
-            )
+            raise
+        timing = self._account_cycle(env, period, wall_period, time.perf_counter() - t_wall, check)
+        self._log.write(
+            {"type": "cycle", **where, **timing, **self._cycle_state(env, raw, check), "reward": result[1]}
+        )
+        self._counts["cycles"] += 1
+        return result
+
+    def _account_cycle(
+        self, env: gym.Env, period: float | None, wall_period: float | None, work: float, check: CycleCheck
+    ) -> dict[str, Any]:
+        """Add a cycle's timing to the statistics, warn on an overrun; the cycle record's timing."""
+        paced_wall = self.args.realtime or self.args.backend == "i2c"
+        overrun = self._stats.add(period, wall_period, work, check.silence_s, paced_wall)
+        if overrun:
+            self._warn_overrun(env.unwrapped.dt, wall_period if paced_wall else period)
+        return {
+            "period_s": period,
+            "wall_period_s": wall_period,
+            "work_s": work,
+            "silence_s": check.silence_s,
+            "overrun": overrun,
+        }
 
     @staticmethod
-    def _account(
-        stats: LoopStats,
-        dt: float,
-        period: float | None,
-        wall_period: float | None,
-        work: float,
-        silence: float,
-        paced_wall: bool,
-    ) -> bool:
-        """Add one cycle's timing to ``stats``; return whether it overran.
+    def _cycle_state(env: gym.Env, raw: Any, check: CycleCheck) -> dict[str, Any]:
+        """The cycle record's action, commands and per-joint state."""
+        arm = env.unwrapped.arm
+        names = env.unwrapped.joint_names
+        states = arm.joint_states
+        return {
+            "action": _floats(raw),
+            "clamped": check.clamped,
+            "commands": {n: arm.commands[n] for n in names},
+            "q": {n: states[n].position for n in names},
+            "qd": {n: states[n].velocity for n in names},
+            "flags": {n: int(states[n].flags) for n in names},
+        }
 
-        A cycle overruns when its period on the backend's clock (what the
-        joints see), or on the wall clock where the loop is paced by it, is
-        more than ``OVERRUN_TOLERANCE`` over the nominal period.
-        """
-        limit = dt * (1 + OVERRUN_TOLERANCE)
-        overrun = period is not None and period > limit
-        overrun |= paced_wall and wall_period is not None and wall_period > limit
-        if period is not None:
-            stats.periods.append(period)
-        if wall_period is not None:
-            stats.wall_periods.append(wall_period)
-        stats.work.append(work)
-        stats.silences.append(silence)
-        stats.overruns += overrun
-        return overrun
-
-    def _warn_overrun(self, stats: LoopStats, cycle: int, dt: float, period: float | None) -> None:
-        if stats.overruns > OVERRUN_WARNINGS:
+    def _warn_overrun(self, dt: float, period: float | None) -> None:
+        """Print the first ``OVERRUN_WARNINGS`` overruns; count the rest silently."""
+        overruns = self._stats.overruns
+        if overruns > OVERRUN_WARNINGS:
             return
-        more = " (further overruns are only counted)" if stats.overruns == OVERRUN_WARNINGS else ""
+        more = " (further overruns are only counted)" if overruns == OVERRUN_WARNINGS else ""
         self.console.print(
-            f"[yellow]warning[/yellow]: overrun at cycle {cycle}: period "
+            f"[yellow]warning[/yellow]: overrun at cycle {self._counts['cycles']}: period "
             f"{(period or 0.0) * 1000:.1f} ms > {dt * 1000:.0f} ms{more}"
         )
 
+    def _end_episode(self, ep: int, info: dict[str, Any], steps: int, total: float) -> None:
+        """Count, log and print the episode's result."""
+        success = bool(info.get("is_success", False))
+        self._counts["episodes"] += 1
+        self._counts["successes"] += success
+        self._log.write(
+            {
+                "type": "episode",
+                "episode": ep,
+                "success": success,
+                "distance": info.get("distance"),
+                "steps": steps,
+                "return": total,
+                "stalled": bool(info.get("stalled", False)),
+            }
+        )
+        self.console.print(
+            f"{'':<10} episode {ep + 1}/{self.args.episodes}: {'success' if success else 'miss'}, "
+            f"distance {info.get('distance', math.nan) * 1000:.1f} mm, {steps} steps"
+        )
+
+    # ------------------------------------------------------------- shut down
+    def _shut_down(self, arm: Arm) -> None:
+        """Deactivate (gripper width saved) and clean up, signals held off."""
+        with self._signals.shielded():
+            arm.deactivate()
+            self._gripper_width = arm.gripper.get_position()
+            saved = "saved" if arm.gripper.state_file else "not kept (no state file)"
+            self._phase("deactivate", f"joints disabled, gripper width {self._gripper_width:.3f} m {saved}")
+            arm.cleanup()
+            self._phase("cleanup", "joints and gripper disconnected")
+
+    def _stop_safely(self, e: BaseException, arm: Arm) -> Outcome:
+        """Make the arm safe after ``e``, then say why it stopped."""
+        with self._signals.shielded():
+            outcome = _classify(e)
+            outcome.stop_report = safe_stop(arm)  # the arm first, then the words
+            self._gripper_width = outcome.stop_report.gripper_width_m
+            self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(outcome.message)}")
+            self._log.write(
+                {
+                    "type": "stop",
+                    "reason": outcome.reason.value,
+                    "message": outcome.message,
+                    "joint": outcome.joint,
+                }
+            )
+        return outcome
+
+    def _finish(self, env: gym.Env, outcome: Outcome) -> None:
+        """Stop watching the joints, shut the arm down if still up, log the summary."""
+        arm = env.unwrapped.arm
+        if self._guard is not None:
+            self._guard.detach()
+        if arm.state is not Lifecycle.FINALIZED:
+            arm.shutdown()
+        self.summary = self._summarise(env, outcome)
+        self._log.write({"type": "summary", **self.summary})
+
     # --------------------------------------------------------------- summary
-    def _summary(
-        self,
-        env: gym.Env,
-        stats: LoopStats,
-        counts: dict[str, int],
-        reason: StopReason,
-        message: str,
-        joint: str | None,
-        exit_code: int,
-        stop_report: Any,
-    ) -> dict[str, Any]:
-        u = env.unwrapped
-        state = final_state(u.backend)
-        gripper = u.arm.gripper
+    def _summarise(self, env: gym.Env, outcome: Outcome) -> dict[str, Any]:
+        """The summary record: counts, timing, why it stopped, the arm's final state."""
+        arm = env.unwrapped.arm
+        state = final_state(arm.backend)
+        counts, report = self._counts, outcome.stop_report
         return {
             **counts,
             "success_rate": counts["successes"] / counts["episodes"] if counts["episodes"] else None,
-            **stats.summary(),
-            "stop_reason": reason.value,
-            "message": message,
-            "joint": joint,
+            **self._stats.summary(),
+            "stop_reason": outcome.reason.value,
+            "message": outcome.message,
+            "joint": outcome.joint,
             "final_state": state,
             "arm_disabled": all(not s["enabled"] for s in state.values()),
-            "arm_state": u.arm.state.value,
-            "problems": stop_report.problems if stop_report else [],
-            "not_confirmed_disabled": stop_report.not_confirmed if stop_report else [],
+            "arm_state": arm.state.value,
+            "problems": report.problems if report else [],
+            "not_confirmed_disabled": report.not_confirmed if report else [],
             "gripper": {
                 "width_m": self._gripper_width,
-                "state_file": str(gripper.state_file) if gripper.state_file else None,
+                "state_file": str(arm.gripper.state_file) if arm.gripper.state_file else None,
             },
-            "exit_code": exit_code,
+            "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
 
+    def _report(self, outcome: Outcome) -> dict[str, Any]:
+        """Print the summary; return it, or raise what the exit code needs."""
+        self._print_summary()
+        if outcome.reason is StopReason.COMPLETED:
+            return self.summary
+        self.console.print(self._disabled_line())
+        if outcome.reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
+            raise Interrupted(outcome.exit_code - 128)
+        raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
+
     def _disabled_line(self) -> str:
+        """Whether every joint is confirmed disabled, or which are not."""
         s = self.summary
         if s["arm_disabled"]:
             return "arm disabled: every joint reports not enabled; arm shut down, bus closed"
@@ -719,6 +653,7 @@ class Deployment:
         )
 
     def _print_summary(self) -> None:
+        """The summary as a table, and where the log is."""
         s = self.summary
 
         def ms(key: str) -> str:
@@ -749,24 +684,29 @@ class Deployment:
         self.console.print(f"log        {self.log_path}", markup=False)
 
 
+def _floats(action: Any) -> np.ndarray:
+    """The policy's raw action as float64, for the log."""
+    return np.asarray(action, dtype=np.float64)
+
+
+def _classify(e: BaseException) -> Outcome:
+    """Why the run stopped, from the exception that stopped it."""
+    if isinstance(e, SafetyStop):
+        return Outcome(e.reason, str(e), e.joint, EXIT_SAFETY_STOP)
+    if isinstance(e, Interrupted):
+        return Outcome(e.reason, f"{e} received", None, e.exit_code)
+    if isinstance(e, KeyboardInterrupt):
+        return Outcome(StopReason.INTERRUPTED, "SIGINT received", None, 130)
+    if isinstance(e, CommError):
+        return Outcome(StopReason.COMM_ERROR, f"communication error: {e}", e.joint, EXIT_SAFETY_STOP)
+    if isinstance(e, JointError):
+        return Outcome(StopReason.JOINT_ERROR, f"joint error: {e}", e.joint, EXIT_SAFETY_STOP)
+    return Outcome(StopReason.ERROR, f"{type(e).__name__}: {e}", None, 1)
+
+
 # ----------------------------------------------------------------------- CLI
 def _args_from_namespace(ns: argparse.Namespace) -> DeployArgs:
-    return DeployArgs(
-        model=ns.model,
-        onnx=ns.onnx,
-        expert=ns.expert,
-        env=ns.env,
-        backend=ns.backend,
-        bus=ns.bus,
-        config=ns.config,
-        episodes=ns.episodes,
-        rate=ns.rate,
-        log=ns.log,
-        faults=ns.faults,
-        seed=ns.seed,
-        realtime=ns.realtime,
-        state_file=ns.state_file,
-    )
+    return DeployArgs(**{f.name: getattr(ns, f.name) for f in dataclasses.fields(DeployArgs)})
 
 
 def cmd_deploy(ns: argparse.Namespace) -> int:
@@ -792,23 +732,8 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_export(ns: argparse.Namespace) -> int:
-    """``bioscara export``: write the ONNX file and report the check against torch."""
-    from bioscara_gym.training.export import export_onnx
-
-    result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
-    con = Console(highlight=False, markup=False, soft_wrap=True)
-    con.print(f"onnx      {result.path}")
-    con.print(f"input     obs = {' + '.join(f'{k}[{n}]' for k, n in result.obs_keys)}")
-    if result.checked:
-        con.print(
-            f"check     max |onnx - predict| = {result.max_abs_error:.2e} over {result.checked} observations"
-        )
-    return 0
-
-
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``deploy`` and ``export`` subcommands."""
+    """Add the ``deploy`` subcommand (and, until cli.py registers it, ``export``)."""
     p = sub.add_parser(
         "deploy",
         help="run a policy on the arm (or its emulation) behind the safety layer",
@@ -836,9 +761,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")
     p.add_argument("--state-file", type=Path, help="gripper state file")
     p.set_defaults(func=cmd_deploy)
-
-    p = sub.add_parser("export", help="export a trained policy to ONNX (checked against torch)")
-    p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
-    p.add_argument("--onnx", type=Path, required=True, help="ONNX file to write")
-    p.add_argument("--check", type=int, default=256, help="observations to compare with model.predict")
-    p.set_defaults(func=cmd_export)

@@ -14,9 +14,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from bioscara_gym.training.metadata import atomic_write_text, check_metadata, read_metadata
 
 from bioscara_gym.errors import MetadataError
+from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.training.metadata import check_metadata, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -94,41 +95,6 @@ def run_episodes(
     )
 
 
-def sb3_policy(model: Any) -> Policy:
-    """Deterministic actions of a stable-baselines3 model."""
-
-    def act(obs: dict[str, np.ndarray]) -> np.ndarray:
-        action, _ = model.predict(obs, deterministic=True)
-        return action
-
-    return act
-
-
-def load_model(path: Path) -> tuple[Any, dict[str, Any]]:
-    """Load a trained ``model.zip`` to act, with its metadata (the algorithm is in the metadata).
-
-    ``algo.load`` without an env fails for a model trained with
-    ``HerReplayBuffer`` (the default for the goal tasks) and would allocate
-    the whole replay buffer; acting needs neither, so the buffer is replaced
-    by a one-entry plain one.
-
-    Raises:
-        MetadataError: No or unreadable metadata.
-        FileNotFoundError: No model file.
-    """
-    from bioscara_gym.training.train import ALGOS
-
-    path = Path(path)
-    model_file = path / "model.zip" if path.is_dir() else path
-    metadata = read_metadata(model_file)
-    if not model_file.exists():
-        raise FileNotFoundError(f"no model at {model_file}")
-    algo = ALGOS[metadata.get("algo", "sac")]
-    act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
-    model = algo.load(model_file, env=None, device="cpu", custom_objects=act_only)
-    return model, metadata
-
-
 def make_eval_env(
     metadata: dict[str, Any], backend: str | None = None, render: bool = False, **overrides: Any
 ) -> gym.Env:
@@ -157,7 +123,7 @@ def evaluate_model(
 
     The video, if asked for, shows the first ``video_episodes`` episodes.
     """
-    from bioscara_gym.training.train import ALGOS  # noqa: F401 - fail early if SB3 is broken
+    from bioscara_gym.training.algos import load_model, sb3_policy  # needs the [train] extra: fail early
 
     metadata = read_metadata(Path(model_path))
     env = make_eval_env(metadata, backend, render=video is not None)

@@ -17,12 +17,13 @@ name          shape                         content
 The file's ``metadata_props`` carry the training metadata (``bioscara_metadata``,
 the same JSON as ``metadata.json``) and ``obs_keys`` (JSON ``[[key, size], ...]``),
 so ``bioscara deploy --onnx FILE`` checks the policy against the env without
-the ``.zip``. Only :func:`export_onnx` needs torch; :class:`OnnxPolicy` needs
-numpy and onnxruntime.
+the ``.zip``. Only :func:`export_onnx` needs torch (the ``[train]`` extra) and
+onnx; :class:`OnnxPolicy` needs numpy and onnxruntime (the ``[onnx]`` extra).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import tempfile
@@ -32,8 +33,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
 
 from bioscara_gym.errors import ExportError
+from bioscara_gym.training.extras import needs_onnx, needs_train
 
 #: metadata_props key holding the training metadata (JSON).
 METADATA_KEY = "bioscara_metadata"
@@ -133,9 +136,12 @@ def export_onnx(
         ExportError: Unsupported observation space, or the check failed (nothing written).
         MetadataError: No metadata next to the model.
     """
-    import onnx
-    import torch
-    from bioscara_gym.training.evaluate import load_model
+    with needs_train():
+        import torch
+
+        from bioscara_gym.training.algos import load_model
+    with needs_onnx("bioscara export"):
+        import onnx
 
     model, metadata = load_model(Path(model_path))
     layout = obs_layout(model.observation_space)
@@ -228,7 +234,8 @@ class OnnxPolicy:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         """Load the graph on the CPU, single-threaded (the control loop owns the other core)."""
-        import onnxruntime as ort
+        with needs_onnx("deploy --onnx"):
+            import onnxruntime as ort
 
         self.path = Path(path)
         options = ort.SessionOptions()
@@ -256,3 +263,26 @@ class OnnxPolicy:
 
     def reset(self) -> None:
         """Stateless: nothing to reset."""
+
+
+# ----------------------------------------------------------------------- CLI
+def cmd_export(ns: argparse.Namespace) -> int:
+    """``bioscara export``: write the ONNX file and report the check against torch."""
+    result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
+    con = Console(highlight=False, markup=False, soft_wrap=True)
+    con.print(f"onnx      {result.path}")
+    con.print(f"input     obs = {' + '.join(f'{k}[{n}]' for k, n in result.obs_keys)}")
+    if result.checked:
+        con.print(
+            f"check     max |onnx - predict| = {result.max_abs_error:.2e} over {result.checked} observations"
+        )
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``export`` subcommand."""
+    p = sub.add_parser("export", help="export a trained policy to ONNX (checked against torch)")
+    p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
+    p.add_argument("--onnx", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--check", type=int, default=256, help="observations to compare with model.predict")
+    p.set_defaults(func=cmd_export)

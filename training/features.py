@@ -19,9 +19,13 @@ SAC+HER on Reach (100 episodes): 90 % success at 15k steps without them,
 
 from __future__ import annotations
 
-import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+from bioscara_gym.training.extras import needs_train
+
+with needs_train():
+    import torch as th
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 

@@ -15,8 +15,8 @@ from typing import Any
 import gymnasium as gym
 
 import bioscara_gym
-from bioscara_gym.errors import MetadataError
-from bioscara_gym.fsutil import atomic_write_text  # also imported from here by train and evaluate
+from bioscara_gym.errors import MetadataError, TrainingError
+from bioscara_gym.fsutil import atomic_write_text
 
 METADATA_NAME = "metadata.json"
 #: env kwargs that change what the policy's actions mean; they must match to deploy.
@@ -102,3 +102,24 @@ def check_metadata(metadata: dict[str, Any], env: gym.Env, env_id: str) -> None:
             raise MetadataError(
                 f"{name} differs: policy {metadata.get(name)} vs env {space_description(space)}"
             )
+
+
+def resolve_env_id(env: str) -> str:
+    """The registered, versioned id for ``env`` (``Bioscara-Reach`` -> ``Bioscara-Reach-v0``).
+
+    Raises:
+        TrainingError: Unknown env id, with the registered Bioscara ids.
+    """
+    from gymnasium.envs.registration import find_highest_version, get_env_id, parse_env_id
+
+    if env in gym.registry:
+        return env
+    try:
+        ns, name, version = parse_env_id(env)
+    except gym.error.Error:
+        ns, name, version = None, env, None
+    latest = find_highest_version(ns, name) if version is None else None
+    if latest is not None:
+        return get_env_id(ns, name, latest)
+    known = ", ".join(sorted(k for k in gym.registry if k.startswith("Bioscara")))
+    raise TrainingError(f"unknown env {env!r}; registered: {known}")

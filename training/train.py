@@ -16,21 +16,26 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
-from bioscara_gym.training.evaluate import EvalStats, run_episodes, sb3_policy
-from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
-from bioscara_gym.training.metadata import atomic_write_text, build_metadata, write_metadata
-from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
-from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import HyperparamError, TrainingError
+from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.training.evaluate import EvalStats, run_episodes
+from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
+from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
 
-ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
+with needs_train():
+    import torch
+    from stable_baselines3 import HerReplayBuffer
+    from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+
+    from bioscara_gym.training.algos import ALGOS, sb3_policy
+
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
 STATE_NAME = "train_state.json"
 CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
@@ -80,27 +85,6 @@ class TrainResult:
     final_eval: EvalStats | None
     target_reached_at: int | None
     target_reached_after_s: float | None
-
-
-def resolve_env_id(env: str) -> str:
-    """The registered, versioned id for ``env`` (``Bioscara-Reach`` -> ``Bioscara-Reach-v0``).
-
-    Raises:
-        TrainingError: Unknown env id, with the registered Bioscara ids.
-    """
-    from gymnasium.envs.registration import find_highest_version, get_env_id, parse_env_id
-
-    if env in gym.registry:
-        return env
-    try:
-        ns, name, version = parse_env_id(env)
-    except gym.error.Error:
-        ns, name, version = None, env, None
-    latest = find_highest_version(ns, name) if version is None else None
-    if latest is not None:
-        return get_env_id(ns, name, latest)
-    known = ", ".join(sorted(k for k in gym.registry if k.startswith("Bioscara")))
-    raise TrainingError(f"unknown env {env!r}; registered: {known}")
 
 
 def load_run_hyperparams(args: TrainArgs, env_id: str) -> Hyperparams:

@@ -1,0 +1,221 @@
+"""The two halves of deploy's safety layer, on their own.
+
+The arm-facing half (``bioscara_gym.hardware.safety``: deadman guard, safe
+stop, final state) against a backend whose joints report their exchanges,
+and the policy-facing half (``bioscara_gym.training.deploy_safety``) against
+an env that raises driver errors. Full deployments are in test_deploy.py.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from gymnasium import spaces
+
+from bioscara_gym.hardware.arm import Arm
+from bioscara_gym.hardware.backends import Backend, make_backend
+from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.errors import CommError, NotEnabledError, StalledError
+from bioscara_gym.hardware.mock import MockJoint
+from bioscara_gym.hardware.registers import DEADMAN_S, Flag, Reg
+from bioscara_gym.hardware.safety import DeadmanGuard, SafetyStop, StopReason, final_state, safe_stop
+from bioscara_gym.training.deploy_safety import SafetyLayer
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_without(blocked: tuple[str, ...], code: str) -> subprocess.CompletedProcess[str]:
+    """Run ``code`` in a fresh interpreter in which importing ``blocked`` raises ModuleNotFoundError."""
+    prelude = textwrap.dedent(
+        f"""
+        import sys
+
+        class _Blocked:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in {blocked!r}:
+                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
+                return None
+
+        sys.meta_path.insert(0, _Blocked())
+        """
+    )
+    return subprocess.run(
+        [sys.executable, "-c", prelude + textwrap.dedent(code)],
+        capture_output=True, text=True, timeout=180, cwd=ROOT,
+    )  # fmt: skip
+
+
+# ------------------------------------------------------- a listened-to backend
+class ListenedJoint(MockJoint):
+    """A mock joint that reports its exchanges, as ``BaseJoint.on_exchange`` specifies."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.listeners: list[Callable[[], None]] = []
+
+    def on_exchange(self, listener: Callable[[], None]) -> Callable[[], None]:
+        self.listeners.append(listener)
+        return lambda: self.listeners.remove(listener)
+
+    def _command(self, reg: Reg, value: float | int) -> int:
+        flags = super()._command(reg, value)
+        for listener in list(self.listeners):
+            listener()
+        return flags
+
+    def _query(self, reg: Reg) -> tuple[float | int, int]:
+        reply = super()._query(reg)
+        for listener in list(self.listeners):
+            listener()
+        return reply
+
+
+class FlagsBackend(Backend):
+    """A backend that can read its devices' flags without a transaction."""
+
+    name = "mock"
+
+    def device_flags(self, name: str) -> Flag | None:
+        joint = self.joints[name]
+        return Flag(joint.device_flags) if isinstance(joint, MockJoint) else None
+
+
+@pytest.fixture
+def listened() -> Backend:
+    mock = make_backend("mock")
+    clock = ManualClock()
+    joints = {n: ListenedJoint(n, clock=clock) for n in ("j1", "j2")}
+    return FlagsBackend(mock.config, joints, mock.gripper, clock)
+
+
+# ------------------------------------------------------------- deadman guard
+def test_deadman_guard_trips_on_the_joint_silent_too_long(listened: Backend) -> None:
+    clock, j1, j2 = listened.clock, listened.joints["j1"], listened.joints["j2"]
+    j1.init()
+    j2.init()
+    guard = DeadmanGuard(listened)
+    clock.sleep(0.03)
+    j1.get_velocity()
+    j2.get_velocity()
+    assert guard.check() == pytest.approx(0.03)
+    clock.sleep(0.03)
+    j1.get_velocity()
+    clock.sleep(0.03)
+    with pytest.raises(SafetyStop) as stop:
+        guard.check()
+    assert stop.value.reason is StopReason.DEADMAN and stop.value.joint == "j2"
+    assert f"limit {DEADMAN_S * 1000:.0f} ms" in str(stop.value)
+
+
+def test_deadman_guard_sees_a_gap_between_exchanges_within_a_cycle(listened: Backend) -> None:
+    clock, j1, j2 = listened.clock, listened.joints["j1"], listened.joints["j2"]
+    j1.init()
+    j2.init()
+    guard = DeadmanGuard(listened)
+    clock.sleep(DEADMAN_S + 0.01)
+    j1.get_velocity()
+    j2.get_velocity()  # both just talked to, but each was silent over the deadman before
+    assert guard.silences()["j1"] == pytest.approx(DEADMAN_S + 0.01)
+    with pytest.raises(SafetyStop, match="deadman guard"):
+        guard.check()
+
+
+def test_deadman_guard_listens_through_the_joints_and_detaches(listened: Backend) -> None:
+    guard = DeadmanGuard(listened)
+    assert all(len(j.listeners) == 1 for j in listened.joints.values())
+    guard.note_cycle()  # every joint reports its exchanges: a cycle marks none of them
+    listened.clock.sleep(DEADMAN_S + 0.01)
+    assert min(guard.silences().values()) > DEADMAN_S
+    guard.detach()
+    assert all(not j.listeners for j in listened.joints.values())
+
+
+def test_deadman_guard_on_the_emulated_bus_gives_the_bus_back(gripper_state_file: Path) -> None:
+    backend = make_backend("emulated", state_file=gripper_state_file)
+    buses = {n: j.bus for n, j in backend.joints.items()}
+    guard = DeadmanGuard(backend)
+    backend.joints["j1"].init()
+    assert guard.silences()["j1"] < DEADMAN_S
+    guard.detach()
+    assert {n: j.bus for n, j in backend.joints.items()} == buses
+    backend.close()
+
+
+# ------------------------------------------------------ safe stop, final state
+def test_safe_stop_disables_every_joint_and_final_state_reads_the_devices(listened: Backend) -> None:
+    arm = Arm(listened)
+    arm.configure()
+    arm.activate()
+    report = safe_stop(arm)
+    assert report.problems == [] and report.not_confirmed == []
+    state = final_state(listened)
+    assert {s["source"] for s in state.values()} == {"mock device"}
+    assert all(not s["enabled"] and "NOT_ENABLED" in s["flag_names"] for s in state.values())
+
+
+def test_final_state_falls_back_to_the_last_reply_where_the_device_cannot_be_seen(listened: Backend) -> None:
+    listened.joints["j3"] = ListenedJoint("j3")
+    listened.device_flags = lambda name: None  # type: ignore[method-assign]
+    state = final_state(listened)
+    assert {s["source"] for s in state.values()} == {"last reply"}
+
+
+def test_hardware_safety_imports_no_gymnasium_mujoco_or_torch() -> None:
+    heavy = ("gymnasium", "mujoco", "torch", "stable_baselines3")
+    result = run_without(
+        heavy,
+        f"""
+        from bioscara_gym.hardware.safety import DeadmanGuard, final_state, safe_stop
+        print(sorted(m for m in sys.modules if m.split(".")[0] in {heavy!r}))
+        """,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
+
+
+# --------------------------------------------------------------- policy half
+class RaisingEnv:
+    """Just enough of an env for SafetyLayer: ``step`` raises the given error."""
+
+    def __init__(self, backend: Backend, error: Exception) -> None:
+        self.arm = Arm(backend)
+        self.unwrapped = self
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self.error = error
+
+    def step(self, action: np.ndarray) -> Any:
+        raise self.error
+
+
+@pytest.mark.parametrize(
+    ("error", "reason"),
+    [
+        (StalledError("stalled", joint="j2", register=Reg.SETRPM), StopReason.STALL),
+        (CommError("no reply", joint="j2", register=Reg.SETRPM), StopReason.COMM_ERROR),
+        (NotEnabledError("disabled", joint="j2"), StopReason.JOINT_ERROR),
+    ],
+    ids=["stall", "comm", "joint"],
+)
+def test_safety_layer_names_the_joint_the_driver_error_carries(
+    listened: Backend, error: Exception, reason: StopReason
+) -> None:
+    layer = SafetyLayer(RaisingEnv(listened, error), DeadmanGuard(listened))
+    with pytest.raises(SafetyStop) as stop:
+        layer.step(np.zeros(2))
+    assert stop.value.reason is reason and stop.value.joint == "j2"
+
+
+def test_safety_layer_clamps_and_refuses_non_finite_actions(listened: Backend) -> None:
+    layer = SafetyLayer(RaisingEnv(listened, RuntimeError()), DeadmanGuard(listened))
+    clipped, clamped = layer.filter_action([2.0, -0.5])
+    assert clamped and clipped.tolist() == [1.0, -0.5]
+    with pytest.raises(SafetyStop) as stop:
+        layer.filter_action([np.inf, 0.0])
+    assert stop.value.reason is StopReason.NAN_ACTION

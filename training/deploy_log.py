@@ -1,0 +1,136 @@
+"""What a deployment records: the JSON Lines run log and the control loop's timing.
+
+:class:`RunLog` writes one line per record and flushes it, so the log is
+complete after Ctrl-C; :class:`LoopStats` gathers period, jitter, host work
+and overruns for the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: fsync the log at least this often (every line is flushed), s.
+FSYNC_INTERVAL_S = 1.0
+#: A cycle is an overrun when its period exceeds the nominal one by this fraction.
+OVERRUN_TOLERANCE = 0.1
+
+
+def _jsonable(value: Any) -> Any:
+    """Numbers, arrays and dicts as strict JSON (non-finite floats as strings)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        f = float(value)
+        return f if math.isfinite(f) else str(f)
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
+
+
+class RunLog:
+    """JSON Lines, one ``write`` and flush per record, fsync'd every second and on close.
+
+    Args:
+        path: The log file (parents created; an existing file is replaced).
+    """
+
+    def __init__(self, path: Path) -> None:
+        """Open ``path`` for writing."""
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        self._synced = time.monotonic()
+        self.lines = 0
+
+    def write(self, record: dict[str, Any]) -> None:
+        """Append one record as a line."""
+        self._f.write(json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n")
+        self._f.flush()
+        self.lines += 1
+        now = time.monotonic()
+        if now - self._synced >= FSYNC_INTERVAL_S:
+            os.fsync(self._f.fileno())
+            self._synced = now
+
+    def close(self) -> None:
+        """Flush, fsync and close."""
+        if not self._f.closed:
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            self._f.close()
+
+
+@dataclass
+class LoopStats:
+    """Period, jitter and overruns of the control loop.
+
+    ``period`` is on the backend's clock (simulated on ``mock``/``emulated``,
+    the wall clock on ``i2c``), ``wall_period`` on the host's wall clock,
+    ``work`` the host time the policy and the step took. The first cycle of
+    each episode has no period (it follows a reset).
+    """
+
+    nominal_s: float
+    periods: list[float] = field(default_factory=list)
+    wall_periods: list[float] = field(default_factory=list)
+    work: list[float] = field(default_factory=list)
+    silences: list[float] = field(default_factory=list)
+    overruns: int = 0
+
+    def add(
+        self, period: float | None, wall_period: float | None, work: float, silence: float, paced_wall: bool
+    ) -> bool:
+        """Add one cycle's timing; return whether it overran.
+
+        A cycle overruns when its period on the backend's clock (what the
+        joints see), or on the wall clock where the loop is paced by it, is
+        more than ``OVERRUN_TOLERANCE`` over the nominal period.
+        """
+        limit = self.nominal_s * (1 + OVERRUN_TOLERANCE)
+        overrun = period is not None and period > limit
+        overrun |= paced_wall and wall_period is not None and wall_period > limit
+        if period is not None:
+            self.periods.append(period)
+        if wall_period is not None:
+            self.wall_periods.append(wall_period)
+        self.work.append(work)
+        self.silences.append(silence)
+        self.overruns += overrun
+        return overrun
+
+    def summary(self) -> dict[str, float | int | None]:
+        """Mean, max and standard deviation (jitter) of each series."""
+
+        def stats(xs: list[float], name: str) -> dict[str, float | None]:
+            a = np.asarray(xs)
+            if a.size == 0:
+                return {f"{name}_mean_s": None, f"{name}_max_s": None, f"{name}_jitter_s": None}
+            return {
+                f"{name}_mean_s": float(a.mean()),
+                f"{name}_max_s": float(a.max()),
+                f"{name}_jitter_s": float(a.std()),
+            }
+
+        return {
+            "rate_hz": 1.0 / self.nominal_s,
+            **stats(self.periods, "period"),
+            **stats(self.wall_periods, "wall_period"),
+            "work_mean_s": float(np.mean(self.work)) if self.work else None,
+            "work_max_s": float(np.max(self.work)) if self.work else None,
+            "max_silence_s": float(np.max(self.silences)) if self.silences else None,
+            "overruns": self.overruns,
+        }
