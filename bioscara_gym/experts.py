@@ -13,7 +13,8 @@ import math
 import numpy as np
 
 from bioscara_gym import kinematics
-from bioscara_gym.envs.base import WRIST_STEP, BioscaraEnv
+from bioscara_gym.envs.actions import WRIST_STEP, to_range, to_unit
+from bioscara_gym.envs.base import BioscaraEnv
 from bioscara_gym.envs.pick_place import BLOCK_SIZE
 
 #: Fraction of the braking-limited speed the controller asks for (the firmware
@@ -38,19 +39,18 @@ class JointSpaceController:
         self.hi = np.array([c.max for c in cfgs])
         self.vmax = np.array([c.max_velocity for c in cfgs])
         # Targets must lie where the env lets commands go (clear of the end stops).
-        self.cmd_lo, self.cmd_hi = env._cmd_lo, env._cmd_hi
+        self.cmd_lo, self.cmd_hi = env.command_low, env.command_high
         self.amax = np.array([c.max_acceleration for c in cfgs])
+        self._joint_pos = env.OBS_SLICES["joint_pos"]
 
     def joints(self, observation: np.ndarray) -> np.ndarray:
         """Measured joint positions from the normalized ``observation`` vector."""
-        n = len(self.lo)
-        return self.lo + (observation[:n] + 1.0) * 0.5 * (self.hi - self.lo)
+        return to_range(observation[self._joint_pos], self.lo, self.hi)
 
     def action(self, q: np.ndarray, q_target: np.ndarray) -> np.ndarray:
         """Joint part of the action that moves ``q`` toward ``q_target``."""
         if self.env.control_mode == "position":
-            lo, hi = self.cmd_lo, self.cmd_hi
-            return np.clip(2.0 * (q_target - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+            return np.clip(to_unit(q_target, self.cmd_lo, self.cmd_hi), -1.0, 1.0)
         e = q_target - q
         speed = np.minimum.reduce(
             [self.vmax, BRAKE_MARGIN * np.sqrt(2.0 * self.amax * np.abs(e)), GAIN * np.abs(e)]
@@ -140,6 +140,7 @@ class PickPlaceExpert:
         self.ctrl = JointSpaceController(env)
         g = env.config.gripper
         self._w_lo, self._w_hi = g.min, g.max
+        self._slices = env.OBS_SLICES
         self.reset()
 
     def reset(self) -> None:
@@ -151,7 +152,7 @@ class PickPlaceExpert:
         self._grip_offset = np.zeros(3)
 
     def _width_action(self, width: float) -> float:
-        return 2.0 * (width - self._w_lo) / (self._w_hi - self._w_lo) - 1.0
+        return to_unit(width, self._w_lo, self._w_hi)
 
     def _wrist_for(self, q: np.ndarray, yaw: float) -> float:
         """j4 that squares the fingers (along tool y) to the block's faces."""
@@ -165,9 +166,8 @@ class PickPlaceExpert:
         """Action for ``obs``."""
         o = obs["observation"]
         q = self.ctrl.joints(o)
-        tcp = o[9:12]
-        block = o[12:15]
-        yaw = float(o[21])
+        s = self._slices
+        tcp, block, yaw = o[s["tcp"]], o[s["block_pos"]], float(o[s["block_yaw"]][0])
         goal = obs["desired_goal"]
         width = self.OPEN
         if self.phase == "approach":

@@ -2,7 +2,7 @@
 
 The TCP is the site ``tcp`` of ``assets/bioscara.xml``: midway between the
 fingertips, on the j4 axis, so its position depends on j1, j2 and j3 only.
-Link lengths are the URDF's (SPEC.md); the height at j2 = 0 is the model's
+Link lengths are the URDF's (docs/model.md); the height at j2 = 0 is the model's
 vertical geometry (fingertips 5 mm above the table top). Used on every
 backend, so a policy sees the same ``achieved_goal`` on the real arm.
 """

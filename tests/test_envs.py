@@ -1,13 +1,11 @@
-"""The Gymnasium tasks: registration, API conformance, episodes on every backend, safety, rendering.
+"""The Gymnasium tasks: registration, API conformance, episodes on every backend, safety.
 
-Headless rendering needs ``MUJOCO_GL=egl`` before mujoco is imported; ``conftest.py``
-sets it.
+The action mapping is tested in ``test_envs_actions.py``, pictures in
+``test_envs_rendering.py`` and the docstrings' tables in ``test_envs_docs.py``.
 """
 
 from __future__ import annotations
 
-import ast
-import inspect
 import math
 import re
 import warnings
@@ -15,7 +13,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
-import imageio.v3 as iio
 import mujoco
 import numpy as np
 import pytest
@@ -26,8 +23,10 @@ import bioscara_gym
 from bioscara_gym import TASKS, kinematics, register_envs
 from bioscara_gym.assets import scene_path
 from bioscara_gym.envs import BioscaraEnv, BioscaraReachEnv
+from bioscara_gym.envs.base import JOINT_MODE
 from bioscara_gym.envs.reach import reachable_travel
-from bioscara_gym.hardware.arm import Lifecycle
+from bioscara_gym.hardware.arm import CommandMode, Lifecycle
+from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.registers import Flag
 
 REACH = "Bioscara-Reach-v0"
@@ -162,38 +161,6 @@ def test_module_prefixed_id_makes_env(make_env: MakeEnv) -> None:
     assert isinstance(env.unwrapped, BioscaraReachEnv)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
-
-
-def _documented_kwargs(doc: str) -> dict[str, object]:
-    """The ``| kwarg | default | meaning |`` rows of a docstring's Arguments table."""
-    section = doc.split("## Arguments", 1)[1].split("##", 1)[0]
-    rows = {}
-    for line in section.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) < 3 or not cells[0] or set(cells[0]) <= {"-"} or cells[0] == "kwarg":
-            continue
-        names = [n.strip() for n in cells[0].split(",")]
-        values = [v.strip() for v in cells[1].split(",")] if len(names) > 1 else [cells[1]]
-        for name, value in zip(names, values, strict=True):
-            rows[name] = ast.literal_eval(value)
-    return rows
-
-
-def test_documented_kwarg_defaults_match_the_code() -> None:
-    documented = _documented_kwargs(BioscaraReachEnv.__doc__)
-    params = {
-        **inspect.signature(BioscaraEnv.__init__).parameters,
-        **inspect.signature(BioscaraReachEnv.__init__).parameters,
-    }
-    actual = {n: p.default for n, p in params.items() if n not in ("self", "args", "kwargs")}
-    assert documented == actual
-
-
-@pytest.mark.parametrize("env_id", TASK_IDS)
-def test_documented_observation_size_matches_the_space(make_env: MakeEnv, env_id: str) -> None:
-    env = make_env(env_id, backend="mock")
-    size = int(re.search(r"\| observation\s*\| \((\d+),\)", type(env.unwrapped).__doc__).group(1))
-    assert env.observation_space["observation"].shape == (size,)
 
 
 # ----------------------------------------------------------------- API checks
@@ -411,6 +378,67 @@ def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str, 
         assert all(f == 0 for f in info["flags"].values())
 
 
+@pytest.mark.parametrize(
+    ("error", "expected"),
+    [
+        (StalledError("stall detection tripped", joint="j3"), "j3"),
+        (StalledError("j2: a message naming a joint, without joint="), None),
+    ],
+)
+def test_stalled_joint_comes_from_the_error_not_its_text(
+    make_env: MakeEnv, monkeypatch: pytest.MonkeyPatch, error: StalledError, expected: str | None
+) -> None:
+    env = make_env(REACH, backend="mock")
+    env.reset(seed=0)
+    u = env.unwrapped
+
+    def stall(dt: float) -> None:
+        raise error
+
+    monkeypatch.setattr(u.arm, "cycle", stall)
+    _, reward, terminated, _, info = env.step(u._neutral_action())
+    assert terminated and info["stalled"] is True
+    assert info.get("stalled_joint") == expected
+    assert reward < BioscaraEnv.stall_penalty + 1e-9
+    assert u.arm.state is Lifecycle.INACTIVE
+
+
+# ----------------------------------------------------------- public operations
+
+
+@pytest.mark.parametrize(
+    ("control_mode", "mode"),
+    [
+        ("velocity", CommandMode.VELOCITY),
+        ("position", CommandMode.POSITION),
+        ("cartesian", CommandMode.POSITION),
+    ],
+)
+def test_bring_up_readies_the_arm_in_the_command_mode(
+    make_env: MakeEnv, control_mode: str, mode: CommandMode
+) -> None:
+    u = make_env(REACH, backend="mock", control_mode=control_mode).unwrapped
+    assert u.command_mode is mode is JOINT_MODE[control_mode]
+    assert u.arm.state is Lifecycle.UNCONFIGURED
+    u.bring_up()
+    assert u.arm.state is Lifecycle.ACTIVE
+    assert all(u.arm.joints[n].is_homed() for n in JOINTS)
+    assert {n: u.arm.modes[n] for n in JOINTS} == dict.fromkeys(JOINTS, mode)
+    u.bring_up()  # ready already: nothing to do
+    u.reset(seed=0)
+    assert u.arm.state is Lifecycle.ACTIVE
+
+
+def test_command_range_is_public_and_read_only(make_env: MakeEnv) -> None:
+    u = make_env(REACH, backend="mock").unwrapped
+    lo = np.array([u.config.joint(n).min for n in JOINTS])
+    hi = np.array([u.config.joint(n).max for n in JOINTS])
+    assert np.all(lo < u.command_low) and np.all(u.command_low < u.command_high)
+    assert np.all(u.command_high < hi)
+    with pytest.raises(ValueError, match="read-only"):
+        u.command_low[0] = 0.0
+
+
 # ------------------------------------------------------- reward and success
 
 
@@ -462,7 +490,7 @@ def test_success_is_reported_at_the_goal(make_env: MakeEnv) -> None:
     env.reset(seed=5)
     u = env.unwrapped
     target = u._neutral_action()
-    target[:3] = (2.0 * (u.goal_joints - u._cmd_lo) / (u._cmd_hi - u._cmd_lo) - 1.0)[:3]
+    target[:3] = (2.0 * (u.goal_joints - u.command_low) / (u.command_high - u.command_low) - 1.0)[:3]
     _, reward, _, _, info = env.step(target)  # the mock reaches a position command at once
     assert info["is_success"] is True
     assert info["distance"] < 1e-5
@@ -483,8 +511,8 @@ def test_reach_goals_are_reachable_within_the_episode(reach_env: gym.Env) -> Non
         start = _true_joints(reach_env)
         goal = u.goal_joints
         assert np.all(np.abs(goal - start) <= travel + 1e-6), f"seed {seed}: goal out of reach"
-        assert np.all(goal >= u._cmd_lo), f"seed {seed}: goal below the commandable range"
-        assert np.all(goal <= u._cmd_hi), f"seed {seed}: goal above the commandable range"
+        assert np.all(goal >= u.command_low), f"seed {seed}: goal below the commandable range"
+        assert np.all(goal <= u.command_high), f"seed {seed}: goal above the commandable range"
         np.testing.assert_allclose(obs["desired_goal"], kinematics.forward(goal))
 
 
@@ -504,11 +532,11 @@ def test_reach_goals_follow_goal_horizon_s(make_env: MakeEnv) -> None:
 def test_position_policy_reaches_reach_goals(make_env: MakeEnv) -> None:
     env = make_env(REACH, control_mode="position")
     u = env.unwrapped
-    span = u._cmd_hi - u._cmd_lo
+    span = u.command_high - u.command_low
     for seed in range(4):
         env.reset(seed=seed)
         action = u._neutral_action()
-        action[:3] = (2.0 * (u.goal_joints - u._cmd_lo) / span - 1.0)[:3]
+        action[:3] = (2.0 * (u.goal_joints - u.command_low) / span - 1.0)[:3]
         for _ in range(env.spec.max_episode_steps):
             _, _, terminated, truncated, info = env.step(action)
             assert not terminated
@@ -536,118 +564,6 @@ def test_pick_place_keeps_the_block_on_the_table(make_env: MakeEnv) -> None:
     sim = env.unwrapped.sim
     assert sim.data.ncon > 0  # the block rests on the table
     assert sim.model.geom("block").rgba[3] > 0.0
-
-
-# -------------------------------------------------------------- cartesian mode
-
-
-@pytest.fixture
-def cartesian_env(make_env: MakeEnv) -> BioscaraEnv:
-    """A reset cartesian-mode Reach env on mock; tests pose it by setting its measurement."""
-    env = make_env(REACH, backend="mock", control_mode="cartesian")
-    env.reset(seed=0)
-    return env.unwrapped
-
-
-def _pose(u: BioscaraEnv, j1: float, j3: float, z: float = 0.1) -> None:
-    """Make ``u`` believe it measured the arm at (j1, z, j3, 0); its elbow follows j3."""
-    u._q = np.array([j1, z, j3, 0.0])
-    u._tcp = kinematics.forward(u._q)
-    u._elbow = 1.0 if j3 >= 0 else -1.0
-
-
-def _toward(u: BioscaraEnv, direction: np.ndarray) -> np.ndarray:
-    """Cartesian action of full length along ``direction`` (x, y), wrist and z still."""
-    action = np.zeros(4)
-    action[:2] = direction / np.linalg.norm(direction)
-    return action
-
-
-def test_cartesian_push_into_the_inner_rim_slides_along_it(cartesian_env: BioscaraEnv) -> None:
-    u = cartesian_env
-    _pose(u, j1=0.5, j3=u._cmd_hi[2])  # elbow folded as far as j3 allows: on the inner rim
-    inward = -u._tcp[:2]
-    tangent = np.array([-inward[1], inward[0]])
-    cmd = u._cartesian_commands(_toward(u, inward + tangent))
-    assert cmd[2] <= u._cmd_hi[2]
-    assert abs(cmd[0] - u._q[0]) > 0.01, "the arm froze instead of sliding along the rim"
-    r_min = u._planar_reach[0]
-    assert np.hypot(*kinematics.forward(cmd)[:2]) >= r_min - 1e-9
-
-
-def test_cartesian_rim_keeps_j3_targets_inside_its_limits(cartesian_env: BioscaraEnv) -> None:
-    u = cartesian_env
-    _pose(u, j1=0.5, j3=u._cmd_hi[2])
-    cmd = u._cartesian_commands(_toward(u, -u._tcp[:2]))  # straight at the base
-    np.testing.assert_allclose(cmd[2], u._cmd_hi[2], atol=1e-6)
-    np.testing.assert_allclose(cmd[0], u._q[0], atol=1e-6)
-
-
-@pytest.mark.parametrize("j3", [-1.5, -2.4])
-def test_cartesian_stops_j1_at_its_limit_rather_than_swing_to_the_other_elbow(
-    cartesian_env: BioscaraEnv, j3: float
-) -> None:
-    u = cartesian_env
-    _pose(u, j1=u._cmd_hi[0] - 0.005, j3=j3)
-    tangent = np.array([-u._tcp[1], u._tcp[0]])  # counter-clockwise: j1 would pass its limit
-    cmd = u._cartesian_commands(_toward(u, tangent))
-    assert cmd[0] == pytest.approx(u._cmd_hi[0])
-    assert cmd[2] < 0 and u._elbow == -1.0
-    assert np.all(np.abs(cmd[:3] - u._q[:3]) < 0.2)
-
-
-def test_cartesian_switches_elbow_near_the_stretched_arm(cartesian_env: BioscaraEnv) -> None:
-    u = cartesian_env
-    _pose(u, j1=u._cmd_hi[0] - 0.005, j3=-0.28)
-    tangent = np.array([-u._tcp[1], u._tcp[0]])
-    cmd = u._cartesian_commands(_toward(u, tangent))
-    assert cmd[2] > 0 and u._elbow == 1.0
-    assert cmd[0] <= u._cmd_hi[0]
-    target = u._tcp[:2] + u.cartesian_step[0] * tangent / np.linalg.norm(tangent)
-    np.testing.assert_allclose(kinematics.forward(cmd)[:2], target, atol=1e-9)
-
-
-def test_cartesian_ik_keeps_j1_within_half_a_turn_of_the_arm(cartesian_env: BioscaraEnv) -> None:
-    u = cartesian_env
-    _pose(u, j1=2.98, j3=1.0)
-    past_pi = kinematics.forward(np.array([3.2, 0.1, 1.0]))  # inverse() reports j1 as 3.2 - 2 pi
-    j1, _, j3 = u._ik_near(past_pi, 1.0)
-    assert j1 == pytest.approx(3.2) and j3 == pytest.approx(1.0)
-    cmd = u._cartesian_commands(np.zeros(4))
-    assert cmd[0] == pytest.approx(2.98)
-
-
-# ----------------------------------------------------------------- soft limits
-
-
-def _soft_limit_cases() -> list[Any]:
-    cases = []
-    for name in JOINTS:
-        for direction in (1.0, -1.0):
-            sign = "+" if direction > 0 else "-"
-            cases.append(pytest.param(name, direction, id=f"{name}{sign}"))
-    return cases
-
-
-@pytest.mark.parametrize(("joint", "direction"), _soft_limit_cases())
-def test_full_speed_toward_end_stop_brakes_before_it(make_env: MakeEnv, joint: str, direction: float) -> None:
-    probe = BioscaraReachEnv(backend="mock")
-    cfg = probe.config.joint(joint)
-    probe.close()
-    steps = math.ceil((cfg.max - cfg.min) / cfg.max_velocity * 25.0) + 25  # time to cross the range
-    env = make_env(REACH, max_episode_steps=steps)
-    env.reset(seed=JOINTS.index(joint))
-    idx = JOINTS.index(joint)
-    push = np.zeros(4, dtype=np.float32)
-    push[idx] = direction
-    for i in range(steps):
-        _, _, terminated, truncated, info = env.step(push)
-        q = _true_joints(env)[idx]
-        assert not terminated, f"step {i}: {info.get('stalled_joint')} stalled"
-        assert cfg.min < q < cfg.max, f"step {i}: {joint} at {q} reached its end stop"
-    assert truncated
-    stop = cfg.max if direction > 0 else cfg.min
-    assert abs(stop - q) < 0.05 * (cfg.max - cfg.min), f"{joint} stopped at {q}, far from {stop}"
 
 
 # -------------------------------------------------------- domain randomization
@@ -701,38 +617,6 @@ def test_sensor_noise_changes_observations_not_the_true_state(make_env: MakeEnv)
         assert np.all(np.abs(noise) > 0.0)
         obs_c, *_ = clean.step(hold)
         obs_n, *_ = noisy.step(hold)
-
-
-# ------------------------------------------------------------------- rendering
-
-
-@pytest.mark.parametrize("backend", ["sim", "mock"])
-def test_render_rgb_array_shows_the_arm(make_env: MakeEnv, backend: str) -> None:
-    env = make_env(PICK, backend=backend, render_mode="rgb_array", width=160, height=120)
-    env.reset(seed=0)
-    first = env.render()
-    assert first.shape == (120, 160, 3)
-    assert first.dtype == np.uint8
-    assert first.std() > 20.0
-    env.reset(seed=1)  # another pose: the drawn arm (sim state or mirrored joints) moves
-    second = env.render()
-    assert np.abs(first.astype(int) - second.astype(int)).mean() > 1.0
-
-
-def test_render_writes_a_viewable_png(make_env: MakeEnv) -> None:
-    env = make_env(PICK, render_mode="rgb_array")
-    env.reset(seed=0)
-    for action in _random_actions(env, 5, scale=0.5):
-        env.step(action)
-    image = env.render()
-    assert image.shape == (480, 480, 3)
-    iio.imwrite("/tmp/bioscara_env.png", image)
-    np.testing.assert_array_equal(iio.imread("/tmp/bioscara_env.png"), image)
-
-
-def test_render_without_render_mode_warns_and_returns_none(reach_env: gym.Env) -> None:
-    with pytest.warns(UserWarning, match="render_mode"):
-        assert reach_env.unwrapped.render() is None
 
 
 # ----------------------------------------------------------------------- close

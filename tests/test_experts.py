@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import ast
+import inspect
+
 import gymnasium as gym
 import pytest
-from bioscara_gym.training.evaluate import run_episodes
 
 import bioscara_gym  # noqa: F401 - registers the tasks
+from bioscara_gym import experts
 from bioscara_gym.experts import PickPlaceExpert, ReachExpert, expert_for
+from bioscara_gym.training.evaluate import run_episodes
 
 
 def _success_rate(env_id: str, episodes: int, **kwargs: object) -> float:
@@ -48,3 +52,24 @@ def test_pick_place_expert_succeeds_in_90_percent_of_200_episodes() -> None:
 @pytest.mark.parametrize("backend", ["mock", "emulated"])
 def test_reach_expert_works_on_other_backends(backend: str) -> None:
     assert _success_rate("Bioscara-Reach-v0", 5, backend=backend) >= 0.8
+
+
+def test_experts_use_only_the_envs_public_names() -> None:
+    """Observation layout from ``OBS_SLICES``, limits from ``command_low``/``command_high``."""
+    tree = ast.parse(inspect.getsource(experts))
+    private = sorted(
+        {
+            node.attr
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Attribute | ast.Name)
+            and getattr(node.value, "attr", getattr(node.value, "id", "")) == "env"
+            and node.attr.startswith("_")
+        }
+    )
+    assert private == []
+    subscripts = [
+        n for n in ast.walk(tree) if isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Slice)
+    ]
+    literal = [ast.unparse(n) for n in subscripts if isinstance(n.slice.lower, ast.Constant)]
+    assert not [s for s in literal if s.startswith(("o[", "observation["))], literal

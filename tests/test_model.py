@@ -20,7 +20,7 @@ SCENE_XML = Path(__file__).resolve().parents[1] / "bioscara_gym" / "assets" / "s
 ARM_JOINTS = ("j1", "j2", "j3", "j4")
 FINGER_JOINTS = ("finger_left", "finger_right")
 REACH_M = 0.329476 + 0.285
-"""Planar reach at full stretch (SPEC "Kinematics"), m."""
+"""Planar reach at full stretch (docs/model.md "Kinematics"), m."""
 
 
 @pytest.fixture

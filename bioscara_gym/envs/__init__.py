@@ -2,11 +2,16 @@
 
 One file per task (:mod:`~bioscara_gym.envs.reach`,
 :mod:`~bioscara_gym.envs.pick_place`) on the shared loop of
-:mod:`~bioscara_gym.envs.base`.
+:mod:`~bioscara_gym.envs.base`, which maps actions with
+:mod:`~bioscara_gym.envs.actions`, randomizes with
+:mod:`~bioscara_gym.envs.randomization` and draws with
+:mod:`~bioscara_gym.envs.rendering`. None of them imports MuJoCo at import
+time: an env on ``mock`` or ``i2c`` runs without it.
 """
 
-from bioscara_gym.envs.base import BioscaraEnv, DomainRandomization
+from bioscara_gym.envs.base import BioscaraEnv
 from bioscara_gym.envs.pick_place import BioscaraPickPlaceEnv
+from bioscara_gym.envs.randomization import DomainRandomization
 from bioscara_gym.envs.reach import BioscaraReachEnv
 
 __all__ = ["BioscaraEnv", "BioscaraPickPlaceEnv", "BioscaraReachEnv", "DomainRandomization"]

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from types import MappingProxyType
 
-import mujoco
 import numpy as np
 
 from bioscara_gym import kinematics
 from bioscara_gym.envs.base import BioscaraEnv
+from bioscara_gym.envs.rendering import SceneState
 
 #: Block edge length in m (``geom block`` in ``assets/scene.xml``).
 BLOCK_SIZE = 0.03
@@ -75,21 +76,34 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     move by up to 2 cm per step (Reach: 1 cm), to carry the block in time.
 
     ## Observation space
-    | key           | shape | content                                                            |
-    |---------------|-------|--------------------------------------------------------------------|
-    | observation   | (22,) | Reach's 12 values, block position (3), block minus TCP (3),         |
-    |               |       | block linear velocity (3), block yaw (1)                            |
-    | achieved_goal | (3,)  | block position in m                                                 |
-    | desired_goal  | (3,)  | target position in m                                                |
+    | key           | shape | content                                        |
+    |---------------|-------|------------------------------------------------|
+    | observation   | (22,) | Reach's 12 values, then the block's, see below |
+    | achieved_goal | (3,)  | block position in m                            |
+    | desired_goal  | (3,)  | target position in m                           |
+
+    ``observation``, by index and by name in ``OBS_SLICES``:
+
+    | idx   | OBS_SLICES     | content                                                 | unit |
+    |-------|----------------|---------------------------------------------------------|------|
+    | 0-3   | joint_pos      | j1..j4 positions scaled to [-1, 1] by the joint limits  | 1    |
+    | 4-7   | joint_vel      | j1..j4 velocities divided by the joint's max velocity   | 1    |
+    | 8     | gripper        | gripper width scaled to [-1, 1] over [0.04, 0.12] m     | 1    |
+    | 9-11  | tcp            | TCP position x, y, z, from the measured joints          | m    |
+    | 12-14 | block_pos      | block position x, y, z                                  | m    |
+    | 15-17 | block_from_tcp | block position minus TCP position                       | m    |
+    | 18-20 | block_vel      | block linear velocity (0 on ``mock`` and ``i2c``)       | m/s  |
+    | 21    | block_yaw      | block yaw about z                                       | rad  |
 
     On ``sim`` and ``emulated`` the block is simulated by MuJoCo; on ``mock``
     and ``i2c`` a kinematic stand-in (:class:`KinematicBlock`) is carried when
     grasped, since the testbed has no block sensor.
 
     ## Rewards, episode end, arguments
-    As Reach: dense (minus block-target distance) or sparse, a stall ends the
-    episode with -10, ``max_episode_steps`` 200 (8 s at 25 Hz), and the same
-    kwargs (``distance_threshold`` default 0.01 m).
+    As Reach: dense (minus block-target distance), sparse or log, a stall
+    ends the episode with -10, ``max_episode_steps`` 200 (8 s at 25 Hz), and
+    Reach's kwargs but ``goal_radius`` and ``goal_horizon_s``
+    (``distance_threshold`` default 0.01 m).
 
     ## Version history
     * v0: initial release.
@@ -99,6 +113,16 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     #: 2 cm steps in x and y: carrying the block across the table at Reach's 1 cm
     #: costs the scripted cartesian controller 10 points of success (74 % vs 84 %).
     cartesian_step = (0.02, 0.02, 0.01)
+    #: Reach's observation, then the block's (see the observation table).
+    OBS_SLICES = MappingProxyType(
+        {
+            **BioscaraEnv.OBS_SLICES,
+            "block_pos": slice(12, 15),
+            "block_from_tcp": slice(15, 18),
+            "block_vel": slice(18, 21),
+            "block_yaw": slice(21, 22),
+        }
+    )
 
     def __init__(self, *args: object, **kwargs: object) -> None:
         """See the class docstring for the arguments."""
@@ -110,9 +134,6 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
             jid = m.joint("block").id
             self._block_qadr = int(m.jnt_qposadr[jid])
             self._block_dadr = int(m.jnt_dofadr[jid])
-
-    def _obs_size(self) -> int:
-        return 2 * len(self.joint_names) + 1 + 3 + 3 + 3 + 3 + 1
 
     def _random_pose(self) -> np.ndarray:
         """TCP above the table, clear of the block's top, anywhere in reach."""
@@ -137,7 +158,8 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     #: Half-width in rad of the sectors blocks and targets are drawn from.
     SECTOR = 1.0
 
-    def _reset_task(self) -> None:
+    def _sample_goal(self) -> np.ndarray:
+        """Place the block on the table, then draw the target: on the table or up to 5 cm above."""
         tcp = self.tcp_position()
         while True:
             block = self._sample_table_point(tcp)
@@ -149,16 +171,18 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
                 break
         if self.np_random.random() < 0.5:
             target[2] += self.np_random.uniform(0.0, 0.05)
-        self.goal = target
         self.block_yaw = float(self.np_random.uniform(-math.pi / 4, math.pi / 4))
         if self.sim is not None:
             d, a = self.sim.data, self._block_qadr
             d.qpos[a : a + 3] = block
             d.qpos[a + 3 : a + 7] = [math.cos(self.block_yaw / 2), 0, 0, math.sin(self.block_yaw / 2)]
             d.qvel[self._block_dadr : self._block_dadr + 6] = 0.0
+            import mujoco  # the sim backend has imported it
+
             mujoco.mj_forward(self.sim.model, d)
         else:
             self._block.place(block, self.block_yaw)
+        return target
 
     def _block_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Block position (m), linear velocity (m/s) and yaw (rad)."""
@@ -176,14 +200,9 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
         observation = np.concatenate((self._joint_obs(), block, block - tcp, block_vel, (yaw,)))
         return {"observation": observation, "achieved_goal": block, "desired_goal": self.goal.copy()}
 
-    def _viz_model(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
-        model, data = super()._viz_model()
+    def _scene(self) -> SceneState:
+        """Reach's scene, plus the kinematic block where there is no simulation."""
+        scene = super()._scene()
         if self.sim is None:
-            a = int(model.jnt_qposadr[model.joint("block").id])
-            yaw = self._block.yaw
-            data.qpos[a : a + 3] = self._block.pos
-            data.qpos[a + 3 : a + 7] = [math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]
-            mujoco.mj_forward(model, data)
-        return model, data
-
-
+            scene.bodies = {"block": (self._block.pos, self._block.yaw)}
+        return scene

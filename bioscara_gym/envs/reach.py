@@ -51,8 +51,9 @@ class BioscaraReachEnv(BioscaraEnv):
     | 3   | j4    | × 10.0 rad/s                 | [-2.98069, 2.98069] rad         |
 
     Position targets span each joint's limits minus 0.03 rad (2 mm for j2),
-    as in the table; velocity commands are braked so a joint stops before its
-    end stop (soft limits), so only obstacles and overloads stall a joint.
+    as in the table (the env's ``command_low`` and ``command_high``);
+    velocity commands are braked so a joint stops before its end stop (soft
+    limits), so only obstacles and overloads stall a joint.
 
     In ``cartesian`` mode the action moves the TCP instead: entries 0-2 are a
     displacement of x and y by up to 1 cm and z by up to 1 cm per control step
@@ -67,13 +68,20 @@ class BioscaraReachEnv(BioscaraEnv):
     ## Observation space
     ``Dict`` with:
 
-    | key             | shape | content                                                        |
-    |-----------------|-------|----------------------------------------------------------------|
-    | observation     | (12,) | joint positions scaled to [-1, 1] by their limits (4),         |
-    |                 |       | joint velocities divided by their max velocity (4), gripper    |
-    |                 |       | width scaled to [-1, 1] (1), TCP position x, y, z in m (3)      |
-    | achieved_goal   | (3,)  | TCP position in m, from the measured joints (forward kinematics)|
-    | desired_goal    | (3,)  | goal position in m                                             |
+    | key             | shape | content                                                          |
+    |-----------------|-------|------------------------------------------------------------------|
+    | observation     | (12,) | the arm's state, laid out as in the next table                   |
+    | achieved_goal   | (3,)  | TCP position in m, from the measured joints (forward kinematics) |
+    | desired_goal    | (3,)  | goal position in m                                               |
+
+    ``observation``, by index and by name in ``OBS_SLICES``:
+
+    | idx  | OBS_SLICES | content                                                          | unit |
+    |------|------------|------------------------------------------------------------------|------|
+    | 0-3  | joint_pos  | j1..j4 positions scaled to [-1, 1] by the joint limits           | 1    |
+    | 4-7  | joint_vel  | j1..j4 velocities divided by the joint's max velocity            | 1    |
+    | 8    | gripper    | gripper width scaled to [-1, 1] over [0.04, 0.12] m              | 1    |
+    | 9-11 | tcp        | TCP position x, y, z, from the measured joints                   | m    |
 
     ## Rewards
     ``dense`` (default): minus the distance between TCP and goal in m.
@@ -157,8 +165,8 @@ class BioscaraReachEnv(BioscaraEnv):
         m.geom_conaffinity[geoms] = 0
         m.geom_rgba[geoms, 3] = 0.0
 
-    def _reset_task(self) -> None:
-        """Sample a goal within ``goal_radius`` of the TCP, reachable within ``goal_horizon_s``.
+    def _sample_goal(self) -> np.ndarray:
+        """A goal within ``goal_radius`` of the TCP, reachable within ``goal_horizon_s``.
 
         Goals are drawn in joint space (so they are reachable under every
         joint's speed and acceleration limits) and kept if their TCP position
@@ -166,16 +174,16 @@ class BioscaraReachEnv(BioscaraEnv):
         draw is shrunk toward the start pose, which always succeeds.
         """
         travel = reachable_travel(self._vmax, self._amax, self.goal_horizon_s)
-        lo = np.maximum(self._cmd_lo, self._q - travel)
-        hi = np.minimum(self._cmd_hi, self._q + travel)
+        lo = np.maximum(self.command_low, self._q - travel)
+        hi = np.minimum(self.command_high, self._q + travel)
         tcp = self.tcp_position()
         scale = 1.0
         while True:
             for _ in range(100):
                 q = self._q + scale * (self.np_random.uniform(lo, hi) - self._q)
                 if np.linalg.norm(kinematics.forward(q) - tcp) <= self.goal_radius:
-                    self.goal_joints, self.goal = q, kinematics.forward(q)
-                    return
+                    self.goal_joints = q
+                    return kinematics.forward(q)
             scale *= 0.5
 
     def _get_obs(self) -> dict[str, np.ndarray]:

@@ -1,0 +1,114 @@
+"""Per-episode domain randomization: physics of the MuJoCo model, sensor noise, latency.
+
+The settings (:class:`DomainRandomization`) and the draw of the model's
+physics (:class:`PhysicsRandomizer`), which scales the arrays of a compiled
+model in place: no MuJoCo import, and nothing to do where the backend has
+no model (``mock``, ``i2c``). Sensor noise and latency are applied by the
+env's loop (:class:`~bioscara_gym.envs.base.BioscaraEnv`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DomainRandomization:
+    """Per-episode randomization, all off (zero) by default; drawn from the env's seed.
+
+    Attributes:
+        mass: Relative spread of link masses (0.2: each scaled by U(0.8, 1.2)).
+        friction: Relative spread of geom friction.
+        damping: Relative spread of joint damping.
+        sensor_noise: Std of Gaussian noise on measured joint positions (rad or m).
+        latency_steps: Maximum command latency in control steps (drawn 0..N).
+    """
+
+    mass: float = 0.0
+    friction: float = 0.0
+    damping: float = 0.0
+    sensor_noise: float = 0.0
+    latency_steps: int = 0
+
+    def __post_init__(self) -> None:
+        """Validate the ranges."""
+        for name in ("mass", "friction", "damping"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"randomization {name}={value} must be within [0, 1)")
+        if self.sensor_noise < 0.0:
+            raise ValueError(f"randomization sensor_noise={self.sensor_noise} must be >= 0")
+        if self.latency_steps < 0:
+            raise ValueError(f"randomization latency_steps={self.latency_steps} must be >= 0")
+
+    @property
+    def physics(self) -> bool:
+        """Whether any model parameter is randomized."""
+        return bool(self.mass or self.friction or self.damping)
+
+    @classmethod
+    def default_on(cls) -> DomainRandomization:
+        """A moderate setting for sim-to-real training."""
+        return cls(mass=0.2, friction=0.3, damping=0.3, sensor_noise=0.0005, latency_steps=1)
+
+    @classmethod
+    def coerce(cls, value: DomainRandomization | dict | bool | None) -> DomainRandomization:
+        """The settings the env's ``randomization`` argument stands for.
+
+        Args:
+            value: ``None`` or ``False``: all off; ``True``: :meth:`default_on`;
+                a dict: its fields; a :class:`DomainRandomization`: itself.
+
+        Raises:
+            TypeError: ``value`` is none of these.
+            ValueError: A field is out of range.
+        """
+        if value is None or value is False:
+            return cls()
+        if value is True:
+            return cls.default_on()
+        if isinstance(value, dict):
+            return cls(**value)
+        if isinstance(value, DomainRandomization):
+            return value
+        raise TypeError(f"randomization must be a DomainRandomization, dict, bool or None, not {value!r}")
+
+
+class PhysicsRandomizer:
+    """Scales a MuJoCo model's masses, inertias, friction and damping around their nominal values.
+
+    The nominal values are read from the model the first time it is
+    randomized, so a model another part of the env changed before (Reach
+    pins its unused block with a huge damping) keeps that change as nominal.
+
+    Args:
+        settings: The spreads to draw from.
+    """
+
+    def __init__(self, settings: DomainRandomization) -> None:
+        """Remember ``settings``; nothing is read from a model yet."""
+        self.settings = settings
+        self._nominal: dict[str, np.ndarray] | None = None
+
+    def randomize(self, model: Any, rng: np.random.Generator) -> None:
+        """Draw new physics parameters for ``model`` (an ``MjModel``) from ``rng``, in place."""
+        r = self.settings
+        if not r.physics:
+            return
+        m = model
+        if self._nominal is None:
+            self._nominal = {
+                "mass": m.body_mass.copy(),
+                "inertia": m.body_inertia.copy(),
+                "friction": m.geom_friction.copy(),
+                "damping": m.dof_damping.copy(),
+            }
+        nom = self._nominal
+        scale = rng.uniform(1 - r.mass, 1 + r.mass, size=m.nbody)
+        m.body_mass[:] = nom["mass"] * scale
+        m.body_inertia[:] = nom["inertia"] * scale[:, None]
+        m.geom_friction[:] = nom["friction"] * rng.uniform(1 - r.friction, 1 + r.friction, size=(m.ngeom, 1))
+        m.dof_damping[:] = nom["damping"] * rng.uniform(1 - r.damping, 1 + r.damping, size=m.nv)
