@@ -764,14 +764,7 @@ class Arm:
             ArmStateError: Not active, or not there within the timeout.
         """
         self._require(Lifecycle.ACTIVE, action="move")
-        for name, value in targets.items():
-            self._mode(name)
-            cfg = self.config.joint(name)
-            unit = "m" if cfg.joint_type == "prismatic" else "rad"
-            if not (math.isfinite(value) and cfg.min <= value <= cfg.max):
-                raise InvalidArgumentError(
-                    f"{name}: {value:g} {unit} is outside the joint limits [{cfg.min:g}, {cfg.max:g}] {unit}"
-                )
+        self.check_targets(targets)
         for name in targets:
             if not self.joints[name].is_homed():
                 raise NotHomedError(f"{name}: not homed; home it before moving it")
@@ -793,9 +786,13 @@ class Arm:
         start = clock.now()
         while not all(self._at(name, value) for name, value in targets.items()):
             if clock.now() - start > timeout_s:
-                where = ", ".join(f"{n} at {self.joint_states[n].position:.4f}" for n in targets)
+                late = [n for n, v in targets.items() if not self._at(n, v)]
                 raise ArmStateError(
-                    f"{', '.join(targets)} not at the target within {timeout_s:g} s ({where})"
+                    "; ".join(
+                        f"{n}: not at {targets[n]:g} {self._unit(n)} within {timeout_s:g} s "
+                        f"(at {self.joint_states[n].position:.4f} {self._unit(n)})"
+                        for n in late
+                    )
                 )
             self.cycle(period_s)
         for name, mode in previous.items():
@@ -804,6 +801,25 @@ class Arm:
                 if mode is not CommandMode.NONE:
                     self.claim(name, mode)
         return {n: self.joint_states[n].position for n in targets}
+
+    def check_targets(self, targets: Mapping[str, float]) -> None:
+        """Refuse unknown joints and positions not finite or outside the joint's limits.
+
+        Raises:
+            InvalidArgumentError: Naming the joint, the value and the limits.
+        """
+        for name, value in targets.items():
+            self._mode(name)
+            cfg = self.config.joint(name)
+            if not (math.isfinite(value) and cfg.min <= value <= cfg.max):
+                unit = self._unit(name)
+                raise InvalidArgumentError(
+                    f"{name}: {value:g} {unit} is outside the joint limits [{cfg.min:g}, {cfg.max:g}] {unit}"
+                )
+
+    def _unit(self, name: str) -> str:
+        """``m`` for the prismatic joint, ``rad`` for the others."""
+        return "m" if self.config.joint(name).joint_type == "prismatic" else "rad"
 
     def _at(self, name: str, target: float) -> bool:
         """Whether the joint is within :data:`MOVE_TOLERANCE` of ``target`` and at rest."""

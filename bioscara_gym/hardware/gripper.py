@@ -675,6 +675,14 @@ class Gripper(BaseGripper):
         """The channel's sysfs directory, e.g. ``/sys/class/pwm/pwmchip0/pwm0``."""
         return self._pwm_path
 
+    @property
+    def output_enabled(self) -> bool:
+        """Whether the servo's PWM output is on (sysfs ``enable`` reads 1); ``False`` if unreadable."""
+        try:
+            return (self._pwm_path / "enable").read_text().strip() == "1"
+        except OSError:
+            return False
+
     def set_servo_position(self, angle_deg: float) -> None:
         """Write ``duty_cycle`` for a servo angle in degrees.
 
