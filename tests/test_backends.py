@@ -27,7 +27,7 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.firmware import TICK_S
+from bioscara_gym.hardware.registers import TICK_S
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -370,3 +370,25 @@ def test_mock_backend_step_advances_its_manual_clock(make_arm_backend: MakeBacke
     backend = make_arm_backend("mock")
     backend.step(0.25)
     assert backend.clock.now() == 0.25
+
+
+# ----------------------------------------------------------- device flags
+@pytest.mark.parametrize("name", ["sim", "emulated", "mock"])
+def test_device_flags_are_the_devices_own_at_power_up(make_arm_backend: Callable, name: str) -> None:
+    backend = make_arm_backend(name)
+    assert backend.device_flags("j2") == Flag.NOT_HOMED | Flag.NOT_ENABLED  # 0b00001100 at power-up
+
+
+def test_device_flags_follow_the_emulated_firmware_not_the_last_reply(make_arm_backend: Callable) -> None:
+    backend = make_arm_backend("emulated")
+    joint = backend.joints["j1"]
+    joint.init()
+    joint.enable(20, 20)  # SETUP clears NOT_ENABLED in the firmware and in the reply
+    assert backend.device_flags("j1") == Flag.NOT_HOMED
+    backend.sim.cores["j1"].flags |= int(Flag.STALL)  # the device changed; no reply has said so
+    assert backend.device_flags("j1") == Flag.NOT_HOMED | Flag.STALL
+    assert joint.flags == Flag.NOT_HOMED
+
+
+def test_device_flags_cannot_be_seen_on_hardware(i2c_backend: I2CBackend) -> None:
+    assert i2c_backend.device_flags("j1") is None

@@ -28,6 +28,7 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
+from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
 BACKENDS = ("sim", "mock", "emulated", "i2c")
@@ -84,6 +85,17 @@ class Backend:
     def step(self, dt: float) -> None:
         """Let ``dt`` seconds pass (simulated or waited)."""
         self.clock.sleep(dt)
+
+    def device_flags(self, name: str) -> Flag | None:
+        """The flags joint ``name``'s device holds now, read without a bus transaction.
+
+        Only a simulated or mock device can be looked into; on hardware this
+        is ``None`` and the flags of the joint's last reply are what is known.
+        """
+        sim = self.sim
+        if sim is not None:
+            return Flag(sim.cores[name].flags)  # type: ignore[attr-defined]
+        return None
 
     def comm_stats(self) -> dict[str, CommStats]:
         """Bus statistics per joint (empty where there is no bus)."""
@@ -198,6 +210,10 @@ class MockBackend(Backend):
             state_file=gripper_state_file(config, state_file, default=False),
         )
         super().__init__(config, joints, gripper, clock)
+
+    def device_flags(self, name: str) -> Flag | None:
+        """The mirror's own flags (see :meth:`Backend.device_flags`)."""
+        return Flag(self.joints[name].device_flags)  # type: ignore[attr-defined]
 
 
 class I2CBackend(Backend):

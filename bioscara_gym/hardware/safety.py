@@ -33,7 +33,6 @@ from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.errors import JointError
 from bioscara_gym.hardware.joint import Joint
-from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
@@ -288,7 +287,7 @@ def final_state(backend: Backend) -> dict[str, dict[str, Any]]:
     """
     out: dict[str, dict[str, Any]] = {}
     for name, joint in backend.joints.items():
-        device = _device_flags(backend, name)
+        device = backend.device_flags(name)
         if device is None:
             flags, source = int(joint.flags), LAST_REPLY
         else:
@@ -300,17 +299,3 @@ def final_state(backend: Backend) -> dict[str, dict[str, Any]]:
             "source": source,
         }
     return out
-
-
-def _device_flags(backend: Backend, name: str) -> int | None:
-    """The flags the joint's device holds now, read without a transaction (``None``: cannot be seen)."""
-    device_flags = getattr(backend, "device_flags", None)  # TRANSITIONAL: Backend.device_flags (issue 12)
-    if device_flags is not None:
-        return device_flags(name)
-    cores = getattr(backend.sim, "cores", None)  # TRANSITIONAL: until Backend.device_flags lands
-    if cores is not None and name in cores:
-        return int(cores[name].flags)
-    joint = backend.joints[name]
-    if isinstance(joint, MockJoint):
-        return int(joint.device_flags)
-    return None
