@@ -27,11 +27,10 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.registers import TICK_S
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
-from bioscara_gym.hardware.registers import ACK, Flag, Reg
+from bioscara_gym.hardware.registers import ACK, TICK_S, Flag, Reg
 from bioscara_gym.hardware.sim import SimClock, SimGripper, SimJoint
 from bioscara_gym.hardware.stats import CommStats
 
