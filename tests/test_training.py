@@ -617,6 +617,108 @@ def test_on_policy_gets_no_replay_buffer(reach_env: gym.Env) -> None:
     assert "replay_buffer_class" not in _algo_kwargs(hp, reach_env, "ppo")
 
 
+#: TINY["sac"] as rl-zoo3 writes it: env_kwargs a mapping, the evaluation a dotted-path callback.
+ZOO_SUCCESS = "bioscara_gym.training.zoo.SuccessEvalCallback"
+TINY_ZOO: dict[str, Any] = {
+    **{k: v for k, v in TINY_OFF_POLICY.items() if k not in ("eval_freq", "eval_episodes", "policy_kwargs")},
+    "policy": "bioscara_gym.training.zoo.SACGoalErrorPolicy",
+    "policy_kwargs": "dict(net_arch=[16, 16])",
+    "env_kwargs": dict(REACH_KWARGS),
+    "callback": [{ZOO_SUCCESS: {"eval_freq": 200, "eval_episodes": 2, "target_success": 0.0}}],
+}
+
+
+def test_load_hyperparams_reads_the_rl_zoo3_form(tmp_path: Path) -> None:
+    from bioscara_gym.training.zoo import SACGoalErrorPolicy
+
+    hp = load_hyperparams(write_config(tmp_path / "cfg.yaml", {REACH: TINY_ZOO}), REACH)
+    assert hp.policy is SACGoalErrorPolicy
+    assert hp.env_kwargs == REACH_KWARGS
+    assert (hp.eval_freq, hp.eval_episodes, hp.target_success) == (200, 2, 0.0)
+    assert hp.callbacks == () and hp.eval_kwargs == {}
+    assert not set(EXTRA_KEYS) & set(hp.algo_kwargs)
+    plain = hp.as_dict()
+    assert plain["policy"] == "bioscara_gym.training.zoo.SACGoalErrorPolicy"
+    json.dumps(plain)
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+@pytest.mark.parametrize("env_id", [REACH, PICK])
+def test_packaged_config_takes_its_evaluation_from_the_success_callback(algo: str, env_id: str) -> None:
+    entry = yaml.safe_load(default_config_path(algo).read_text(encoding="utf-8"))[env_id]
+    (callback,) = entry["callback"]
+    hp = load_hyperparams(default_config_path(algo), env_id)
+    assert (hp.eval_freq, hp.eval_episodes, hp.target_success) == tuple(
+        callback[ZOO_SUCCESS][k] for k in ("eval_freq", "eval_episodes", "target_success")
+    )
+    assert hp.env_kwargs == entry["env_kwargs"]
+
+
+def test_load_hyperparams_keeps_other_success_kwargs_and_other_callbacks(tmp_path: Path) -> None:
+    from stable_baselines3.common.callbacks import StopTrainingOnMaxEpisodes
+
+    entry = {
+        **TINY_ZOO,
+        "callback": [
+            {ZOO_SUCCESS: {"eval_freq": 100, "quick_episodes": 5}},
+            {"stable_baselines3.common.callbacks.StopTrainingOnMaxEpisodes": {"max_episodes": 3}},
+        ],
+    }
+    hp = load_hyperparams(write_config(tmp_path / "cfg.yaml", {REACH: entry}), REACH)
+    assert (hp.eval_freq, hp.eval_kwargs) == (100, {"quick_episodes": 5})
+    assert hp.callbacks == ((StopTrainingOnMaxEpisodes, {"max_episodes": 3}),)
+    json.dumps(hp.as_dict())
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"policy": "bioscara_gym.training.zoo.Nope"}, r"\.policy: bioscara_gym\.training\.zoo has no Nope"),
+        ({"callback": ["no_such_module.Callback"]}, r"\.callback: cannot import no_such_module"),
+        ({"callback": [{ZOO_SUCCESS: {"eval_freqq": 1}}]}, r"\.callback: .*Callback: .*eval_freqq"),
+        ({"callback": [{ZOO_SUCCESS: {}, "other.Callback": {}}]}, r"\.callback: expected a dotted path"),
+        ({"callback": [ZOO_SUCCESS, ZOO_SUCCESS]}, "more than one"),
+        ({"eval_freq": 100}, "eval_freq given both at the top and in the callback"),
+        ({"env_kwargs": [1]}, "env_kwargs must be a mapping"),
+        ({"normalize": True}, r"\.normalize: bioscara train does not support normalize.*rl_zoo3"),
+        ({"frame_stack": 2}, "does not support frame_stack"),
+        ({"env_wrapper": "gymnasium.wrappers.FlattenObservation"}, "does not support env_wrapper"),
+    ],
+)
+def test_load_hyperparams_refuses_malformed_rl_zoo3_entries(
+    tmp_path: Path, change: dict[str, Any], message: str
+) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: {**TINY_ZOO, **change}})
+    with pytest.raises(HyperparamError, match=message):
+        load_hyperparams(config, REACH)
+
+
+def test_config_lin_schedule_and_train_freq_list_become_what_sb3_takes(reach_env: gym.Env) -> None:
+    algo_kwargs = {"learning_rate": "lin_0.002", "train_freq": [1, "episode"]}
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs=algo_kwargs)
+    kwargs = _algo_kwargs(hp, reach_env, "sac")
+    assert kwargs["learning_rate"](1.0) == pytest.approx(0.002)
+    assert kwargs["learning_rate"](0.25) == pytest.approx(0.0005)
+    assert kwargs["train_freq"] == (1, "episode")
+
+
+def test_config_unknown_schedule_is_refused(reach_env: gym.Env) -> None:
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"learning_rate": "exp_0.1"})
+    with pytest.raises(TrainingError, match=r"learning_rate 'exp_0\.1'"):
+        _algo_kwargs(hp, reach_env, "sac")
+
+
+def test_train_reads_the_rl_zoo3_form_and_stops_at_the_callbacks_target(tmp_path: Path) -> None:
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY_ZOO})
+    assert main(train_argv(tmp_path / "run", config)) == 0
+    metadata = read_metadata(tmp_path / "run" / "model.zip")
+    assert metadata["timesteps"] == 200  # target 0 % met at the first evaluation
+    assert metadata["config"]["policy"] == "bioscara_gym.training.zoo.SACGoalErrorPolicy"
+    model = SAC.load(tmp_path / "run" / "model.zip", device="cpu", buffer_size=1,
+                     custom_objects={"replay_buffer_class": None, "replay_buffer_kwargs": {}})  # fmt: skip
+    assert isinstance(model.actor.features_extractor, GoalErrorExtractor)
+
+
 # ------------------------------------------------------------------- env ids
 
 

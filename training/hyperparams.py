@@ -1,19 +1,32 @@
-"""Hyperparameter files in rl-zoo3's format.
+"""Hyperparameter files in rl-zoo3's format, read by ``bioscara train`` and rl-zoo3 alike.
 
 One YAML mapping per file, keyed by env id; each entry holds the algorithm's
-keyword arguments plus rl-zoo3's extras (``n_timesteps``, ``policy``,
-``n_envs``, ``env_kwargs``, ``noise_type``/``noise_std``,
-``replay_buffer_class``) and ours (``eval_freq``, ``eval_episodes``,
-``target_success``). Values that are strings of Python calls such as
-``"dict(net_arch=[256, 256])"`` are parsed with :mod:`ast` for literals and
-the few class names in :data:`NAMES` (``nn.ReLU``, ``GoalErrorExtractor``),
-never evaluated.
+keyword arguments plus rl-zoo3's extras: ``n_timesteps``, ``policy`` (an SB3
+name or a dotted path such as ``bioscara_gym.training.zoo.SACGoalErrorPolicy``),
+``n_envs``, ``env_kwargs`` (a YAML mapping), ``noise_type``/``noise_std``,
+``replay_buffer_class`` and ``callback`` (dotted paths, each optionally
+mapped to its keyword arguments). The periodic success evaluation is the
+callback :class:`bioscara_gym.training.zoo.SuccessEvalCallback`; its
+``eval_freq``, ``eval_episodes`` and ``target_success`` become the fields of
+:class:`Hyperparams`. So ``python -m rl_zoo3.train -conf FILE`` runs the same
+entries unchanged.
+
+Values that are strings of Python calls such as ``"dict(net_arch=[256, 256])"``
+are parsed with :mod:`ast` for literals and the few class names in
+:data:`NAMES` (``nn.ReLU``, ``GoalErrorExtractor``), never evaluated; dotted
+paths are imported, as rl-zoo3 does. Files of the older, bioscara-only form
+(``env_kwargs`` as a ``dict(...)`` string, ``eval_freq``/``eval_episodes``/
+``target_success`` at the top of an entry) are still read; rl-zoo3 refuses them.
+rl-zoo3 keys that change what the policy sees (``normalize``, ``frame_stack``,
+``env_wrapper``, ``vec_env_wrapper``) are refused: a policy trained behind
+them could not be evaluated, exported or deployed on the plain env.
 """
 
 from __future__ import annotations
 
 import ast
 import importlib
+import inspect
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -31,10 +44,23 @@ EXTRA_KEYS = (
     "env_kwargs",
     "noise_type",
     "noise_std",
+    "callback",
+    "monitor_kwargs",
+    # The older, bioscara-only spelling of SuccessEvalCallback's arguments.
     "eval_freq",
     "eval_episodes",
     "target_success",
 )
+
+#: rl-zoo3 keys ``bioscara train`` refuses: they change what the policy sees, so the
+#: policy would not run on the plain env that eval, export and deploy give it.
+ZOO_ONLY_KEYS = ("normalize", "frame_stack", "env_wrapper", "vec_env_wrapper")
+
+#: The callback whose arguments are the evaluation schedule.
+SUCCESS_CALLBACK = "bioscara_gym.training.zoo.SuccessEvalCallback"
+
+#: Its arguments that have fields of their own in :class:`Hyperparams`.
+EVAL_FIELDS = ("eval_freq", "eval_episodes", "target_success")
 
 
 #: Names a value may use (rl-zoo3 writes ``activation_fn=nn.ReLU``), as ``module:attribute``.
@@ -54,7 +80,7 @@ class Hyperparams:
     Attributes:
         source: File the entry came from.
         n_timesteps: Training budget in env steps.
-        policy: SB3 policy name.
+        policy: SB3 policy name, or the class a dotted path names.
         n_envs: Parallel envs (on-policy algorithms).
         env_kwargs: Keyword arguments for ``gym.make``.
         eval_freq: Env steps between success evaluations.
@@ -63,11 +89,14 @@ class Hyperparams:
         noise_type: Action noise for TD3 (``normal`` or ``ornstein-uhlenbeck``).
         noise_std: Its standard deviation.
         algo_kwargs: Everything else, passed to the algorithm.
+        eval_kwargs: Further keyword arguments of the success callback
+            (``quick_episodes``, ``seed``, ``verbose``).
+        callbacks: The other callbacks of the entry: (class, keyword arguments).
     """
 
     source: str
     n_timesteps: int
-    policy: str = "MultiInputPolicy"
+    policy: str | type = "MultiInputPolicy"
     n_envs: int = 1
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     eval_freq: int = 2000
@@ -76,10 +105,12 @@ class Hyperparams:
     noise_type: str | None = None
     noise_std: float = 0.1
     algo_kwargs: dict[str, Any] = field(default_factory=dict)
+    eval_kwargs: dict[str, Any] = field(default_factory=dict)
+    callbacks: tuple[tuple[type, dict[str, Any]], ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """A plain, YAML/JSON-friendly view (for metadata and logs)."""
-        out = {k: getattr(self, k) for k in ("source", "n_timesteps", "policy", "n_envs")}
+        out = {k: _plain(getattr(self, k)) for k in ("source", "n_timesteps", "policy", "n_envs")}
         out.update(
             env_kwargs=dict(self.env_kwargs),
             eval_freq=self.eval_freq,
@@ -89,6 +120,10 @@ class Hyperparams:
             noise_std=self.noise_std,
             algo_kwargs=_plain(self.algo_kwargs),
         )
+        if self.eval_kwargs:
+            out["eval_kwargs"] = _plain(self.eval_kwargs)
+        if self.callbacks:
+            out["callbacks"] = [{_plain(cls): _plain(kwargs)} for cls, kwargs in self.callbacks]
         return out
 
 
@@ -179,20 +214,90 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
     values: dict[str, Any] = {}
     for key, value in entry.items():
         where = f"config {path}: {env_id}.{key}"
+        if key in ZOO_ONLY_KEYS:
+            raise HyperparamError(
+                f"{where}: bioscara train does not support {key} (the policy would not run on the plain "
+                "env that eval, export and deploy use); train with `python -m rl_zoo3.train` instead"
+            )
         values[key] = parse_literal_call(value, where) if isinstance(value, str) and "(" in value else value
     if "n_timesteps" not in values:
         raise HyperparamError(f"config {path}: {env_id}.n_timesteps is missing")
     extras = {k: values.pop(k) for k in EXTRA_KEYS if k in values}
+    extras.pop("monitor_kwargs", None)  # rl-zoo3's Monitor logging; SB3 logs success itself
     env_kwargs = extras.pop("env_kwargs", {}) or {}
     if not isinstance(env_kwargs, dict):
-        raise HyperparamError(f"config {path}: {env_id}.env_kwargs must be dict(...)")
+        raise HyperparamError(f"config {path}: {env_id}.env_kwargs must be a mapping")
+    where = f"config {path}: {env_id}"
+    if isinstance(extras.get("policy"), str) and "." in extras["policy"]:
+        extras["policy"] = import_dotted(extras["policy"], f"{where}.policy")
+    eval_kwargs, callbacks = _split_callbacks(extras.pop("callback", None), f"{where}.callback")
+    legacy = {k: extras.pop(k) for k in EVAL_FIELDS if k in extras}
+    if legacy and set(legacy) & set(eval_kwargs):
+        raise HyperparamError(f"{where}: {', '.join(legacy)} given both at the top and in the callback")
+    eval_kwargs.update(legacy)
     try:
         return Hyperparams(
             source=str(path),
             n_timesteps=int(float(extras.pop("n_timesteps"))),
             env_kwargs=env_kwargs,
             algo_kwargs=values,
-            **{k: v for k, v in extras.items()},
+            callbacks=callbacks,
+            **{k: eval_kwargs.pop(k) for k in EVAL_FIELDS if k in eval_kwargs},
+            eval_kwargs=eval_kwargs,
+            **extras,
         )
     except (TypeError, ValueError) as e:
         raise HyperparamError(f"config {path}: {env_id}: {e}") from e
+
+
+def import_dotted(name: str, where: str) -> Any:
+    """The attribute a dotted path ``package.module.Name`` names (imported, as rl-zoo3 does).
+
+    Raises:
+        HyperparamError: Not a dotted path, or nothing importable by that name.
+    """
+    module, _, attribute = name.rpartition(".")
+    if not module or not attribute:
+        raise HyperparamError(f"{where}: {name!r} is not a dotted path package.module.Name")
+    try:
+        return getattr(importlib.import_module(module), attribute)
+    except ImportError as e:
+        raise HyperparamError(f"{where}: cannot import {module}: {e}") from e
+    except AttributeError as e:
+        raise HyperparamError(f"{where}: {module} has no {attribute}") from e
+
+
+def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple[type, dict[str, Any]], ...]]:
+    """rl-zoo3's ``callback`` value: the success callback's kwargs, and the other callbacks.
+
+    rl-zoo3 accepts a dotted path, a ``{path: kwargs}`` mapping, or a list of them.
+    """
+    from bioscara_gym.training.zoo import SuccessEvalCallback
+
+    if spec is None:
+        return {}, ()
+    items = spec if isinstance(spec, list) else [spec]
+    eval_kwargs: dict[str, Any] | None = None
+    others: list[tuple[type, dict[str, Any]]] = []
+    for item in items:
+        if isinstance(item, str):
+            name, kwargs = item, {}
+        elif isinstance(item, dict) and len(item) == 1:
+            name, kwargs = next(iter(item.items()))
+            kwargs = {} if kwargs is None else kwargs
+        else:
+            raise HyperparamError(f"{where}: expected a dotted path or {{path: kwargs}}, got {item!r}")
+        if not isinstance(name, str) or not isinstance(kwargs, dict):
+            raise HyperparamError(f"{where}: expected a dotted path mapped to its kwargs, got {item!r}")
+        cls = import_dotted(name, where)
+        try:
+            inspect.signature(cls).bind(**kwargs)
+        except TypeError as e:
+            raise HyperparamError(f"{where}: {name}: {e}") from e
+        if isinstance(cls, type) and issubclass(cls, SuccessEvalCallback):
+            if eval_kwargs is not None:
+                raise HyperparamError(f"{where}: more than one {SUCCESS_CALLBACK}")
+            eval_kwargs = dict(kwargs)
+        else:
+            others.append((cls, dict(kwargs)))
+    return eval_kwargs or {}, tuple(others)

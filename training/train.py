@@ -20,7 +20,7 @@ import numpy as np
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.fsutil import atomic_write_text
-from bioscara_gym.training.evaluate import EvalStats, run_episodes
+from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
 from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
@@ -34,9 +34,12 @@ with needs_train():
     from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
-    from bioscara_gym.training.algos import ALGOS, sb3_policy
+    from bioscara_gym.training.algos import ALGOS
+    from bioscara_gym.training.zoo import SuccessEvalCallback
 
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
+#: Keys whose value may be one of rl-zoo3's schedule strings ``lin_<initial value>``.
+SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
 STATE_NAME = "train_state.json"
 CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
 
@@ -98,75 +101,6 @@ def load_run_hyperparams(args: TrainArgs, env_id: str) -> Hyperparams:
         raise TrainingError(str(e)) from e
 
 
-class SuccessEvalCallback(BaseCallback):
-    """Evaluate the success rate every ``eval_freq`` steps; stop at the target.
-
-    A cheap evaluation (``quick_episodes``) runs often; when it reaches the
-    target, a full one (``episodes``) confirms before training stops, so the
-    reported rate is measured on the full set.
-    """
-
-    def __init__(
-        self,
-        env: gym.Env,
-        eval_freq: int,
-        episodes: int,
-        target: float,
-        seed: int,
-        quick_episodes: int = 20,
-        verbose: int = 0,
-    ) -> None:
-        """Set up the evaluation env and schedule."""
-        super().__init__(verbose)
-        self.eval_env = env
-        self.eval_freq = eval_freq
-        self.episodes = episodes
-        self.quick_episodes = min(quick_episodes, episodes)
-        self.target = target
-        self.seed = seed
-        self.last: EvalStats | None = None
-        self.reached_at: int | None = None
-        self.reached_after_s: float | None = None
-        self._start = time.perf_counter()
-        self._next = eval_freq
-
-    def _on_training_start(self) -> None:
-        self._next = (self.num_timesteps // self.eval_freq + 1) * self.eval_freq
-
-    def evaluate(self, episodes: int) -> EvalStats:
-        """Run ``episodes`` deterministic episodes and log them."""
-        stats = run_episodes(self.eval_env, sb3_policy(self.model), episodes, seed=self.seed)
-        self.logger.record("eval/success_rate", stats.success_rate)
-        self.logger.record("eval/mean_final_distance", stats.mean_final_distance)
-        self.logger.record("eval/mean_return", stats.mean_return)
-        self.logger.record("eval/stalls", stats.stalls)
-        self.logger.dump(self.num_timesteps)
-        self.last = stats
-        if self.verbose:
-            elapsed = time.perf_counter() - self._start
-            print(
-                f"[eval] step {self.num_timesteps:>7}  {elapsed:6.0f} s  success {stats.success_rate:6.1%} "
-                f"over {episodes} episodes  final distance {stats.mean_final_distance * 1000:6.1f} mm",
-                flush=True,
-            )
-        return stats
-
-    def _on_step(self) -> bool:
-        if self.num_timesteps < self._next:
-            return True
-        self._next += self.eval_freq
-        stats = self.evaluate(self.quick_episodes)
-        if stats.success_rate < self.target:
-            return True
-        if self.quick_episodes < self.episodes:
-            stats = self.evaluate(self.episodes)
-        if stats.success_rate >= self.target:
-            self.reached_at = self.num_timesteps
-            self.reached_after_s = time.perf_counter() - self._start
-            return False
-        return True
-
-
 class CheckpointEvery(BaseCallback):
     """Save the model (and replay buffer) every ``freq`` env steps."""
 
@@ -207,8 +141,29 @@ def newest_checkpoint(directory: Path) -> Path | None:
     return max(found)[1] if found else None
 
 
+def _linear_schedule(initial: float) -> Any:
+    """rl-zoo3's ``lin_<initial>``: from ``initial`` at the start down to 0 at the end."""
+
+    def schedule(progress_remaining: float) -> float:
+        return progress_remaining * initial
+
+    return schedule
+
+
 def _algo_kwargs(hp: Hyperparams, env: Any, algo: str) -> dict[str, Any]:
     kwargs = dict(hp.algo_kwargs)
+    for key in SCHEDULE_KEYS:
+        value = kwargs.get(key)
+        if isinstance(value, str):
+            kind, _, initial = value.partition("_")
+            try:
+                if kind != "lin":
+                    raise ValueError(kind)
+                kwargs[key] = _linear_schedule(float(initial))
+            except ValueError as e:
+                raise TrainingError(f"config {hp.source}: {key} {value!r} is not a number or lin_<x>") from e
+    if isinstance(kwargs.get("train_freq"), list):
+        kwargs["train_freq"] = tuple(kwargs["train_freq"])  # YAML has no tuples; SB3 wants (n, unit)
     rb = kwargs.get("replay_buffer_class")
     if isinstance(rb, str):
         if rb not in REPLAY_BUFFERS:
@@ -228,6 +183,23 @@ def _algo_kwargs(hp: Hyperparams, env: Any, algo: str) -> dict[str, Any]:
             raise TrainingError(f"config {hp.source}: unknown noise_type {hp.noise_type!r}")
         kwargs["action_noise"] = noise_cls(np.zeros(n), hp.noise_std * np.ones(n))
     return kwargs
+
+
+def _callbacks(hp: Hyperparams, eval_env: gym.Env, args: TrainArgs) -> tuple[Any, list[BaseCallback]]:
+    """The config's success evaluation (on ``eval_env``) and its other callbacks, as rl-zoo3 builds them."""
+    eval_kwargs = {"seed": args.seed + 10_000, **hp.eval_kwargs, "verbose": args.verbose}
+    evaluator = SuccessEvalCallback(
+        eval_freq=hp.eval_freq,
+        eval_episodes=hp.eval_episodes,
+        target_success=hp.target_success,
+        env=eval_env,
+        **eval_kwargs,
+    )
+    try:
+        others = [cls(**kwargs) for cls, kwargs in hp.callbacks]
+    except (TypeError, ValueError) as e:
+        raise TrainingError(f"config {hp.source}: callback: {e}") from e
+    return evaluator, others
 
 
 def train(args: TrainArgs) -> TrainResult:
@@ -293,15 +265,8 @@ def train(args: TrainArgs) -> TrainResult:
             verbose=0,
             **_algo_kwargs(hp, env, args.algo),
         )
-    evaluator = SuccessEvalCallback(
-        eval_env,
-        hp.eval_freq,
-        hp.eval_episodes,
-        hp.target_success,
-        seed=args.seed + 10_000,
-        verbose=args.verbose,
-    )
-    callbacks = CallbackList([evaluator, CheckpointEvery(ckpt_dir, args.checkpoint_freq)])
+    evaluator, others = _callbacks(hp, eval_env, args)
+    callbacks = CallbackList([evaluator, *others, CheckpointEvery(ckpt_dir, args.checkpoint_freq)])
     start = time.perf_counter()
     try:
         model.learn(

@@ -1,0 +1,191 @@
+"""Classes the hyperparameter files name by dotted path, for rl-zoo3 and ``bioscara train``.
+
+rl-zoo3 (``python -m rl_zoo3.train``) resolves a ``policy`` containing a dot
+and every ``callback`` entry by importing it, and builds a callback from its
+YAML keyword arguments alone; ``bioscara train`` reads the same files
+(:mod:`bioscara_gym.training.hyperparams`). So this module holds:
+
+* :class:`SACGoalErrorPolicy`, :class:`TD3GoalErrorPolicy` and
+  :class:`PPOGoalErrorPolicy`: each algorithm's ``MultiInputPolicy`` with
+  :class:`~bioscara_gym.training.features.GoalErrorExtractor` as the default
+  features extractor (rl-zoo3 evaluates ``policy_kwargs`` strings in its own
+  namespace, where our extractor has no name);
+* :class:`SuccessEvalCallback`: the periodic success evaluation that stops
+  training at the target success rate. Given no env (as under rl-zoo3), it
+  builds its evaluation env from the training env's spec, with the same
+  ``env_kwargs``.
+
+Example entry (``training/configs/sac.yaml``)::
+
+    Bioscara-Reach-v0:
+      policy: bioscara_gym.training.zoo.SACGoalErrorPolicy
+      callback:
+        - bioscara_gym.training.zoo.SuccessEvalCallback:
+            eval_freq: 2000
+            eval_episodes: 100
+            target_success: 0.95
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import gymnasium as gym
+
+import bioscara_gym  # noqa: F401 - registers the tasks (rl-zoo3 may import us before --gym-packages)
+from bioscara_gym.training.evaluate import EvalStats, run_episodes
+from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.features import GoalErrorExtractor
+
+with needs_train():
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.policies import MultiInputActorCriticPolicy
+    from stable_baselines3.sac.policies import MultiInputPolicy as SACMultiInputPolicy
+    from stable_baselines3.td3.policies import MultiInputPolicy as TD3MultiInputPolicy
+
+    from bioscara_gym.training.algos import sb3_policy
+
+#: Seed of the first evaluation episode, relative to the model's seed (as ``bioscara train``).
+EVAL_SEED_OFFSET = 10_000
+
+
+class SACGoalErrorPolicy(SACMultiInputPolicy):
+    """SAC's ``MultiInputPolicy`` acting on :class:`GoalErrorExtractor` features by default."""
+
+    def __init__(
+        self, *args: Any, features_extractor_class: type = GoalErrorExtractor, **kwargs: Any
+    ) -> None:
+        """As SAC's ``MultiInputPolicy``; only the default extractor differs."""
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class TD3GoalErrorPolicy(TD3MultiInputPolicy):
+    """TD3's ``MultiInputPolicy`` acting on :class:`GoalErrorExtractor` features by default."""
+
+    def __init__(
+        self, *args: Any, features_extractor_class: type = GoalErrorExtractor, **kwargs: Any
+    ) -> None:
+        """As TD3's ``MultiInputPolicy``; only the default extractor differs."""
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+class PPOGoalErrorPolicy(MultiInputActorCriticPolicy):
+    """PPO's ``MultiInputPolicy`` acting on :class:`GoalErrorExtractor` features by default."""
+
+    def __init__(
+        self, *args: Any, features_extractor_class: type = GoalErrorExtractor, **kwargs: Any
+    ) -> None:
+        """As PPO's ``MultiInputPolicy``; only the default extractor differs."""
+        super().__init__(*args, features_extractor_class=features_extractor_class, **kwargs)
+
+
+def env_like(vec_env: Any) -> gym.Env:
+    """A fresh env made from the spec of ``vec_env``'s first env (same id, same ``env_kwargs``).
+
+    The wrappers the vec env adds (SB3's ``Monitor``) are left out.
+    """
+    spec = vec_env.get_attr("spec", indices=[0])[0]
+    if spec is None:
+        raise ValueError("SuccessEvalCallback: the training env has no spec; pass env=")
+    return gym.make(dataclasses.replace(spec, additional_wrappers=()))
+
+
+class SuccessEvalCallback(BaseCallback):
+    """Evaluate the success rate every ``eval_freq`` env steps; stop at ``target_success``.
+
+    A cheap evaluation (``quick_episodes``) runs often; when it reaches the
+    target, a full one (``eval_episodes``) confirms before training stops, so
+    the reported rate is measured on the full set. Episodes are deterministic
+    and seeded (``seed``, ``seed + 1``, ...; default the model's seed + 10000).
+
+    Args:
+        eval_freq: Env steps (summed over parallel envs) between evaluations.
+        eval_episodes: Episodes of the confirming evaluation.
+        target_success: Success rate at which training stops.
+        quick_episodes: Episodes of the frequent evaluation.
+        env: Evaluation env; default one like the training env, made at the start.
+        seed: Seed of the first evaluation episode.
+        verbose: Print each evaluation.
+    """
+
+    def __init__(
+        self,
+        eval_freq: int = 2000,
+        eval_episodes: int = 100,
+        target_success: float = 0.95,
+        quick_episodes: int = 20,
+        env: gym.Env | None = None,
+        seed: int | None = None,
+        verbose: int = 1,
+    ) -> None:
+        """Set up the schedule; the env may come later (see ``env``)."""
+        super().__init__(verbose)
+        if eval_freq < 1 or eval_episodes < 1:
+            raise ValueError(f"eval_freq ({eval_freq}) and eval_episodes ({eval_episodes}) must be >= 1")
+        self.eval_env = env
+        self._owns_env = env is None
+        self.eval_freq = int(eval_freq)
+        self.episodes = int(eval_episodes)
+        self.quick_episodes = min(int(quick_episodes), self.episodes)
+        self.target = float(target_success)
+        self.seed = seed
+        self.last: EvalStats | None = None
+        self.reached_at: int | None = None
+        self.reached_after_s: float | None = None
+        self._start = time.perf_counter()
+        self._next = self.eval_freq
+
+    def _init_callback(self) -> None:
+        if self.eval_env is None:
+            self.eval_env = env_like(self.training_env)
+        if self.seed is None:
+            self.seed = (getattr(self.model, "seed", None) or 0) + EVAL_SEED_OFFSET
+
+    def _on_training_start(self) -> None:
+        self._start = time.perf_counter()
+        self._next = (self.num_timesteps // self.eval_freq + 1) * self.eval_freq
+
+    def _on_training_end(self) -> None:
+        if self._owns_env and self.eval_env is not None:
+            self.eval_env.close()
+            self.eval_env = None
+
+    def evaluate(self, episodes: int) -> EvalStats:
+        """Run ``episodes`` deterministic episodes and log them."""
+        if self.eval_env is None:
+            self._init_callback()
+        assert self.eval_env is not None and self.seed is not None
+        stats = run_episodes(self.eval_env, sb3_policy(self.model), episodes, seed=self.seed)
+        self.logger.record("eval/success_rate", stats.success_rate)
+        self.logger.record("eval/mean_final_distance", stats.mean_final_distance)
+        self.logger.record("eval/mean_return", stats.mean_return)
+        self.logger.record("eval/stalls", stats.stalls)
+        self.logger.dump(self.num_timesteps)
+        self.last = stats
+        if self.verbose:
+            elapsed = time.perf_counter() - self._start
+            print(
+                f"[eval] step {self.num_timesteps:>7}  {elapsed:6.0f} s  success {stats.success_rate:6.1%} "
+                f"over {episodes} episodes  final distance {stats.mean_final_distance * 1000:6.1f} mm",
+                flush=True,
+            )
+        return stats
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps < self._next:
+            return True
+        self._next += self.eval_freq
+        stats = self.evaluate(self.quick_episodes)
+        if stats.success_rate < self.target:
+            return True
+        if self.quick_episodes < self.episodes:
+            stats = self.evaluate(self.episodes)
+        if stats.success_rate >= self.target:
+            self.reached_at = self.num_timesteps
+            self.reached_after_s = time.perf_counter() - self._start
+            if self.verbose:
+                print(f"[eval] target {self.target:.0%} reached: stopping", flush=True)
+            return False
+        return True
