@@ -530,3 +530,90 @@ def enable_and_home_elsewhere(arm: Arm, name: str, speed: float) -> None:
         Reg.HOME, pack_bytes(int(rpm > 0), int(abs(rpm)), cfg.homing.threshold, cfg.homing.current)
     )
     arm.read()
+
+
+# --------------------------------------------------------------- Dynamixel
+
+from bioscara_gym.hardware.config import DynamixelJointConfig  # noqa: E402
+
+#: Features only Dynamixel rigs have; each exempts the rig from the Bioscara-specific
+#: tests that contradict it (``test_conformance.py`` skips those with the reason).
+FEATURES = FEATURES | {
+    "absolute_encoder",  # never NOT_HOMED: homing is motionless, positions survive power cycles
+    "reboot_clears_faults",  # a hardware error (the stall) clears only with REBOOT, not with enable()
+}
+
+#: A joint on an XL430-W250 (docs/dynamixel.md): limits +-2000 position units
+#: around the centre, so that the conformance suite's targets (10 % inside a
+#: limit) fall on whole position units, and a max velocity of 100 velocity
+#: units, so that its 20 % test velocity is a whole unit. Homing, currents and
+#: stall threshold are checked but unused by a servo.
+DXL_J1 = JointConfig(
+    name="j1",
+    address=None,  # type: ignore[arg-type]
+    joint_type="revolute",
+    reduction=1.0,
+    min=-2000 * 0.001533980787886,
+    max=2000 * 0.001533980787886,
+    max_velocity=100 * 0.023980823922402,
+    max_acceleration=10.0,
+    stall_threshold=6,
+    hold_current=20,
+    drive_current=20,
+    homing=HomingConfig(speed=0.5, threshold=30, current=15, acceleration=1.0),
+    type="dynamixel",
+    dynamixel=DynamixelJointConfig(id=1),
+)
+
+
+def dynamixel_emulated_j1() -> JointRig:
+    """:class:`DynamixelJoint` through the official SDK to an emulated XL430 (in memory), at q = 2.9 rad."""
+    pytest.importorskip("dynamixel_sdk", reason="the [dynamixel] extra is not installed")
+    from bioscara_gym.hardware.dynamixel.bus import DynamixelBus
+    from bioscara_gym.hardware.dynamixel.control_table import position_to_raw
+    from bioscara_gym.hardware.dynamixel.emulator import XL430, EmulatedRS485Bus
+    from bioscara_gym.hardware.dynamixel.joint import DynamixelJoint
+    from bioscara_gym.hardware.dynamixel.port import EmulatedPortHandler
+
+    p = DXL_J1
+    clock = ManualClock()
+    servo = XL430(1, clock, position=position_to_raw(2.9))
+    emulated = EmulatedRS485Bus([servo], clock=clock)
+    bus = DynamixelBus(EmulatedPortHandler(emulated), clock=clock)
+
+    def new_joint() -> DynamixelJoint:
+        return DynamixelJoint(p.name, 1, bus, p.reduction, p.min, p.max, 0.0, clock)
+
+    def device_flags() -> Flag:
+        servo.update()
+        flags = Flag(0) if servo.torque else Flag.NOT_ENABLED
+        return flags | Flag.STALL if servo.hardware_error else flags
+
+    def advance(dt: float) -> None:
+        clock.sleep(dt)
+        servo.update()
+
+    def block() -> None:
+        servo.blocked = True
+
+    def unblock() -> None:
+        servo.blocked = False
+
+    return JointRig(
+        name="dynamixel_emulated_j1",
+        joint=new_joint(),
+        params=p,
+        clock=clock,
+        advance=advance,
+        device_flags=device_flags,
+        restart_host=new_joint,
+        features=frozenset(
+            {"stall", "power_cycle", "host_restart", "absolute_encoder", "reboot_clears_faults"}
+        ),
+        block=block,
+        unblock=unblock,
+        power_cycle=servo.power_cycle,
+    )
+
+
+RIG_FACTORIES["dynamixel_emulated_j1"] = dynamixel_emulated_j1

@@ -41,6 +41,18 @@ def needs(rig: JointRig, feature: str) -> None:
         pytest.skip(f"{rig.name} has no '{feature}'")
 
 
+def needs_homing(rig: JointRig) -> None:
+    """Skip on a joint with an absolute encoder (a Dynamixel): it is never not homed and never homes."""
+    if rig.has("absolute_encoder"):
+        pytest.skip(f"{rig.name}: absolute encoder, always homed (homing is a Bioscara firmware rule)")
+
+
+def needs_reenable_clears_stall(rig: JointRig) -> None:
+    """Skip where a fault clears only with a REBOOT (a Dynamixel's hardware error)."""
+    if rig.has("reboot_clears_faults"):
+        pytest.skip(f"{rig.name}: a hardware error clears only with REBOOT (test_dynamixel covers it)")
+
+
 def tolerance(rig: JointRig) -> float:
     """Position tolerance: 1e-4 of the joint's range (rad or m)."""
     return 1e-4 * (rig.params.max - rig.params.min)
@@ -132,11 +144,13 @@ def test_calls_before_init_raise_not_init(rig: JointRig) -> None:
 
 
 def test_init_reads_power_up_flags(rig: JointRig) -> None:
+    needs_homing(rig)
     rig.joint.init()
     assert rig.joint.flags == POWER_UP_FLAGS
 
 
 def test_device_flags_at_power_up(rig: JointRig) -> None:
+    needs_homing(rig)
     assert rig.device_flags() == POWER_UP_FLAGS
 
 
@@ -186,18 +200,21 @@ def test_set_velocity_refused_when_disabled_after_homing(rig: JointRig) -> None:
 
 
 def test_set_velocity_refused_when_not_homed(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     with pytest.raises(NotHomedError):
         rig.joint.set_velocity(0.01)
 
 
 def test_set_position_refused_when_not_homed(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     with pytest.raises(NotHomedError):
         rig.joint.set_position(0.0)
 
 
 def test_move_steps_allowed_when_not_homed(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     rig.joint.move_steps(-100)
     run(rig, 0.2)
@@ -212,6 +229,7 @@ def test_move_steps_refused_when_not_enabled(rig: JointRig) -> None:
 
 
 def test_position_reads_zero_while_not_homed(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     rig.joint.move_steps(-200)
     run(rig, 0.5)
@@ -222,12 +240,14 @@ def test_position_reads_zero_while_not_homed(rig: JointRig) -> None:
 
 
 def test_homing_with_positive_velocity_ends_at_max(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     home(rig, +1)
     assert rig.joint.get_position() == pytest.approx(rig.params.max, abs=tolerance(rig))
 
 
 def test_homing_with_negative_velocity_ends_at_min(rig: JointRig) -> None:
+    needs_homing(rig)
     start_near_end_stop(rig, -1)
     ready(rig)
     home(rig, -1)
@@ -247,6 +267,7 @@ def test_homing_keeps_the_joint_enabled(rig: JointRig) -> None:
 
 @pytest.mark.parametrize("sign", [1, -1])
 def test_homing_slower_than_1_rpm_is_invalid(rig: JointRig, sign: int) -> None:
+    needs_homing(rig)
     ready(rig)
     h = rig.params.homing
     slow = homing_speed_for_rpm(rig, 0.99 * HOMING_RPM_MIN)
@@ -256,6 +277,7 @@ def test_homing_slower_than_1_rpm_is_invalid(rig: JointRig, sign: int) -> None:
 
 @pytest.mark.parametrize("sign", [1, -1])
 def test_homing_faster_than_250_rpm_is_invalid(rig: JointRig, sign: int) -> None:
+    needs_homing(rig)
     ready(rig)
     h = rig.params.homing
     fast = homing_speed_for_rpm(rig, 1.01 * HOMING_RPM_MAX)
@@ -284,6 +306,7 @@ def test_start_homing_sets_blocking_command_home(rig: JointRig) -> None:
 
 
 def test_start_homing_reports_busy_and_not_homed_at_once(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     h = rig.params.homing
     rig.joint.start_homing(h.speed, h.threshold, h.current)
@@ -297,6 +320,7 @@ def test_home_leaves_blocking_command_none(rig: JointRig) -> None:
 
 
 def test_start_homing_while_homing_is_incorrect_state(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     h = rig.params.homing
     rig.joint.start_homing(h.speed, h.threshold, h.current)
@@ -305,6 +329,7 @@ def test_start_homing_while_homing_is_incorrect_state(rig: JointRig) -> None:
 
 
 def _start_homing_then_stop(rig: JointRig) -> None:
+    needs_homing(rig)
     ready(rig)
     h = rig.params.homing
     rig.joint.start_homing(h.speed, h.threshold, h.current)
@@ -424,6 +449,7 @@ def test_stalled_joint_does_not_move(rig: JointRig) -> None:
 
 
 def test_reenable_after_stall_moves_again(rig: JointRig) -> None:
+    needs_reenable_clears_stall(rig)
     _stall(rig)
     rig.unblock()
     p = rig.params
@@ -437,6 +463,7 @@ def test_reenable_after_stall_moves_again(rig: JointRig) -> None:
 
 
 def test_reenable_clears_stall(rig: JointRig) -> None:
+    needs_reenable_clears_stall(rig)
     _stall(rig)
     rig.joint.enable(rig.params.drive_current, rig.params.hold_current)
     assert not rig.joint.is_stalled()
@@ -527,6 +554,7 @@ def test_host_restart_restores_offset_without_rehoming(rig: JointRig) -> None:
 
 
 def test_host_restart_after_negative_homing_restores_min_offset(rig: JointRig) -> None:
+    needs_homing(rig)
     needs(rig, "host_restart")
     start_near_end_stop(rig, -1)
     ready(rig)
@@ -537,6 +565,7 @@ def test_host_restart_after_negative_homing_restores_min_offset(rig: JointRig) -
 
 
 def test_host_restart_before_homing_reads_zero(rig: JointRig) -> None:
+    needs_homing(rig)
     needs(rig, "host_restart")
     ready(rig)
     joint = rig.restart_host()
@@ -546,6 +575,7 @@ def test_host_restart_before_homing_reads_zero(rig: JointRig) -> None:
 
 
 def test_power_cycle_reports_not_homed_and_not_enabled(rig: JointRig) -> None:
+    needs_homing(rig)
     needs(rig, "power_cycle")
     ready_and_homed(rig)
     rig.power_cycle()
@@ -553,6 +583,7 @@ def test_power_cycle_reports_not_homed_and_not_enabled(rig: JointRig) -> None:
 
 
 def test_power_cycle_positions_read_zero(rig: JointRig) -> None:
+    needs_homing(rig)
     needs(rig, "power_cycle")
     ready_and_homed(rig)
     rig.power_cycle()
@@ -560,6 +591,7 @@ def test_power_cycle_positions_read_zero(rig: JointRig) -> None:
 
 
 def test_power_cycle_then_host_restart_is_not_homed(rig: JointRig) -> None:
+    needs_homing(rig)
     needs(rig, "power_cycle")
     needs(rig, "host_restart")
     ready_and_homed(rig)

@@ -1,4 +1,4 @@
-"""Operator console: ``bioscara status|ping|enable|disable|home|move|gripper|monitor``.
+"""Operator console: ``bioscara status|ping|enable|disable|home|move|gripper|monitor|reboot``.
 
 What the RViz panel of the original stack (arm and gripper up and down, joint
 states, homing) and MH5's terminal dashboard (per-joint bars, communication
@@ -34,6 +34,13 @@ Safe-state policy (what each command leaves behind):
   an object must keep holding it).
 - ``monitor`` aborts any homing still running when it quits; joints stay as
   the operator left them.
+- ``reboot`` (Dynamixel joints) sends REBOOT: it clears a hardware error and
+  leaves the servo with torque off.
+
+On the ``dynamixel`` backends ``status`` adds the sync loops' statistics
+(``pvl_reader``, ``tv_reader``, ``pv_writer``, ``t_writer``: configured and
+achieved rate, packets, errors, timeouts) and ``monitor`` lists them with the
+joints' bus counters.
 - Any error (a refused request such as an unknown joint, a value outside the
   limits or a busy joint, a stall, a bus failure) and Ctrl-C run the arm
   layer's on-error transition: every joint and the gripper are disabled
@@ -65,9 +72,9 @@ from bioscara_gym.console.format import flags_text, format_position, format_velo
 from bioscara_gym.console.session import Session
 from bioscara_gym.console.targets import HOMING_DIRECTIONS, ConsoleOptions, resolve_joints, resolve_target
 from bioscara_gym.errors import ConsoleUsageError
-from bioscara_gym.hardware.backends import BACKENDS
+from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME
-from bioscara_gym.hardware.errors import JointError
+from bioscara_gym.hardware.errors import InvalidArgumentError, JointError
 from bioscara_gym.hardware.registers import Flag
 
 #: One ``ping`` reply: device, address (``"-"`` without a bus), ``"OK"`` or the error, flags.
@@ -134,6 +141,36 @@ def status_table(session: Session) -> Table:
     return table
 
 
+def loop_table(session: Session) -> Table | None:
+    """The sync loops' statistics (Dynamixel backends), or ``None`` where there are none."""
+    loops = session.backend.loop_stats()
+    if not loops:
+        return None
+    table = _table(
+        ("loop", "left"),
+        ("rate Hz", "right"),
+        ("achieved Hz", "right"),
+        ("packets", "right"),
+        ("errors", "right"),
+        ("timeouts", "right"),
+        ("total packets", "right"),
+        ("total errors", "right"),
+    )
+    for name, s in loops.items():
+        d = s.as_dict()  # type: ignore[attr-defined]
+        table.add_row(
+            name,
+            f"{d['rate_hz']:g}",
+            f"{d['achieved_hz']:.1f}",
+            str(d["packets"]),
+            str(d["errors"]),
+            str(d["timeouts"]),
+            str(d["total_packets"]),
+            str(d["total_errors"]),
+        )
+    return table
+
+
 def _yes_no(value: bool) -> str:
     """``yes`` or ``no``."""
     return "yes" if value else "no"
@@ -193,6 +230,10 @@ def cmd_status(args: argparse.Namespace) -> int:
     with Session(ConsoleOptions.from_args(args)) as session:
         con.print(lifecycle_line(session))
         con.print(status_table(session))
+        loops = loop_table(session)
+        if loops is not None:
+            session.backend.step(0.0)  # one pass of the loops, so that they have something to show
+            con.print(loop_table(session))
     return 0
 
 
@@ -225,6 +266,27 @@ def cmd_disable(args: argparse.Namespace) -> int:
     with Session(ConsoleOptions.from_args(args)) as session:
         names = session.disable(resolve_target(session.config, args.target))
         con.print(f"disabled {', '.join(names)} · arm {session.arm.state.value}")
+    return 0
+
+
+def cmd_reboot(args: argparse.Namespace) -> int:
+    """``bioscara reboot JOINT|GROUP``: REBOOT Dynamixel joints (clears a hardware error; torque off)."""
+    con = make_console()
+    with Session(ConsoleOptions.from_args(args)) as session:
+        names = resolve_joints(session.config, args.target)
+        rebooted = []
+        for name in names:
+            joint = session.arm.joints[name]
+            reboot = getattr(joint, "reboot", None)
+            if reboot is None:
+                raise InvalidArgumentError(
+                    f"{name}: a {type(joint).__name__} has no REBOOT; only Dynamixel joints do "
+                    "(power-cycle a Bioscara joint instead)"
+                )
+            reboot()
+            rebooted.append(name)
+        session.arm.read()
+        con.print(f"rebooted {', '.join(rebooted)}; torque off · arm {session.arm.state.value}")
     return 0
 
 
@@ -340,7 +402,7 @@ def _check_monitor_args(args: argparse.Namespace) -> None:
 def _common(parser: argparse.ArgumentParser) -> None:
     """Add the options every operator subcommand takes."""
     parser.add_argument(
-        "--backend", choices=BACKENDS, default="emulated", help="arm backend (default: emulated)"
+        "--backend", choices=ALL_BACKENDS, default="emulated", help="arm backend (default: emulated)"
     )
     parser.add_argument(
         "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
@@ -357,7 +419,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the operator subcommands: status, ping, enable, disable, home, move, gripper, monitor."""
+    """Add the operator subcommands: status, ping, enable, disable, home, move, gripper, reboot, monitor."""
     p = sub.add_parser("status", help="lifecycle, joint states, gripper and bus statistics")
     _common(p)
     p.set_defaults(func=cmd_status)
@@ -396,6 +458,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("width", type=float, metavar="WIDTH", help="m")
     _common(p)
     p.set_defaults(func=cmd_gripper)
+
+    p = sub.add_parser("reboot", help="reboot Dynamixel joints (clears a hardware error; torque off)")
+    p.add_argument("target", metavar="JOINT|GROUP", help="joint or group")
+    _common(p)
+    p.set_defaults(func=cmd_reboot)
 
     p = sub.add_parser("monitor", help="live dashboard; keys e/d enable/disable, h home, a abort, q quit")
     p.add_argument(

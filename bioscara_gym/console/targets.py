@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bioscara_gym.errors import ConsoleUsageError
-from bioscara_gym.hardware.backends import BACKENDS
+from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import InvalidArgumentError
 
@@ -22,7 +22,7 @@ class ConsoleOptions:
     """The options every operator subcommand shares.
 
     Attributes:
-        backend: Backend name (see :data:`~bioscara_gym.hardware.backends.BACKENDS`).
+        backend: Backend name (see :data:`~bioscara_gym.hardware.backends.ALL_BACKENDS`).
         config: Arm configuration YAML, ``None`` for the packaged default.
         bus: I2C bus number overriding the configuration's.
         state: State file for the simulated backends, ``None`` for none.
@@ -45,8 +45,8 @@ class ConsoleOptions:
             ConsoleUsageError: The options do not go together.
         """
         backend = self.backend
-        if backend not in BACKENDS:
-            raise ConsoleUsageError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+        if backend not in ALL_BACKENDS:
+            raise ConsoleUsageError(f"unknown backend {backend!r}; expected one of {', '.join(ALL_BACKENDS)}")
         if self.state is not None and backend not in PERSISTENT_BACKENDS:
             reason = (
                 "mock state does not persist" if backend == "mock" else "the real arm keeps its own state"

@@ -6,6 +6,9 @@
 ``emulated`` the real :class:`Joint` driver over :class:`EmulatedI2CBus`,
              whose :class:`JointFirmware` devices drive the MuJoCo arm
 ``i2c``      real :class:`Joint` s over :class:`SMBusI2C`, sysfs PWM gripper
+``dynamixel`` :class:`DynamixelJoint` s on a serial port (``dynamixel-sdk``),
+             and ``dynamixel-emulated``: the same over emulated XL430 servos
+             (``bioscara_gym.hardware.dynamixel.backend``, docs/dynamixel.md)
 =========== =================================================================
 
 ``step(dt)`` advances physics by ``dt`` in simulation and waits until ``dt``
@@ -14,6 +17,7 @@ has passed since the previous step on the wall clock on hardware.
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -32,6 +36,14 @@ from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
 BACKENDS = ("sim", "mock", "emulated", "i2c")
+#: Backends of optional subpackages, name to ``module:class``, imported when built
+#: (as ``EXTRA_COMMAND_MODULES`` in ``cli.py``): an arm of Dynamixel servos (docs/dynamixel.md).
+EXTRA_BACKENDS = {
+    "dynamixel": "bioscara_gym.hardware.dynamixel.backend:DynamixelBackend",
+    "dynamixel-emulated": "bioscara_gym.hardware.dynamixel.backend:EmulatedDynamixelBackend",
+}
+#: Every backend name :func:`make_backend` accepts.
+ALL_BACKENDS = (*BACKENDS, *EXTRA_BACKENDS)
 
 
 def default_state_dir() -> Path:
@@ -100,6 +112,14 @@ class Backend:
     def comm_stats(self) -> dict[str, CommStats]:
         """Bus statistics per joint (empty where there is no bus)."""
         return {n: j.stats for n, j in self.joints.items() if isinstance(j, Joint)}
+
+    def loop_stats(self) -> dict[str, object]:
+        """Statistics of the bus's sync loops by loop name (the ``dynamixel`` backends; else empty).
+
+        Each value has ``as_dict()`` (packets, errors, timeouts, achieved
+        rate, since reset and in total) for logs, and ``reset()``.
+        """
+        return {}
 
     def close(self) -> None:
         """Release resources (bus handles)."""
@@ -275,7 +295,7 @@ def make_backend(
     """Build a backend by name.
 
     Args:
-        name: One of ``sim``, ``mock``, ``emulated``, ``i2c``.
+        name: One of :data:`ALL_BACKENDS`.
         config: An :class:`ArmConfig`, a YAML path, or ``None`` for the
             packaged default.
         **options: Backend-specific options (e.g. ``faults`` for ``emulated``,
@@ -292,6 +312,9 @@ def make_backend(
         "emulated": EmulatedBackend,
         "i2c": I2CBackend,
     }
+    if name in EXTRA_BACKENDS:
+        module, _, cls = EXTRA_BACKENDS[name].partition(":")
+        classes[name] = getattr(importlib.import_module(module), cls)
     if name not in classes:
-        raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}")
+        raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
     return classes[name](config, **options)  # type: ignore[arg-type]

@@ -46,6 +46,13 @@ fields are errors so that typos cannot pass silently)::
       all: [j1, j2, j3, j4, gripper]
       arm: [j1, j2, j3, j4]
       gripper: [gripper]
+
+A joint may instead be a Dynamixel servo (``docs/dynamixel.md``): ``type:
+dynamixel`` with a ``dynamixel: {id: 1, offset: 0.0}`` block and no
+``address`` (``type`` defaults to ``i2c``, the Bioscara's stepper joint). The
+port of such joints is the optional top-level block ``dynamixel: {port:
+/dev/ttyUSB0, baudrate: 1000000, rs485: false, rates: {pvl_reader: 100, ...}}``.
+A group may name groups listed before it (the MH5's nested groups).
 """
 
 from __future__ import annotations
@@ -77,6 +84,8 @@ __all__ = [
     "GRIPPER_NAME",
     "JOINT_TYPES",
     "ArmConfig",
+    "DynamixelBusConfig",
+    "DynamixelJointConfig",
     "GripperConfig",
     "HomingConfig",
     "JointConfig",
@@ -90,6 +99,12 @@ GRIPPER_NAME = "gripper"
 
 #: Allowed values of :attr:`JointConfig.joint_type`.
 JOINT_TYPES = ("revolute", "prismatic")
+
+#: Allowed values of :attr:`JointConfig.type`: the Bioscara's I2C stepper joint, a Dynamixel servo.
+DRIVER_TYPES = ("i2c", "dynamixel")
+#: Sync loops of a Dynamixel bus and their default rates, Hz (the MH5's defaults; see
+#: ``bioscara_gym/hardware/dynamixel/control_table.py``).
+DYNAMIXEL_LOOP_RATES = {"pvl_reader": 100.0, "tv_reader": 1.0, "pv_writer": 100.0, "t_writer": 2.0}
 
 _PACKAGE = "bioscara_gym.hardware"
 _DEFAULT_CONFIG = "default_config.yaml"
@@ -232,6 +247,65 @@ class HomingConfig:
 
 
 @dataclass(frozen=True)
+class DynamixelJointConfig:
+    """The servo behind a ``type: dynamixel`` joint.
+
+    Attributes:
+        id: The servo's ID, 0-252.
+        offset: Joint position at the servo's centre (raw 2047), rad or m
+            (the MH5's ``offset``).
+
+    Raises:
+        ConfigError: On construction, if a field has the wrong type or range.
+    """
+
+    id: int
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Validate and normalise."""
+        _integer(self.id, "dynamixel.id", high=252)
+        _set(self, "offset", _number(self.offset, "dynamixel.offset"))
+
+
+@dataclass(frozen=True)
+class DynamixelBusConfig:
+    """The serial port of the Dynamixel joints.
+
+    Attributes:
+        port: Device path (a USB-RS485 adapter, the MH5's SC16IS762 UART, or a pty).
+        baudrate: Bits per second (the servos' Baud Rate item must match).
+        rs485: Put the port in RS-485 mode with ``TIOCSRS485`` (MH5); logged if unsupported.
+        rates: Loop name to rate in Hz; missing loops take the MH5's defaults.
+
+    Raises:
+        ConfigError: On construction, if a field has the wrong type or range.
+    """
+
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = 1_000_000
+    rs485: bool = False
+    rates: Mapping[str, float] = field(default_factory=dict, hash=False)
+
+    def __post_init__(self) -> None:
+        """Validate; fill ``rates`` with the defaults."""
+        if not isinstance(self.port, str) or not self.port:
+            raise ConfigError(f"dynamixel.port {self.port!r} must be a non-empty string")
+        _integer(self.baudrate, "dynamixel.baudrate", low=9600)
+        if not isinstance(self.rs485, bool):
+            raise ConfigError(f"dynamixel.rs485 {self.rs485!r} must be true or false")
+        rates = _mapping(self.rates, "dynamixel.rates")
+        for name, rate in rates.items():
+            if name not in DYNAMIXEL_LOOP_RATES:
+                known = ", ".join(DYNAMIXEL_LOOP_RATES)
+                raise ConfigError(f"dynamixel.rates: unknown loop {name!r}; known: {known}")
+            if _number(rate, f"dynamixel.rates.{name}") < 0:
+                raise ConfigError(f"dynamixel.rates.{name} {rate} must be >= 0 Hz (0: never)")
+        merged = {**DYNAMIXEL_LOOP_RATES, **{k: float(v) for k, v in rates.items()}}
+        _set(self, "rates", MappingProxyType(merged))
+
+
+@dataclass(frozen=True)
 class JointConfig:
     """One stepper joint: bus address, transmission, limits and driver settings.
 
@@ -250,6 +324,10 @@ class JointConfig:
         drive_current: Running current, percent 0-100 of 2.5 A.
         homing: Homing settings; the homing speed must be 1-250 RPM
             (exclusive) at the motor.
+        type: The joint's driver: ``"i2c"`` (the Bioscara's stepper joint,
+            the default) or ``"dynamixel"`` (a servo; ``address`` is then
+            ``None`` and ``dynamixel`` names the servo).
+        dynamixel: The servo of a ``dynamixel`` joint, else ``None``.
 
     Raises:
         ConfigError: On construction, if a field has the wrong type or range;
@@ -268,6 +346,8 @@ class JointConfig:
     hold_current: int
     drive_current: int
     homing: HomingConfig
+    type: str = "i2c"
+    dynamixel: DynamixelJointConfig | None = None
 
     def __post_init__(self) -> None:
         """Validate and normalise the fields (ints given for floats become floats)."""
@@ -281,8 +361,15 @@ class JointConfig:
             raise ConfigError(f"joint {self.name}: {e}") from None
 
     def _validate(self) -> None:
-        address = _int(self.address, "address")
-        if not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
+        if self.type not in DRIVER_TYPES:
+            raise ConfigError(f"type {self.type!r} must be one of {', '.join(repr(t) for t in DRIVER_TYPES)}")
+        if self.type == "dynamixel":
+            if not isinstance(self.dynamixel, DynamixelJointConfig):
+                raise ConfigError("a dynamixel joint needs a 'dynamixel' block with its servo's id")
+        elif self.dynamixel is not None:
+            raise ConfigError("a 'dynamixel' block needs type: dynamixel")
+        address = None if self.type == "dynamixel" and self.address is None else _int(self.address, "address")
+        if address is not None and not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
             raise ConfigError(
                 f"address 0x{address:02X} is outside the 7-bit I2C range "
                 f"0x{I2C_ADDRESS_MIN:02X}-0x{I2C_ADDRESS_MAX:02X}"
@@ -411,6 +498,7 @@ class ArmConfig:
     gripper: GripperConfig
     groups: Mapping[str, tuple[str, ...]] = field(hash=False)
     bus: int = 1
+    dynamixel: DynamixelBusConfig | None = None
 
     def __post_init__(self) -> None:
         """Validate the parts; freeze ``joints`` (tuple) and ``groups`` (read-only)."""
@@ -421,6 +509,7 @@ class ArmConfig:
             raise ConfigError("joints must list at least one joint")
         by_name: dict[str, JointConfig] = {}
         by_address: dict[int, JointConfig] = {}
+        by_id: dict[int, JointConfig] = {}
         for index, joint in enumerate(joints):
             if not isinstance(joint, JointConfig):
                 raise ConfigError(f"joints[{index}] must be a JointConfig, got {_type_name(joint)}")
@@ -431,7 +520,14 @@ class ArmConfig:
                 )
             if joint.name in by_name:
                 raise ConfigError(f"joint {joint.name}: defined more than once; joint names must be unique")
-            other = by_address.get(joint.address)
+            if joint.dynamixel is not None:
+                twin = by_id.setdefault(joint.dynamixel.id, joint)
+                if twin is not joint:
+                    raise ConfigError(
+                        f"joint {joint.name}: dynamixel.id {joint.dynamixel.id} is already used by "
+                        f"joint {twin.name}; servo IDs must be unique"
+                    )
+            other = by_address.get(joint.address) if joint.address is not None else None
             if other is not None:
                 raise ConfigError(
                     f"joint {joint.name}: address 0x{joint.address:02X} is already "
@@ -444,6 +540,8 @@ class ArmConfig:
             raise ConfigError(f"gripper must be a GripperConfig, got {_type_name(self.gripper)}")
         _set(self, "groups", MappingProxyType(self._checked_groups()))
         _integer(self.bus, "bus")
+        if self.dynamixel is not None and not isinstance(self.dynamixel, DynamixelBusConfig):
+            raise ConfigError(f"dynamixel must be a DynamixelBusConfig, got {_type_name(self.dynamixel)}")
 
     def _checked_groups(self) -> dict[str, tuple[str, ...]]:
         if not isinstance(self.groups, Mapping):
@@ -461,6 +559,9 @@ class ArmConfig:
                 raise ConfigError(f"{where}: {members!r} must be a list of joint names")
             if not members:
                 raise ConfigError(f"{where}: must name at least one joint")
+            nested = [m for m in members if m in groups and m not in known]  # MH5: earlier groups nest
+            if nested:
+                members = [n for m in members for n in (groups[m] if m in nested else [m])]
             for member in members:
                 if member not in known:
                     raise ConfigError(f"{where}: unknown joint {member!r}; known: {', '.join(known)}")
@@ -500,7 +601,8 @@ class ArmConfig:
 # --------------------------------------------------------------------------
 
 _HOMING_FIELDS = tuple(f.name for f in dataclasses.fields(HomingConfig))
-_JOINT_FIELDS = tuple(f.name for f in dataclasses.fields(JointConfig))
+_JOINT_FIELDS = tuple(f.name for f in dataclasses.fields(JointConfig) if f.default is dataclasses.MISSING)
+_JOINT_OPTIONAL = ("type", "dynamixel")
 _GRIPPER_REQUIRED = tuple(
     f.name for f in dataclasses.fields(GripperConfig) if f.default is dataclasses.MISSING
 )
@@ -508,7 +610,7 @@ _GRIPPER_OPTIONAL = tuple(
     f.name for f in dataclasses.fields(GripperConfig) if f.default is not dataclasses.MISSING
 )
 _TOP_REQUIRED = ("joints", "gripper")
-_TOP_OPTIONAL = ("groups", "bus")
+_TOP_OPTIONAL = ("groups", "bus", "dynamixel")
 
 
 def _check_fields(
@@ -551,11 +653,18 @@ def _joint_from_dict(data: object, index: int) -> JointConfig:
     name = joint.get("name")
     where = f"joint {name}" if isinstance(name, str) and name else f"joints[{index}]"
     try:
-        _check_fields(joint, _JOINT_FIELDS)
+        dxl = joint.get("type") == "dynamixel"
+        required = tuple(k for k in _JOINT_FIELDS if not (dxl and k == "address"))
+        _check_fields(joint, required, (*_JOINT_OPTIONAL, *(("address",) if dxl else ())))
         if not isinstance(name, str) or not name:
             raise ConfigError(f"name {name!r} ({_type_name(name)}) must be a non-empty string")
-        values = {key: joint[key] for key in _JOINT_FIELDS}
+        values = {key: joint.get(key) for key in _JOINT_FIELDS}
         values["homing"] = _homing_from_dict(joint["homing"])
+        values["type"] = joint.get("type", "i2c")
+        if joint.get("dynamixel") is not None:
+            block = _mapping(joint["dynamixel"], "dynamixel")
+            _check_fields(block, ("id",), ("offset",), prefix="dynamixel.")
+            values["dynamixel"] = DynamixelJointConfig(**dict(block))
     except ConfigError as e:
         raise ConfigError(f"{where}: {e}") from None
     # JointConfig names itself ("joint <name>: ...") in its own errors.
@@ -607,7 +716,14 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
         joints = tuple(_joint_from_dict(item, i) for i, item in enumerate(joints_data))
         gripper = _gripper_from_dict(top["gripper"])
         groups = top["groups"] if "groups" in top else _default_groups([joint.name for joint in joints])
-        return ArmConfig(joints=joints, gripper=gripper, groups=groups, bus=top.get("bus", 1))
+        dxl_bus = None
+        if top.get("dynamixel") is not None:
+            block = _mapping(top["dynamixel"], "dynamixel")
+            allowed = tuple(f.name for f in dataclasses.fields(DynamixelBusConfig))
+            _check_fields(block, (), allowed, prefix="dynamixel.")
+            dxl_bus = DynamixelBusConfig(**dict(block))
+        bus = top.get("bus", 1)
+        return ArmConfig(joints=joints, gripper=gripper, groups=groups, bus=bus, dynamixel=dxl_bus)
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from None
 
@@ -624,12 +740,23 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
     Returns:
         A new dict with the keys ``bus``, ``joints``, ``gripper`` and ``groups``.
     """
-    return {
+    joints = []
+    for joint in cfg.joints:
+        data = dataclasses.asdict(joint)
+        for key, unset in (("type", "i2c"), ("dynamixel", None), ("address", None)):
+            if data[key] == unset:
+                del data[key]  # an I2C joint's file has neither; a Dynamixel joint's has no address
+        joints.append(data)
+    out: dict[str, Any] = {
         "bus": cfg.bus,
-        "joints": [dataclasses.asdict(joint) for joint in cfg.joints],
+        "joints": joints,
         "gripper": dataclasses.asdict(cfg.gripper),
         "groups": {group: list(members) for group, members in cfg.groups.items()},
     }
+    if cfg.dynamixel is not None:
+        d = cfg.dynamixel
+        out["dynamixel"] = {"port": d.port, "baudrate": d.baudrate, "rs485": d.rs485, "rates": dict(d.rates)}
+    return out
 
 
 class _StrictSafeLoader(yaml.SafeLoader):

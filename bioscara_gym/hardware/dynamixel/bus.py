@@ -1,0 +1,515 @@
+"""The host side of a Dynamixel bus: transactions with retries, and MH5's sync loops.
+
+:class:`DynamixelBus` owns the SDK's port and protocol 2.0 packet handler.
+Every single-servo transaction (PING, READ, WRITE, REBOOT) goes through
+:meth:`DynamixelBus.transact`, which retries and counts attempts in the
+servo's :class:`~bioscara_gym.hardware.stats.CommStats`. The sync loops
+(:class:`SyncLoop`) are the MH5 hardware interface's ``LoopWithCommunicationStats``:
+
+============== ================================== ===========================
+``pvl_reader`` SYNC READ 126-135: load, velocity,  100 Hz (MH5 default)
+               position
+``tv_reader``  SYNC READ 144-146: voltage,         1 Hz
+               temperature
+``pv_writer``  SYNC WRITE 104-119: goal velocity,  100 Hz
+               profile acceleration and velocity,
+               goal position (joints with a new
+               command only)
+``t_writer``   SYNC WRITE 64: Torque Enable        2 Hz
+               (joints with a torque request only)
+============== ================================== ===========================
+
+:meth:`DynamixelBus.read` runs the readers and :meth:`DynamixelBus.write`
+the writers; each loop runs only when its period has passed since its last
+run (a call too soon is skipped, as in the MH5), and keeps
+:class:`LoopStats`. The SDK is imported lazily: building a bus without it
+raises :class:`~bioscara_gym.hardware.errors.MissingExtraError`.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from bioscara_gym.hardware.clock import Clock, WallClock
+from bioscara_gym.hardware.dynamixel.control_table import (
+    ALERT,
+    DEFAULT_LOOP_RATES,
+    PV_LENGTH,
+    PV_START,
+    PVL_LENGTH,
+    PVL_START,
+    TV_LENGTH,
+    TV_START,
+    to_signed,
+    to_unsigned,
+)
+from bioscara_gym.hardware.errors import CommError, MissingExtraError
+from bioscara_gym.hardware.stats import CommStats
+
+
+class DynamixelJoint(Protocol):
+    """What the bus needs of a joint (:class:`~bioscara_gym.hardware.dynamixel.joint.DynamixelJoint`)."""
+
+    name: str
+    dxl_id: int
+    stats: CommStats
+
+    @property
+    def initialized(self) -> bool:
+        """Whether the joint was ``init()``-ed (only those take part in the loops)."""
+        ...
+
+    def note_status(self, error: int) -> None:
+        """Take a status packet's error byte."""
+        ...
+
+    def cache_pvl(self, load: int, velocity: int, position: int, now: float) -> None:
+        """Values of one ``pvl_reader`` run."""
+        ...
+
+    def cache_tv(self, voltage: int, temperature: int) -> None:
+        """Values of one ``tv_reader`` run."""
+        ...
+
+    def has_pv_command(self) -> bool:
+        """Whether a command waits for the ``pv_writer``."""
+        ...
+
+    def take_pv_command(self) -> bytes:
+        """The ``pv_writer``'s block."""
+        ...
+
+    def has_torque_request(self) -> bool:
+        """Whether a torque change waits for the ``t_writer``."""
+        ...
+
+    def take_torque_request(self) -> bytes:
+        """The ``t_writer``'s byte."""
+        ...
+
+
+#: The SDK's "success" result code (``COMM_SUCCESS``).
+COMM_SUCCESS = 0
+#: The SDK's "no status packet" result code (``COMM_RX_TIMEOUT``).
+COMM_RX_TIMEOUT = -3001
+
+
+def load_sdk() -> Any:
+    """Import ``dynamixel_sdk``, or raise the one-line :class:`MissingExtraError`."""
+    try:
+        import dynamixel_sdk
+    except ModuleNotFoundError as e:
+        if e.name is not None and e.name.split(".")[0] not in ("dynamixel_sdk", "serial"):
+            raise
+        raise MissingExtraError("Dynamixel joints (the dynamixel-sdk package)", "dynamixel") from e
+    return dynamixel_sdk
+
+
+def port_module() -> Any:
+    """The :mod:`~bioscara_gym.hardware.dynamixel.port` module (needs the SDK)."""
+    load_sdk()
+    from bioscara_gym.hardware.dynamixel import port
+
+    return port
+
+
+@dataclass
+class LoopStats:
+    """One sync loop's communication statistics, since the last reset and in total.
+
+    The MH5's ``packets``/``errors`` and ``tot_packets``/``tot_errors``, plus
+    timeouts (an error with no status packet at all) and the rate the loop
+    achieved. ``transactions`` is the MH5's ``packets`` (one SYNC READ or
+    SYNC WRITE, whatever the number of servos), so that the console shows
+    loops and joints alike.
+
+    Attributes:
+        rate_hz: Configured rate (0: the loop never runs).
+        transactions: Executions since the last reset.
+        errors: Failed executions since the last reset.
+        timeouts: Failed executions with no answer at all, since the last reset.
+        total_transactions: Executions since start.
+        total_errors: Failed executions since start.
+        total_timeouts: Timeouts since start.
+        skipped: Calls that came too soon since the last reset.
+        first_s: Clock time of the first execution since the last reset.
+        last_s: Clock time of the last execution.
+    """
+
+    rate_hz: float = 0.0
+    transactions: int = 0
+    errors: int = 0
+    timeouts: int = 0
+    total_transactions: int = 0
+    total_errors: int = 0
+    total_timeouts: int = 0
+    skipped: int = 0
+    first_s: float | None = None
+    last_s: float | None = None
+
+    @property
+    def packets(self) -> int:
+        """The MH5's name for :attr:`transactions`."""
+        return self.transactions
+
+    def record(self, now: float, ok: bool, timeout: bool = False) -> None:
+        """Count one execution at ``now``."""
+        self.transactions += 1
+        self.total_transactions += 1
+        if self.first_s is None:
+            self.first_s = now
+        self.last_s = now
+        if not ok:
+            self.errors += 1
+            self.total_errors += 1
+            if timeout:
+                self.timeouts += 1
+                self.total_timeouts += 1
+
+    def reset(self) -> None:
+        """Zero the since-reset counters (MH5 ``resetStats``); totals are kept."""
+        self.transactions = self.errors = self.timeouts = self.skipped = 0
+        self.first_s = None
+
+    def reset_all(self) -> None:
+        """Zero everything, totals included (MH5 ``resetAllStats``)."""
+        self.reset()
+        self.total_transactions = self.total_errors = self.total_timeouts = 0
+        self.last_s = None
+
+    @property
+    def error_rate(self) -> float:
+        """Errors per execution since the last reset (0.0 when idle)."""
+        return self.errors / self.transactions if self.transactions else 0.0
+
+    @property
+    def achieved_hz(self) -> float:
+        """Executions per second since the last reset (0.0 before two executions)."""
+        if (
+            self.transactions < 2
+            or self.first_s is None
+            or self.last_s is None
+            or self.last_s <= self.first_s
+        ):
+            return 0.0
+        return (self.transactions - 1) / (self.last_s - self.first_s)
+
+    def as_dict(self) -> dict[str, float]:
+        """The counters and rates as a plain dict (for logs)."""
+        return {
+            "rate_hz": self.rate_hz,
+            "achieved_hz": self.achieved_hz,
+            "packets": self.transactions,
+            "errors": self.errors,
+            "timeouts": self.timeouts,
+            "skipped": self.skipped,
+            "total_packets": self.total_transactions,
+            "total_errors": self.total_errors,
+            "total_timeouts": self.total_timeouts,
+            "error_rate": self.error_rate,
+        }
+
+
+@dataclass
+class SyncLoop:
+    """A communication that runs at its own rate and keeps statistics (MH5 ``LoopWithCommunicationStats``).
+
+    Attributes:
+        name: Loop name (``pvl_reader``…).
+        rate_hz: Execution rate; 0 or less never runs.
+        communicate: Does the work; returns the SDK result code of the execution.
+        stats: The loop's statistics.
+    """
+
+    name: str
+    rate_hz: float
+    communicate: Callable[[], int | None]
+    stats: LoopStats = field(default_factory=LoopStats)
+    _last: float | None = None
+
+    def __post_init__(self) -> None:
+        """Copy the rate into the statistics."""
+        self.stats.rate_hz = self.rate_hz
+
+    @property
+    def period_s(self) -> float:
+        """Seconds between executions."""
+        return 1.0 / self.rate_hz if self.rate_hz > 0 else float("inf")
+
+    def execute(self, now: float) -> bool | None:
+        """Run if a period has passed since the last run; None if skipped, else whether it succeeded.
+
+        The schedule advances by one period per run (as the MH5's
+        ``last_execution_time_ += period``) and restarts from ``now`` after a
+        gap of more than a period, so a late call does not cause a burst.
+        """
+        if self.rate_hz <= 0:
+            return None
+        if self._last is not None and now - self._last < self.period_s - 1e-9:
+            self.stats.skipped += 1
+            return None
+        self._last = (
+            now if self._last is None or now - self._last >= 2 * self.period_s else self._last + self.period_s
+        )
+        result = self.communicate()
+        if result is None:  # nothing to send (no new command): not a packet
+            return True
+        ok = result == COMM_SUCCESS
+        self.stats.record(now, ok, timeout=result == COMM_RX_TIMEOUT)
+        return ok
+
+
+class DynamixelBus:
+    """One RS-485 bus of Dynamixel servos seen from the host (protocol 2.0).
+
+    Args:
+        port: An SDK port handler, not yet opened (:class:`RS485PortHandler`,
+            :class:`EmulatedPortHandler`).
+        baudrate: Bits per second.
+        rs485: Put the port in RS-485 mode (``TIOCSRS485``); failure is logged, not raised.
+        clock: Time source of the loops and of waits.
+        rates: Loop name to rate in Hz (defaults: :data:`DEFAULT_LOOP_RATES`).
+        retries: Extra attempts of a failed single-servo transaction.
+    """
+
+    def __init__(
+        self,
+        port: Any,
+        baudrate: int = 1_000_000,
+        rs485: bool = False,
+        clock: Clock | None = None,
+        rates: Mapping[str, float] | None = None,
+        retries: int = 2,
+    ) -> None:
+        """Keep the port; it is opened by :meth:`open` (or the first joint's ``init``)."""
+        sdk = load_sdk()
+        unknown = set(rates or {}) - set(DEFAULT_LOOP_RATES)
+        if unknown:
+            raise ValueError(f"unknown loops {sorted(unknown)}; known: {', '.join(DEFAULT_LOOP_RATES)}")
+        self.sdk = sdk
+        self.port = port
+        self.packet_handler = sdk.PacketHandler(2.0)
+        self.baudrate = baudrate
+        self.rs485 = rs485
+        self.clock: Clock = clock if clock is not None else WallClock()
+        self.retries = retries
+        self.lock = threading.RLock()
+        self.joints: dict[int, DynamixelJoint] = {}
+        self.opened = False
+        self.synced = False
+        rates = {**DEFAULT_LOOP_RATES, **(rates or {})}
+        self.loops: dict[str, SyncLoop] = {
+            "pvl_reader": SyncLoop("pvl_reader", rates["pvl_reader"], self._read_pvl),
+            "tv_reader": SyncLoop("tv_reader", rates["tv_reader"], self._read_tv),
+            "pv_writer": SyncLoop("pv_writer", rates["pv_writer"], self._write_pv),
+            "t_writer": SyncLoop("t_writer", rates["t_writer"], self._write_torque),
+        }
+
+    # ------------------------------------------------------------ port
+    def open(self) -> None:
+        """Open the port at the baud rate (and RS-485 mode if asked); idempotent."""
+        with self.lock:
+            if self.opened:
+                return
+            try:
+                ok = self.port.openPort()
+            except Exception as e:  # pyserial raises SerialException (an OSError subclass) or ValueError
+                raise CommError(f"cannot open {self.port.getPortName()}: {e}") from e
+            if not ok or not self.port.setBaudRate(self.baudrate):
+                raise CommError(f"cannot open {self.port.getPortName()} at {self.baudrate} bps")
+            if self.rs485:
+                self.port.set_rs485()
+            self.opened = True
+
+    def close(self) -> None:
+        """Close the port."""
+        with self.lock:
+            if self.opened:
+                self.port.closePort()
+                self.opened = False
+
+    def attach(self, joint: DynamixelJoint) -> None:
+        """Register a joint (by its servo ID) for the sync loops."""
+        other = self.joints.get(joint.dxl_id)
+        if other is not None and other is not joint and other.name != joint.name:
+            raise ValueError(f"ID {joint.dxl_id} is used by {other.name} and {joint.name}")
+        self.joints[joint.dxl_id] = joint
+
+    # ------------------------------------------------------------ single servo
+    def transact(
+        self, joint: DynamixelJoint, what: str, call: Callable[[], tuple[Any, int, int]]
+    ) -> tuple[Any, int]:
+        """Run an SDK call ``() -> (value, result, error)`` with retries; return ``(value, error byte)``.
+
+        A status packet with an error number (bits 0-6) counts as a failed
+        attempt; the Alert bit alone does not (the servo did what it was
+        told and reports its hardware error; the caller reads the flags).
+
+        Raises:
+            CommError: Every attempt failed; the message names the joint, ID and reason.
+        """
+        self.open()
+        last = ""
+        with self.lock:
+            for _ in range(self.retries + 1):
+                value, result, error = call()
+                if result == COMM_SUCCESS and not error & ~ALERT & 0xFF:
+                    joint.stats.record(ok=True)
+                    joint.note_status(error)
+                    return value, error
+                joint.stats.record(ok=False)
+                if result != COMM_SUCCESS:
+                    last = self.packet_handler.getTxRxResult(result)
+                else:
+                    joint.note_status(error)
+                    last = self.packet_handler.getRxPacketError(error)
+        raise CommError(
+            f"{what} failed after {self.retries + 1} attempts: {last}. "
+            "Check the cable, power, ID and baud rate",
+            joint=joint.name,
+        )
+
+    def ping(self, joint: DynamixelJoint, tries: int | None = None) -> int:
+        """PING the joint's servo; return its model number."""
+        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+        saved = self.retries
+        if tries is not None:
+            self.retries = tries - 1
+        try:
+            model, _ = self.transact(joint, "PING", lambda: ph.ping(port, i))
+        finally:
+            self.retries = saved
+        return int(model)
+
+    def read(self, joint: DynamixelJoint, address: int, size: int, signed: bool = False) -> int:
+        """READ ``size`` bytes at ``address`` as one little-endian value."""
+        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+
+        def call() -> tuple[Any, int, int]:
+            data, result, error = ph.readTxRx(port, i, address, size)
+            return data, result, error
+
+        data, _ = self.transact(joint, f"READ {address}", call)
+        value = int.from_bytes(bytes(data[:size]), "little")
+        return to_signed(value, size) if signed else value
+
+    def read_block(self, joint: DynamixelJoint, address: int, size: int) -> bytes:
+        """READ ``size`` raw bytes at ``address``."""
+        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+        data, _ = self.transact(joint, f"READ {address}", lambda: ph.readTxRx(port, i, address, size))
+        return bytes(data[:size])
+
+    def write(self, joint: DynamixelJoint, address: int, size: int, value: int) -> int:
+        """WRITE one value; return the status packet's error byte."""
+        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+        data = list(to_unsigned(int(value), size).to_bytes(size, "little"))
+
+        def call() -> tuple[Any, int, int]:
+            result, error = ph.writeTxRx(port, i, address, size, data)
+            return None, result, error
+
+        return self.transact(joint, f"WRITE {address}", call)[1]
+
+    def reboot(self, joint: DynamixelJoint) -> None:
+        """REBOOT the joint's servo."""
+        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+
+        def call() -> tuple[Any, int, int]:
+            result, error = ph.reboot(port, i)
+            return None, result, error
+
+        self.transact(joint, "REBOOT", call)
+
+    # ------------------------------------------------------------ loops
+    def start_loops(self) -> None:
+        """From now on joints take positions from ``pvl_reader`` and send commands through ``pv_writer``."""
+        self.synced = True
+
+    def stop_loops(self) -> None:
+        """Back to one transaction per call."""
+        self.synced = False
+
+    def read_loops(self, now: float | None = None) -> None:
+        """Run ``pvl_reader`` and ``tv_reader`` if due (the MH5's ``read``)."""
+        now = self.clock.now() if now is None else now
+        self.loops["pvl_reader"].execute(now)
+        self.loops["tv_reader"].execute(now)
+
+    def write_loops(self, now: float | None = None) -> None:
+        """Run ``pv_writer`` and ``t_writer`` if due (the MH5's ``write``)."""
+        now = self.clock.now() if now is None else now
+        self.loops["pv_writer"].execute(now)
+        self.loops["t_writer"].execute(now)
+
+    def loop_stats(self) -> dict[str, LoopStats]:
+        """Statistics of every loop, by name."""
+        return {name: loop.stats for name, loop in self.loops.items()}
+
+    def _present(self) -> list[DynamixelJoint]:
+        return [j for j in self.joints.values() if j.initialized]
+
+    def _sync_read(
+        self, start: int, length: int, store: Callable[[DynamixelJoint, bytes, int], None]
+    ) -> int | None:
+        joints = self._present()
+        if not joints:
+            return None
+        self.open()
+        ph, port = self.packet_handler, self.port
+        with self.lock:
+            params = [j.dxl_id for j in joints]
+            result = ph.syncReadTx(port, start, length, params, len(params), False)
+            if result != COMM_SUCCESS:
+                return result
+            final = COMM_SUCCESS
+            for j in joints:
+                data, result, error = ph.readRx(port, j.dxl_id, length)
+                if result != COMM_SUCCESS:
+                    final = result
+                    continue  # the others may still have answered
+                store(j, bytes(data[:length]), error)
+            port.is_using = False
+            return final
+
+    def _read_pvl(self) -> int | None:
+        def store(j: DynamixelJoint, data: bytes, error: int) -> None:
+            j.note_status(error)
+            j.cache_pvl(
+                to_signed(int.from_bytes(data[0:2], "little"), 2),
+                to_signed(int.from_bytes(data[2:6], "little"), 4),
+                to_signed(int.from_bytes(data[6:10], "little"), 4),
+                self.clock.now(),
+            )
+
+        return self._sync_read(PVL_START, PVL_LENGTH, store)
+
+    def _read_tv(self) -> int | None:
+        def store(j: DynamixelJoint, data: bytes, error: int) -> None:
+            j.note_status(error)
+            j.cache_tv(int.from_bytes(data[0:2], "little"), data[2])
+
+        return self._sync_read(TV_START, TV_LENGTH, store)
+
+    def _sync_write(self, start: int, length: int, items: dict[int, bytes]) -> int | None:
+        if not items:
+            return None
+        self.open()
+        ph, port = self.packet_handler, self.port
+        params: list[int] = []
+        for i, data in items.items():
+            params.append(i)
+            params.extend(data)
+        with self.lock:
+            return ph.syncWriteTxOnly(port, start, length, params, len(params))
+
+    def _write_pv(self) -> int | None:
+        items = {j.dxl_id: j.take_pv_command() for j in self._present() if j.has_pv_command()}
+        assert all(len(d) == PV_LENGTH for d in items.values())
+        return self._sync_write(PV_START, PV_LENGTH, items)
+
+    def _write_torque(self) -> int | None:
+        items = {j.dxl_id: j.take_torque_request() for j in self._present() if j.has_torque_request()}
+        return self._sync_write(64, 1, items)

@@ -1,0 +1,60 @@
+"""``bioscara emulate dynamixel``: emulated XL430 servos behind a pseudo-terminal.
+
+::
+
+    bioscara emulate dynamixel --ids 1-4 --link /tmp/dxl
+    # elsewhere: PortHandler("/tmp/dxl") of the official SDK, 1 Mbps, protocol 2.0
+
+Serves until SIGINT or SIGTERM, then removes the symlink. ``--faults``
+takes ``drop=0.01,corrupt=0.001,delay_ms=2``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from pathlib import Path
+
+from bioscara_gym.errors import CliError
+
+
+def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
+    """Serve emulated servos on a pty until SIGINT/SIGTERM."""
+    from bioscara_gym.hardware.dynamixel.emulator import DxlFaultPlan
+    from bioscara_gym.hardware.dynamixel.pty_server import PtyServer, make_bus, parse_ids
+
+    try:
+        ids = parse_ids(args.ids)
+        faults = DxlFaultPlan.parse(args.faults) if args.faults else None
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    link = Path(args.link)
+    if link.exists() and not link.is_symlink():
+        raise CliError(f"--link {link}: exists and is not a symlink; not replacing it")
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with PtyServer(make_bus(ids, faults), link) as server:
+            ids_text = ", ".join(str(i) for i in ids)
+            print(
+                f"XL430 servos {ids_text} on {server.path} -> {server.slave_path}; Ctrl-C stops", flush=True
+            )
+            while not stop.wait(0.2):
+                pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print("stopped; link removed", flush=True)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``emulate dynamixel``."""
+    p = sub.add_parser("emulate", help="run emulated devices for other programs to talk to")
+    kinds = p.add_subparsers(dest="device", required=True)
+    d = kinds.add_parser("dynamixel", help="XL430 servos (protocol 2.0) behind a pseudo-terminal")
+    d.add_argument("--ids", default="1-4", help="servo IDs, e.g. 1-4 or 1,3 (default: 1-4)")
+    d.add_argument("--link", required=True, metavar="PATH", help="symlink to create to the pty's slave")
+    d.add_argument("--faults", metavar="SPEC", help="e.g. drop=0.01,corrupt=0.001,delay_ms=2")
+    d.set_defaults(func=cmd_emulate_dynamixel)
