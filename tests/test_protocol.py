@@ -36,7 +36,7 @@ from bioscara_gym.hardware.errors import (
     StalledError,
 )
 from bioscara_gym.hardware.joint import Joint
-from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S, Flag, Reg
 from bioscara_gym.hardware.transmission import velocity_to_rpm
 
 # docs/model.md kinematics and stepper tables: address, reduction, limits.
@@ -74,6 +74,11 @@ CHECKORIENTATION = b"\x2b"
 GETENCODERRPM = b"\x2c"
 HOME = b"\x2d"
 HOMEOFFSET = b"\x2e"
+
+
+# HOMEOFFSET's "no valid offset": the float32 quiet NaN 0x7FC00000, written
+# before every HOME (docs/arm.md, the driver's rules).
+NAN_OFFSET = b"\x00\x00\xc0\x7f"
 
 
 def f32(value: float) -> bytes:
@@ -642,7 +647,7 @@ def test_check_orientation_sends_degrees_then_pings_until_not_busy(
         (0x11, PING, 2),
         (0x11, PING, 2),
     ]
-    assert clock.now() == pytest.approx(BUSY_POLL_S)
+    assert clock.now() == pytest.approx(BLOCKING_PICKUP_S + BUSY_POLL_S)
     assert joint.current_blocking_command is Reg.NONE
     assert not joint.is_busy()
 
@@ -678,9 +683,12 @@ def test_start_homing_sends_direction_speed_sensitivity_current(
     home_bytes: tuple[int, int, int, int],
 ) -> None:
     joint = make_ready(name, state=NOT_HOMED)
-    scripted_bus.queue(flags(BUSY | NOT_HOMED))
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
     joint.start_homing(velocity, sensitivity, current)
-    assert scripted_bus.log == [(address_of(name), HOME + bytes(home_bytes), 1)]
+    assert scripted_bus.log == [
+        (address_of(name), HOMEOFFSET + NAN_OFFSET, 1),
+        (address_of(name), HOME + bytes(home_bytes), 1),
+    ]
     assert joint.current_blocking_command is Reg.HOME
     assert joint.is_busy()
 
@@ -698,7 +706,7 @@ def test_post_homing_pings_then_writes_limit_as_home_offset(
     scripted_bus: Any, make_ready: Callable[..., Joint], name: str, velocity: float, offset: float
 ) -> None:
     joint = make_ready(name, state=NOT_HOMED)
-    scripted_bus.queue(flags(BUSY | NOT_HOMED))
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
     joint.start_homing(velocity, 30, 15)
     scripted_bus.clear_log()
     scripted_bus.queue(ack(READY), flags(READY))
@@ -713,7 +721,7 @@ def test_post_homing_fails_when_joint_still_not_homed(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", state=NOT_HOMED)
-    scripted_bus.queue(flags(BUSY | NOT_HOMED))
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
     joint.start_homing(0.03, 30, 15)
     scripted_bus.clear_log()
     scripted_bus.queue(ack(NOT_HOMED))
@@ -729,6 +737,7 @@ def test_home_waits_while_busy_then_stores_offset(
 ) -> None:
     joint = make_ready("j1", state=NOT_HOMED)
     scripted_bus.queue(
+        flags(NOT_HOMED),  # HOMEOFFSET := NaN
         flags(BUSY | NOT_HOMED),  # HOME
         ack(BUSY | NOT_HOMED),  # wait_while_busy
         ack(READY),
@@ -737,6 +746,7 @@ def test_home_waits_while_busy_then_stores_offset(
     )
     joint.home(-0.03, 30, 15)
     assert scripted_bus.writes() == [
+        HOMEOFFSET + NAN_OFFSET,
         HOME + bytes((0, 10, 30, 15)),
         PING,
         PING,
@@ -744,14 +754,14 @@ def test_home_waits_while_busy_then_stores_offset(
         HOMEOFFSET + f32(-3.04647),
     ]
     assert joint.offset == -3.04647
-    assert clock.now() == pytest.approx(BUSY_POLL_S)
+    assert clock.now() == pytest.approx(BLOCKING_PICKUP_S + BUSY_POLL_S)
 
 
 def test_start_homing_refused_while_another_blocking_command_runs(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", state=NOT_HOMED)
-    scripted_bus.queue(flags(BUSY | NOT_HOMED))
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
     joint.start_homing(0.03, 30, 15)
     scripted_bus.clear_log()
     with pytest.raises(IncorrectStateError, match="HOME"):
@@ -773,10 +783,11 @@ def test_homing_rpm_just_inside_bounds_is_sent(
 ) -> None:
     joint = make_ready(name, state=NOT_HOMED)
     velocity = velocity_for_rpm(rpm, float(JOINTS[name]["reduction"]))
-    scripted_bus.queue(flags(BUSY | NOT_HOMED))
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
     joint.start_homing(velocity, 30, 15)
     direction = 1 if rpm > 0 else 0
-    assert scripted_bus.writes() == [HOME + bytes((direction, int(abs(rpm)), 30, 15))]
+    home = HOME + bytes((direction, int(abs(rpm)), 30, 15))
+    assert scripted_bus.writes() == [HOMEOFFSET + NAN_OFFSET, home]
 
 
 @pytest.mark.parametrize("name", ["j1", "j2"])

@@ -127,7 +127,7 @@ def test_homing_holds_still_while_it_settles(homing_run: HomingRun) -> None:
     h = homing_run
     j = h.backend.config.joint(h.name)
     settling = h.qpos[h.times < HOMING_SETTLE_S - TICK_S / 2]
-    assert len(settling) >= 45
+    assert len(settling) >= 40  # polls start after the driver's pick-up wait (60 ms)
     # Held by the drive: only its compliance shows (the lift sags ~16 um under its weight).
     np.testing.assert_allclose(settling, h.start, atol=1e-4 * (j.max - j.min))
 
@@ -272,11 +272,19 @@ def test_spec_max_acceleration_follows_velocity_steps_without_stalling(mujoco_ar
     np.testing.assert_allclose(reached, [-v, v, -v, 0.0], atol=1e-2 * v)
 
 
-def test_fifty_times_spec_max_acceleration_stalls(mujoco_arm: Backend) -> None:
+def test_ten_times_spec_max_acceleration_stalls(mujoco_arm: Backend) -> None:
+    j3 = mujoco_arm.config.joint("j3")
+    stalled, _ = _velocity_steps(mujoco_arm, "j3", 10 * j3.max_acceleration)
+    assert stalled is not None, "j3 kept up with 10x its SPEC acceleration"
+
+
+def test_fifty_times_spec_max_acceleration_is_not_flagged(mujoco_arm: Backend) -> None:
+    # The firmware's one-sided spike filter keeps any PID error that rises by more than
+    # 100 in one pass out of the detector (docs/firmware.md): the violent steps never
+    # trip STALL. The model's drive keeps up; the real arm may lose steps unflagged.
     j3 = mujoco_arm.config.joint("j3")
     stalled, _ = _velocity_steps(mujoco_arm, "j3", 50 * j3.max_acceleration)
-    assert stalled is not None, "j3 kept up with 50x its SPEC acceleration"
-    assert stalled < 0.2, f"stalled only at {stalled:.2f} s, not on the first step"
+    assert stalled is None
 
 
 # ----------------------------------------------------------------- deadman

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
 
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.codec import pack_bytes
@@ -11,6 +12,7 @@ from bioscara_gym.hardware.errors import (
     CommError,
     IncorrectStateError,
     InvalidArgumentError,
+    JointError,
     NotEnabledError,
     NotHomedError,
     NotInitError,
@@ -18,6 +20,7 @@ from bioscara_gym.hardware.errors import (
 )
 from bioscara_gym.hardware.registers import (
     ACK,
+    BLOCKING_PICKUP_S,
     CURRENT_MAX_PCT,
     FLAG_BUSY,
     FLAG_NOT_ENABLED,
@@ -25,6 +28,7 @@ from bioscara_gym.hardware.registers import (
     FLAG_STALL,
     HOMING_RPM_MAX,
     HOMING_RPM_MIN,
+    HOMING_SETTLE_S,
     POWER_UP_FLAGS,
     SENSITIVITY_MAX,
     BrakeMode,
@@ -41,6 +45,14 @@ from bioscara_gym.hardware.transmission import (
 
 #: Poll period of :meth:`BaseJoint.home` while the joint is BUSY, seconds.
 BUSY_POLL_S = 0.01
+#: After a STOP that aborts a blocking command, how long the host waits before
+#: it sends the next one, seconds. STOP clears BUSY at once, but the aborted
+#: handler returns only when it next looks at BUSY: a homing after its 500 ms
+#: wait (``delay(500)``), then within 1 ms. A new HOME sent before that sets
+#: BUSY again, and the old homing loop, seeing BUSY, keeps waiting for an end
+#: stop with its motor stopped: the joint hangs until the next STOP
+#: (firmware source; docs/firmware.md). The 500 ms plus one pick-up window.
+ABORT_SETTLE_S = HOMING_SETTLE_S + BLOCKING_PICKUP_S
 
 
 class BaseJoint(abc.ABC):
@@ -91,6 +103,17 @@ class BaseJoint(abc.ABC):
         self._current_b_cmd = Reg.NONE
         self._homing_offset = 0.0
         self._initialized = False
+        # The joint says homed but its HOMEOFFSET is NaN: a homing ended and
+        # no host stored its offset (a crash in between). Reported as not
+        # homed until the next homing starts.
+        self._offset_lost = False
+        # Clock time before which a blocking command sent to the joint may
+        # still be waiting for the firmware's main loop (None: nothing pending).
+        self._pickup_until: float | None = None
+        self._listeners: list[Callable[[], None]] = []
+        # Clock time before which no new blocking command is sent, because an
+        # aborted one may still be winding down in the firmware.
+        self._abort_until: float | None = None
 
     # ----------------------------------------------------------- primitives
     @abc.abstractmethod
@@ -129,15 +152,118 @@ class BaseJoint(abc.ABC):
                 joint=self.name,
             )
 
+    #: Whether the subclass reports each delivered bus transfer itself (retries included).
+    _reports_transfers = False
+
+    def on_exchange(self, listener: Callable[[], None]) -> Callable[[], None]:
+        """Call ``listener`` after every exchange the joint's device received.
+
+        On a bus, every transfer that came back counts, a rejected reply's
+        and a retry's included (the device saw it, so its deadman timer was
+        reset); a NACK or a bus error does not. Elsewhere, every command
+        and query.
+
+        Returns:
+            A function that stops the calls.
+        """
+        self._listeners.append(listener)
+
+        def remove() -> None:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+        return remove
+
+    def _exchanged(self) -> None:
+        """Tell the :meth:`on_exchange` listeners that the device received an exchange."""
+        for listener in tuple(self._listeners):
+            listener()
+
+    @property
+    def picking_up(self) -> bool:
+        """Whether a blocking command sent to the joint may still wait for the firmware's main loop.
+
+        The next transaction to the joint would wait for it (see
+        :data:`~.registers.BLOCKING_PICKUP_S`); a control loop can leave the
+        joint alone for a cycle instead.
+        """
+        return self._pickup_until is not None and self.clock.now() < self._pickup_until
+
+    def _wait_for_pickup(self, reg: Reg) -> None:
+        """Leave the joint alone until a blocking command sent to it was picked up.
+
+        The firmware's transaction handler cancels a blocking command its main
+        loop has not started yet (BUSY then stays set until a STOP;
+        docs/firmware.md), so the first transaction after HOME or
+        CHECKORIENTATION waits until :data:`BLOCKING_PICKUP_S` has passed
+        since it. A STOP does not wait: it ends the command either way.
+        """
+        until, self._pickup_until = self._pickup_until, None
+        if until is not None and reg != Reg.STOP:
+            self._sleep_until(until)
+
+    def _wait_for_abort(self) -> None:
+        """Before a blocking command: wait until an aborted one has surely returned."""
+        until, self._abort_until = self._abort_until, None
+        if until is not None:
+            self._sleep_until(until)
+
+    def _sleep_until(self, until: float) -> None:
+        # Only forward: a simulation clock's sleep() does not ignore negative times.
+        remaining = until - self.clock.now()
+        if remaining > 0:
+            self.clock.sleep(remaining)
+
+    def _accept_flags(self, flags: int) -> int:
+        self._flags = flags | FLAG_NOT_HOMED if self._offset_lost else flags
+        return self._flags
+
     def _send(self, reg: Reg, value: float | int) -> int:
         self._require_init()
-        self._flags = self._command(reg, value)
-        return self._flags
+        self._wait_for_pickup(reg)
+        flags = self._command(reg, value)
+        if not self._reports_transfers:
+            self._exchanged()
+        return self._accept_flags(flags)
 
     def _get(self, reg: Reg) -> float | int:
         self._require_init()
-        value, self._flags = self._query(reg)
+        self._wait_for_pickup(reg)
+        value, flags = self._query(reg)
+        if not self._reports_transfers:
+            self._exchanged()
+        self._accept_flags(flags)
         return value
+
+    def _send_blocking(self, reg: Reg, value: float | int) -> None:
+        """Send HOME or CHECKORIENTATION once; on a lost reply, learn from BUSY whether it started.
+
+        The command is never sent twice: a reply lost on the bus may follow a
+        command the joint took. After the pick-up window the flags are read:
+        BUSY means it started (success); otherwise the original
+        :class:`CommError` is raised and no blocking command is running.
+        """
+        self._current_b_cmd = reg
+        self._wait_for_abort()
+        try:
+            self._send(reg, value)
+        except CommError as lost:
+            self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
+            try:
+                started = bool(self.get_flags() & FLAG_BUSY)
+            except CommError:
+                self._current_b_cmd = Reg.NONE
+                raise lost from None
+            if not started:
+                self._current_b_cmd = Reg.NONE
+                raise CommError(
+                    f"{reg.name}: the reply was lost and the joint is not busy, so it did not "
+                    f"start; not sent again ({lost})",
+                    joint=self.name,
+                    register=reg,
+                ) from lost
+            return
+        self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
 
     def _send_motion(self, reg: Reg, value: float | int) -> None:
         """Send a motion command and raise if the reply says it was not taken."""
@@ -190,6 +316,8 @@ class BaseJoint(abc.ABC):
                     f"PING answered {ack!r}, expected {ACK!r} ('O')", joint=self.name, register=Reg.PING
                 )
             self._offset_known = False
+            self._offset_lost = False
+            self._pickup_until = None
             self._load_offset()
         except BaseException:
             self._initialized = False
@@ -200,11 +328,32 @@ class BaseJoint(abc.ABC):
         """Read HOMEOFFSET once the joint reports homed and the offset is not known.
 
         Called by :meth:`init` and again before positions are used, so a homed
-        joint whose first reply lost its flags still gets its offset.
+        joint whose first reply lost its flags still gets its offset. A NaN
+        offset on a joint that says homed means a homing ended but no host
+        stored its offset (:meth:`start_homing` writes NaN first): the joint
+        is reported not homed from then on, until it is homed again.
         """
+        if self._current_b_cmd is Reg.HOME:
+            return  # a homing this object runs: its offset is _homing_offset, NaN on the joint
         if not self._offset_known and not self._flags & FLAG_NOT_HOMED:
-            self.offset = float(self._get(Reg.HOMEOFFSET))
+            offset = float(self._get(Reg.HOMEOFFSET))
+            if math.isnan(offset):
+                self._offset_lost = True
+                self._flags |= FLAG_NOT_HOMED
+                return
+            self.offset = offset
             self._offset_known = True
+
+    def _homed_offset(self) -> float | None:
+        """The offset a homed joint's ANGLEMOVED counts from, if the host knows it.
+
+        While a homing this object started (or adopted) has not been finished
+        by :meth:`post_homing`, a joint that says homed has just zeroed its
+        encoder at that homing's end stop: its offset is that end stop's.
+        """
+        if self._current_b_cmd is Reg.HOME:
+            return self._homing_offset
+        return self.offset if self._offset_known else None
 
     def deinit(self) -> None:
         """Release the connection; the joint itself is left as it is."""
@@ -249,11 +398,47 @@ class BaseJoint(abc.ABC):
             )
 
     def disable(self) -> None:
-        """Stop, set hold and drive current to 0 and let the joint freewheel."""
-        self.stop()
-        self.set_hold_current(0)
-        self.set_drive_current(0)
-        self.set_brake_mode(BrakeMode.FREEWHEEL)
+        """Stop, set hold and drive current to 0 and let the joint freewheel.
+
+        Every step is tried even when an earlier one failed: a lost reply does
+        not mean the command was lost, and a joint left with its currents on
+        is worse than a second error. One error is raised at the end, naming
+        every failed step (its ``failures`` attribute lists ``(step,
+        error)``); a single failure is re-raised as it is.
+
+        Raises:
+            NotInitError: Called before :meth:`init`.
+            JointError: A step failed (usually :class:`CommError`).
+        """
+        self._require_init()
+        steps = (
+            ("STOP", self.stop),
+            ("SETHOLDCURRENT 0", lambda: self.set_hold_current(0)),
+            ("SETCURRENT 0", lambda: self.set_drive_current(0)),
+            ("SETBRAKEMODE freewheel", lambda: self.set_brake_mode(BrakeMode.FREEWHEEL)),
+        )
+        failures: list[tuple[str, JointError]] = []
+        for step, run in steps:
+            try:
+                run()
+            except JointError as e:
+                failures.append((step, e))
+        if not failures:
+            return
+        first = failures[0][1]
+        if len(failures) > 1:
+            listed = "; ".join(f"{step}: {e}" for step, e in failures)
+            message = f"disable incomplete, {len(failures)} of {len(steps)} steps failed: {listed}"
+            if all(isinstance(e, CommError) for _, e in failures):
+                error: JointError = CommError(
+                    message, joint=self.name, register=first.register, address=getattr(first, "address", None)
+                )
+            else:
+                error = JointError(message, joint=self.name, register=first.register)
+            error.failures = failures  # type: ignore[attr-defined]
+            raise error from first
+        first.failures = failures  # type: ignore[attr-defined]
+        raise first
 
     # --------------------------------------------------------------- homing
     def homing_rpm(self, velocity: float) -> float:
@@ -294,9 +479,14 @@ class BaseJoint(abc.ABC):
         self._require_enabled()
         self._require_no_blocking()
         direction = 1 if rpm > 0 else 0
+        self._wait_for_abort()
+        # No valid offset on the joint until post_homing() stores the new
+        # one: a host that dies in between leaves NaN, which init() reads as
+        # "home again" rather than trusting the joint's homed flag.
+        self._send(Reg.HOMEOFFSET, math.nan)
+        self._offset_lost = False
         self._homing_offset = self.max if velocity > 0 else self.min
-        self._current_b_cmd = Reg.HOME
-        self._send(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
+        self._send_blocking(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
 
     def adopt_homing(self, velocity: float) -> None:
         """Take over a homing that another process started on the joint; send nothing.
@@ -340,6 +530,7 @@ class BaseJoint(abc.ABC):
             )
         self._homing_offset = self.max if velocity > 0 else self.min
         self._current_b_cmd = Reg.HOME
+        self._offset_lost = False
 
     def post_homing(self) -> None:
         """Finish a homing: clear the blocking command, check, store the offset.
@@ -396,7 +587,10 @@ class BaseJoint(abc.ABC):
         if self._flags & FLAG_NOT_HOMED:
             return 0.0
         self._load_offset()
-        return degrees_to_position(float(deg), self.reduction, self.offset)
+        offset = self._homed_offset()
+        if offset is None:  # homed, but the offset was lost (NaN): reported not homed
+            return 0.0
+        return degrees_to_position(float(deg), self.reduction, offset)
 
     def set_position(self, pos: float) -> None:
         """Move to ``pos`` (rad or m) with the configured velocity and acceleration.
@@ -409,7 +603,11 @@ class BaseJoint(abc.ABC):
         pos = self._check_finite("position", pos)
         self._require_homed()
         self._load_offset()
-        self._send_motion(Reg.MOVETOANGLE, position_to_degrees(pos, self.reduction, self.offset))
+        self._require_homed()  # the offset read may have found it lost
+        offset = self._homed_offset()
+        if offset is None:
+            raise NotHomedError("joint's homing offset is unknown; home it again", joint=self.name)
+        self._send_motion(Reg.MOVETOANGLE, position_to_degrees(pos, self.reduction, offset))
 
     def get_velocity(self) -> float:
         """Measured joint velocity in rad/s or m/s."""
@@ -443,8 +641,19 @@ class BaseJoint(abc.ABC):
         self._send_motion(Reg.MOVESTEPS, steps)
 
     def stop(self) -> None:
-        """Stop the motor (speed 0); aborts a running homing."""
-        self._send(Reg.STOP, 0)
+        """Stop the motor (speed 0); aborts a running homing.
+
+        A STOP that may abort a blocking command (one this object started, or
+        BUSY in the last flags) makes the next blocking command wait
+        :data:`ABORT_SETTLE_S` (see there). It is sent at once, even inside
+        the pick-up window of a blocking command: it ends that command too.
+        """
+        aborts = self._current_b_cmd is not Reg.NONE or bool(self._flags & FLAG_BUSY)
+        try:
+            self._send(Reg.STOP, 0)
+        finally:
+            if aborts:
+                self._abort_until = self.clock.now() + ABORT_SETTLE_S
 
     def check_orientation(self, angle: float = 2.0, timeout_s: float | None = 10.0) -> None:
         """Turn the motor ``angle`` degrees and back to check its wiring (blocking).
@@ -456,9 +665,8 @@ class BaseJoint(abc.ABC):
         angle = self._check_finite("orientation angle", angle)
         self._require_enabled()
         self._require_no_blocking()
-        self._current_b_cmd = Reg.CHECKORIENTATION
         try:
-            self._send(Reg.CHECKORIENTATION, angle)
+            self._send_blocking(Reg.CHECKORIENTATION, angle)
             self.wait_while_busy(timeout_s=timeout_s)
         finally:
             self._current_b_cmd = Reg.NONE

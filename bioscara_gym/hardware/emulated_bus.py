@@ -98,6 +98,7 @@ class EmulatedI2CBus:
         faults: Faults to inject (none by default).
         clock: Clock that latency faults advance; defaults to the first
             device's clock.
+        record: Keep every transaction in :attr:`history`.
 
     An absent address raises ``OSError(EREMOTEIO)``, as Linux i2c-dev does
     when no device acknowledges it.
@@ -108,6 +109,7 @@ class EmulatedI2CBus:
         devices: Mapping[int, JointFirmware],
         faults: FaultPlan | None = None,
         clock: Clock | None = None,
+        record: bool = False,
     ) -> None:
         """Attach the devices."""
         for address in devices:
@@ -123,6 +125,9 @@ class EmulatedI2CBus:
         self.clock = clock
         self.transactions = 0
         self.closed = False
+        #: With ``record``: every transaction as ``(time, address, bytes
+        #: written, read length)``, the time taken before any latency fault.
+        self.history: list[tuple[float, int, bytes, int]] | None = [] if record else None
 
     def _error(self, address: int) -> OSError:
         return OSError(errno.EREMOTEIO, f"{os.strerror(errno.EREMOTEIO)} (address {address:#04x})")
@@ -136,6 +141,8 @@ class EmulatedI2CBus:
             raise OSError(errno.EBADF, "emulated bus is closed")
         index = self.transactions
         self.transactions += 1
+        if self.history is not None:
+            self.history.append((self.clock.now() if self.clock else 0.0, address, bytes(data), read_len))
         plan = self.faults
         scheduled = plan.schedule.get(index)
         if plan.latency_s and self.clock is not None:

@@ -28,6 +28,7 @@ the same numbers would trip during ordinary acceleration.
 from __future__ import annotations
 
 import math
+import struct
 from enum import Enum
 
 from bioscara_gym.hardware import codec
@@ -36,19 +37,20 @@ from bioscara_gym.hardware.codec import unpack_bytes
 from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
 from bioscara_gym.hardware.registers import (
     ACK,
-    BLOCKING_COMMANDS,
+    DEADMAN_MS,
     DEADMAN_S,
     FLAG_BUSY,
     FLAG_MASK,
     FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
     FLAG_STALL,
+    HOMING_POLL_S,
     HOMING_SETTLE_S,
     MAX_PAYLOAD,
     POWER_UP_FLAGS,
-    READ_REGISTERS,
     STALL_MID_SPEED_BAND,
     STALL_MID_SPEED_OFFSET,
+    STALL_RPM_PER_RAD_S,
     STALL_SLOPE,
     STALL_SPIKE_LIMIT,
     STALL_TAU_S,
@@ -80,10 +82,12 @@ MICROSTEPS_PER_DEG = MICROSTEPS_PER_FULL_STEP / FULL_STEP_DEG
 DEFAULT_MAX_VELOCITY_DPS = 1000.0
 DEFAULT_MAX_ACCELERATION_DPS2 = 2000.0
 DEFAULT_CURRENT_PCT = 0
+#: The firmware stores its limits in steps: deg x 200/360 (SETMAXVELOCITY, SETMAXACCELERATION).
+_STEPS_PER_DEG = 200 / 360.0
 
 _LOWPASS_GAIN = TICK_S / STALL_TAU_S
 _LOWPASS_KEEP = 1.0 - _LOWPASS_GAIN
-_RAD_PER_DEG = math.pi / 180.0
+_HOMING_POLLS_PER_TICK = round(TICK_S / HOMING_POLL_S)
 
 
 class Mode(Enum):
@@ -100,39 +104,78 @@ class _Blocking(Enum):
     HOME_RUN = 2
     ORIENTATION_OUT = 3
     ORIENTATION_BACK = 4
-    UNKNOWN = 5
+
+
+#: Registers ``non_blocking_handler`` has a case for; every other byte goes to
+#: its default branch, the blocking handler (firmware).
+NON_BLOCKING_REGISTERS = frozenset(
+    {
+        Reg.PING,
+        Reg.SETUP,
+        Reg.GETDRIVERRPM,
+        Reg.ANGLEMOVED,
+        Reg.GETENCODERRPM,
+        Reg.SETRPM,
+        Reg.MOVESTEPS,
+        Reg.MOVETOANGLE,
+        Reg.SETCURRENT,
+        Reg.SETHOLDCURRENT,
+        Reg.SETMAXACCELERATION,
+        Reg.SETMAXVELOCITY,
+        Reg.ENABLESTALLGUARD,
+        Reg.SETBRAKEMODE,
+        Reg.DISABLECLOSEDLOOP,
+        Reg.STOP,
+        Reg.HOMEOFFSET,
+        Reg.HOME,
+    }
+)
 
 
 def stall_threshold(omega_rad_s: float, sensitivity: int) -> float:
-    """Speed-adaptive stall threshold in microsteps, as the stall detector uses it.
+    """Speed-adaptive stall threshold in microsteps, as ``stall.h`` computes it.
 
     Args:
-        omega_rad_s: Measured motor speed in rad/s.
+        omega_rad_s: Measured motor speed in rad/s (signed).
         sensitivity: The ENABLESTALLGUARD payload (threshold is 10x it).
 
     Returns:
-        ``slope*|omega| + 10*sensitivity``, plus 90 inside 12-450 rad/s
+        ``slope*omega + 10*sensitivity``, plus 90 when 12 <= |omega| <= 450
         (the constants of :mod:`~bioscara_gym.hardware.registers`).
     """
-    w = abs(omega_rad_s)
-    threshold = STALL_SLOPE * w + STALL_THRESHOLD_PER_SENSITIVITY * sensitivity
+    offset = STALL_THRESHOLD_PER_SENSITIVITY * sensitivity
     lo, hi = STALL_MID_SPEED_BAND
-    if lo <= w <= hi:
-        threshold += STALL_MID_SPEED_OFFSET
-    return threshold
+    w = abs(omega_rad_s)
+    if w >= lo and w <= hi:  # the firmware's two comparisons, both inclusive
+        offset += STALL_MID_SPEED_OFFSET
+    return STALL_SLOPE * omega_rad_s + offset
+
+
+def _millis(t: float) -> int:
+    """``millis()`` at time ``t`` seconds: whole milliseconds (rounded to 1 us first)."""
+    return round(t * 1e6) // 1000
 
 
 class FirmwareCore:
     """State and rules of one joint's firmware, independent of the bus.
 
+    Every call of :meth:`write`, :meth:`read` or :meth:`touch` is one I2C
+    transaction's request handler; :meth:`tick` is one main-loop pass.
+
     Args:
         motor: The motor model the firmware drives.
         start_time: Time of power-up in seconds (for the deadman).
+        cancel_pending: Follow the firmware in letting any transaction cancel
+            a blocking command the main loop has not picked up yet (BUSY, and
+            for HOME NOTHOMED, then stay set until a STOP). On by default;
+            off only to run host code that does not yet wait
+            :data:`~bioscara_gym.hardware.registers.BLOCKING_PICKUP_S`.
     """
 
-    def __init__(self, motor: Motor, start_time: float = 0.0) -> None:
+    def __init__(self, motor: Motor, start_time: float = 0.0, *, cancel_pending: bool = True) -> None:
         """Power the firmware up in front of ``motor``."""
         self.motor = motor
+        self.cancel_pending = cancel_pending
         self.power_cycle(start_time)
 
     # ------------------------------------------------------------------ state
@@ -144,11 +187,14 @@ class FirmwareCore:
         self.flags = int(POWER_UP_FLAGS)
         self.time = now
         self.last_rx = now
-        self.drive_current = DEFAULT_CURRENT_PCT
+        self.drive_current = DEFAULT_CURRENT_PCT  # the firmware's driveCurrent
         self.hold_current = DEFAULT_CURRENT_PCT
+        self.motor_current = DEFAULT_CURRENT_PCT  # what the stepper runs at (homing changes it)
         self.brake_mode = 0
         self.max_velocity = DEFAULT_MAX_VELOCITY_DPS
         self.max_acceleration = DEFAULT_MAX_ACCELERATION_DPS2
+        self.qd_set = 0.0  # last SETRPM value (the deadman watches it)
+        self.q_set = 0.0  # last MOVETOANGLE value
         self.mode = Mode.IDLE
         self.target_rpm = 0.0
         self.target_deg = 0.0  # absolute motor degrees in POSITION mode
@@ -159,11 +205,13 @@ class FirmwareCore:
         self.stall_sensitivity = 0
         self._filter_x = 0.0
         self._filter_last = 0.0
+        self._pending = False  # rx_data_ready
+        self._pending_reg = int(Reg.NONE)  # blk_reg
+        self._pending_arg = 0.0
         self._blocking = _Blocking.NONE
-        self._blocking_reg = Reg.NONE
         self._blocking_arg = 0.0
         self._blocking_until = 0.0
-        self._homing = (1, 0.0, 0, 0)  # direction, rpm, sensitivity, current
+        self._homing = (1, 0.0, 0, 0)  # direction sign, rpm, sensitivity, current
         self._sent = (0.0, 0.0)  # last (velocity, torque) sent to the motor
         self.motor.command(0.0, 0.0)
         self.motor.hold_here()
@@ -201,32 +249,48 @@ class FirmwareCore:
 
     @property
     def busy(self) -> bool:
-        """Whether a blocking command is running."""
+        """Whether a blocking command is running in the main loop."""
         return self._blocking is not _Blocking.NONE
 
+    @property
+    def pending(self) -> bool:
+        """Whether a blocking command waits for the main loop (``rx_data_ready``)."""
+        return self._pending
+
+    @property
+    def homing_runs(self) -> bool:
+        """Whether the homing loop is polling the PID error (after its 500 ms wait)."""
+        return self._blocking is _Blocking.HOME_RUN
+
     # --------------------------------------------------------------- commands
+    def _begin(self, now: float) -> None:
+        """What every request handler does first: ``rx_data_ready = 0``; deadman fed."""
+        self.last_rx = now  # deadman = millis() at the end of the handler: the same instant
+        if self.cancel_pending:
+            self._pending = False
+
     def write(self, reg: int, value: float | int, now: float) -> None:
         """Handle a command the way the firmware's receive/request ISRs do.
 
-        Non-blocking commands take effect at once; blocking ones (HOME,
-        CHECKORIENTATION, anything unknown) set BUSY now and run in the main
-        loop.
+        Non-blocking commands take effect at once; every register without a
+        case in ``non_blocking_handler`` (HOME's main part, CHECKORIENTATION,
+        anything unknown) sets BUSY now and runs in the main loop.
 
         Args:
             reg: Register byte.
             value: Decoded payload (0 where the register has none).
             now: Time of the transaction in seconds.
         """
-        self.last_rx = now
+        self._begin(now)
         handler = self._WRITE_HANDLERS.get(reg)
         if handler is None:
-            self._start_blocking(reg, value)
+            self._set_flags_for_blocking_handler(reg, value)
         else:
             handler(self, value)
 
     def read(self, reg: int, now: float) -> float | int | None:
         """Answer a read request; ``None`` for registers without a payload."""
-        self.last_rx = now
+        self._begin(now)
         if reg == Reg.PING:
             return ACK
         if reg == Reg.ANGLEMOVED:
@@ -238,11 +302,8 @@ class FirmwareCore:
         return None
 
     def touch(self, now: float) -> None:
-        """Record a transaction that carried no command (feeds the deadman)."""
-        self.last_rx = now
-
-    def _may_move(self) -> bool:
-        return not self.flags & (FLAG_STALL | FLAG_NOT_ENABLED)
+        """A transaction whose handler does nothing (GETDRIVERRPM): feeds the deadman."""
+        self._begin(now)
 
     def _hard_stop(self) -> None:
         self.mode = Mode.IDLE
@@ -251,16 +312,17 @@ class FirmwareCore:
         self.motor.hold_here()
         self._apply()
 
+    def _set_rpm(self, rpm: float) -> None:
+        """``stepper.setRPM``: velocity mode; a non-finite value runs as 0 (our choice)."""
+        self.mode = Mode.VELOCITY
+        self.target_rpm = float(rpm) if math.isfinite(rpm) else 0.0
+
     def _apply(self) -> None:
         """Send the current set-point velocity and torque to the motor."""
-        if self.flags & FLAG_NOT_ENABLED and self.drive_current == 0:
-            torque = 0.0
-        elif self._blocking is _Blocking.HOME_RUN:
-            torque = self._homing[3] / 100.0
-        elif self.sp_velocity == 0.0 and self.mode is Mode.IDLE:
+        if self.sp_velocity == 0.0 and self.mode is Mode.IDLE:
             torque = self.hold_current / 100.0
         else:
-            torque = self.drive_current / 100.0
+            torque = self.motor_current / 100.0
         sent = (self.sp_velocity, torque)
         if sent != self._sent or torque <= 0.0:  # unpowered motors re-follow their rotor
             self._sent = sent
@@ -268,32 +330,30 @@ class FirmwareCore:
 
     def _cmd_setup(self, value: float | int) -> None:
         drive, hold, _, _ = unpack_bytes(int(value))
-        self.drive_current = min(drive, 100)
+        self.drive_current = self.motor_current = min(drive, 100)
         self.hold_current = min(hold, 100)
         self.stallguard = False
         self._set(FLAG_STALL | FLAG_NOT_ENABLED, False)
-        self._hard_stop()
+        self.qd_set = 0.0
+        self._hard_stop()  # moveSteps(0): the set point stays where the motor is
 
     def _cmd_set_rpm(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & FLAG_NOT_HOMED or self.busy:
-            return
-        self.mode = Mode.VELOCITY
-        self.target_rpm = float(value)
+        self.qd_set = float(value)
+        if not self.flags & FLAG_STALL:
+            self._set_rpm(self.qd_set)
 
     def _cmd_move_steps(self, value: float | int) -> None:
-        if not self._may_move() or self.busy:
-            return
         self.mode = Mode.POSITION
         self.target_deg = self.motor.setpoint_deg + steps_to_degrees(int(value))
 
     def _cmd_move_to_angle(self, value: float | int) -> None:
-        if not self._may_move() or self.flags & FLAG_NOT_HOMED or self.busy:
-            return
-        self.mode = Mode.POSITION
-        self.target_deg = self.encoder_zero + float(value)
+        self.q_set = float(value)
+        if not self.flags & FLAG_STALL and math.isfinite(self.q_set):
+            self.mode = Mode.POSITION
+            self.target_deg = self.encoder_zero + self.q_set
 
     def _cmd_set_current(self, value: float | int) -> None:
-        self.drive_current = min(int(value), 100)
+        self.drive_current = self.motor_current = min(int(value), 100)
         if self.drive_current == 0:
             self._set(FLAG_NOT_ENABLED)
         self._apply()
@@ -305,17 +365,17 @@ class FirmwareCore:
         self._apply()
 
     def _cmd_set_max_acceleration(self, value: float | int) -> None:
-        if math.isfinite(value) and value > 0:
+        if math.isfinite(value) and value > 0:  # the firmware does not check (our guard)
             self.max_acceleration = float(value)
 
     def _cmd_set_max_velocity(self, value: float | int) -> None:
-        if math.isfinite(value) and value > 0:
+        if math.isfinite(value) and value > 0:  # the firmware does not check (our guard)
             self.max_velocity = float(value)
 
     def _cmd_enable_stallguard(self, value: float | int) -> None:
+        # Threshold 10 x sensitivity, enabled, STALL cleared; the filter state is kept.
         self.stallguard = True
         self.stall_sensitivity = int(value)
-        self._filter_x = self._filter_last = 0.0
         self._set(FLAG_STALL, False)
 
     def _cmd_set_brake_mode(self, value: float | int) -> None:
@@ -325,16 +385,21 @@ class FirmwareCore:
         self._set(FLAG_NOT_ENABLED)
 
     def _cmd_stop(self, value: float | int) -> None:
-        if self._blocking in (_Blocking.HOME_SETTLE, _Blocking.HOME_RUN):
-            self._set(FLAG_NOT_HOMED)  # homing ends as aborted
-        self._end_blocking()
-        self._hard_stop()
+        # setRPM(0) (a ramped stop; qd_set is kept) and BUSY cleared: a running
+        # homing sees that at its next poll and ends as aborted.
+        self._set_rpm(0.0)
+        self._set(FLAG_BUSY, False)
 
     def _cmd_home_offset(self, value: float | int) -> None:
         self.home_offset = float(value)
 
-    def _cmd_read_only(self, value: float | int) -> None:
-        """A read register written with a payload: the firmware ignores it."""
+    def _cmd_home(self, value: float | int) -> None:
+        # NOTHOMED at once, so a reader never takes an old "homed" for the end of this homing.
+        self._set(FLAG_NOT_HOMED)
+        self._set_flags_for_blocking_handler(Reg.HOME, value)
+
+    def _cmd_no_op(self, value: float | int) -> None:
+        """PING, ANGLEMOVED, GETENCODERRPM written, GETDRIVERRPM: nothing to execute."""
 
     _WRITE_HANDLERS = {
         Reg.SETUP: _cmd_setup,
@@ -350,107 +415,136 @@ class FirmwareCore:
         Reg.DISABLECLOSEDLOOP: _cmd_disable_closed_loop,
         Reg.STOP: _cmd_stop,
         Reg.HOMEOFFSET: _cmd_home_offset,
-        Reg.PING: _cmd_read_only,
-        Reg.ANGLEMOVED: _cmd_read_only,
-        Reg.GETENCODERRPM: _cmd_read_only,
+        Reg.HOME: _cmd_home,
+        Reg.PING: _cmd_no_op,
+        Reg.ANGLEMOVED: _cmd_no_op,
+        Reg.GETENCODERRPM: _cmd_no_op,
+        Reg.GETDRIVERRPM: _cmd_no_op,
     }
 
     # --------------------------------------------------------------- blocking
-    def _start_blocking(self, reg: int, value: float | int) -> None:
-        """``set_flags_for_blocking_handler``: BUSY now, work in the main loop."""
+    def _set_flags_for_blocking_handler(self, reg: int, value: float | int) -> None:
+        """BUSY now; the main loop's next pass runs the command (the latest one wins)."""
+        self._pending_reg = int(reg)
+        self._pending_arg = value
         self._set(FLAG_BUSY)
-        self._blocking_reg = reg
-        self._blocking_arg = value
+        self._pending = True
+
+    def _blocking_handler(self) -> None:
+        """The main loop takes the pending command: BUSY, then start it."""
+        self._pending = False
+        self._set(FLAG_BUSY)
+        reg, value = self._pending_reg, self._pending_arg
         if reg == Reg.HOME:
-            self._set(FLAG_NOT_HOMED)
             direction, rpm, sensitivity, current = unpack_bytes(int(value))
-            self._homing = (1 if direction == 1 else -1, float(rpm), sensitivity, current)
+            self._homing = (1 if direction else -1, float(rpm), sensitivity, current)
+            self._hard_stop()
             self._blocking = _Blocking.HOME_SETTLE
-            self._blocking_until = math.inf  # set when the main loop picks it up
+            self._blocking_until = self.time + HOMING_SETTLE_S
         elif reg == Reg.CHECKORIENTATION:
+            self._blocking_arg = float(value) if math.isfinite(value) else 0.0
             self._blocking = _Blocking.ORIENTATION_OUT
-            self._blocking_until = math.inf
+            self.mode = Mode.POSITION
+            self.target_deg = self.motor.setpoint_deg + self._blocking_arg
         else:
-            self._blocking = _Blocking.UNKNOWN
+            self._end_blocking()  # "UNKOWN REGISTER": returns at once
 
     def _end_blocking(self) -> None:
         self._blocking = _Blocking.NONE
-        self._blocking_reg = Reg.NONE
         self._set(FLAG_BUSY, False)
 
     def _run_blocking(self) -> None:
         """One main-loop tick of the running blocking command."""
         state = self._blocking
-        if state is _Blocking.UNKNOWN:
-            self._end_blocking()
-        elif state is _Blocking.HOME_SETTLE:
-            if self._blocking_until == math.inf:
-                self._hard_stop()
-                self._blocking_until = self.time + HOMING_SETTLE_S
-            elif self.time >= self._blocking_until - 1e-9:
-                direction, rpm, _, _ = self._homing
+        if state is _Blocking.HOME_SETTLE:
+            if self.time >= self._blocking_until - 1e-9:
+                direction, rpm, _, current = self._homing
+                self._set_rpm(direction * rpm)
+                self.motor_current = current
                 self._blocking = _Blocking.HOME_RUN
-                self.mode = Mode.VELOCITY
-                self.target_rpm = direction * rpm
-        elif state is _Blocking.HOME_RUN:
-            if abs(self.pid_error) > self._homing[2]:
-                self.motor.hold_here()
-                self.encoder_zero = self.motor.position_deg
-                self._set(FLAG_NOT_HOMED | FLAG_STALL, False)
-                self._end_blocking()
-                self._hard_stop()
+                self.poll_homing()  # the first poll comes right after setRPM
         elif state is _Blocking.ORIENTATION_OUT:
-            if self._blocking_until == math.inf:
-                self._blocking_until = 0.0
-                self.mode = Mode.POSITION
-                self.target_deg = self.motor.setpoint_deg + float(self._blocking_arg)
-            elif self.mode is Mode.IDLE or self._arrived():
+            if self.mode is not Mode.POSITION or self._arrived():
                 self._blocking = _Blocking.ORIENTATION_BACK
-                self.target_deg -= float(self._blocking_arg)
                 self.mode = Mode.POSITION
-        elif state is _Blocking.ORIENTATION_BACK and (self.mode is Mode.IDLE or self._arrived()):
+                self.target_deg = self.motor.setpoint_deg - self._blocking_arg
+        elif state is _Blocking.ORIENTATION_BACK and (self.mode is not Mode.POSITION or self._arrived()):
             self.mode = Mode.IDLE
             self._end_blocking()
+
+    def poll_homing(self) -> None:
+        """One pass of the homing loop (every 1 ms): stop at ``|error| > sensitivity`` or a STOP.
+
+        :meth:`tick` polls ten times a tick between 1 ms motor advances; the
+        simulated arm also calls it after each physics step.
+        """
+        if self._blocking is not _Blocking.HOME_RUN:
+            return
+        if self.flags & FLAG_BUSY:
+            if not abs(self.pid_error) > self._homing[2]:
+                return
+            self.motor.hold_here()  # encoder and driver zeroed here
+            self.encoder_zero = self.motor.position_deg
+            self._set(FLAG_NOT_HOMED | FLAG_STALL, False)
+        else:  # cancelled by STOP
+            self._set(FLAG_NOT_HOMED)
+        self._hard_stop()
+        self.motor_current = self.drive_current
+        self._end_blocking()
+        self._apply()
 
     def _arrived(self) -> bool:
         return self.sp_velocity == 0.0 and abs(self.motor.setpoint_deg - self.target_deg) < 1e-6
 
     # -------------------------------------------------------------- main loop
     def tick(self) -> None:
-        """Run one 10 ms main-loop iteration and advance the motor by a tick.
+        """Run one 10 ms main-loop pass and advance the motor by a tick.
 
-        Order as in the firmware's ``loop()``: deadman and stall detection
-        (skipped while a blocking command runs, since it blocks the loop), the
-        blocking handler, then the step generator.
+        As the firmware's ``loop()``: stall detection, the blocking handler
+        (a running one blocks the pass: no stall detection, no deadman), the
+        deadman; the motor's step generator runs meanwhile.
         """
         self.time += TICK_S
         if self._blocking is _Blocking.NONE:
-            if (
-                self.mode is Mode.VELOCITY
-                and self.target_rpm != 0.0
-                and not self.flags & FLAG_NOT_ENABLED
-                and self.time - self.last_rx > DEADMAN_S + 1e-9
-            ):
-                self.target_rpm = 0.0
-                self._set(FLAG_NOT_ENABLED)
             if self.stallguard and not self.flags & FLAG_STALL:
                 self._detect_stall()
+            if self._pending:
+                self._blocking_handler()
         else:
             self._run_blocking()
+        if self._blocking is _Blocking.NONE:
+            self._deadman()
         self._ramp()
-        self.motor.advance(TICK_S)
+        if self._blocking is _Blocking.HOME_RUN:
+            for i in range(_HOMING_POLLS_PER_TICK):
+                self.motor.advance(HOMING_POLL_S)
+                self.poll_homing()
+                if self._blocking is not _Blocking.HOME_RUN:
+                    rest = _HOMING_POLLS_PER_TICK - 1 - i
+                    if rest:  # the rest of the tick after the homing returned
+                        self.motor.advance(rest * HOMING_POLL_S)
+                    break
+        else:
+            self.motor.advance(TICK_S)
+
+    def _deadman(self) -> None:
+        silent_ms = _millis(self.time) - _millis(self.last_rx)
+        if silent_ms > DEADMAN_MS and not self.flags & FLAG_NOT_ENABLED and self.qd_set:
+            self._set_rpm(0.0)
+            self._set(FLAG_NOT_ENABLED)
 
     def _detect_stall(self) -> None:
         u = abs(self.pid_error)
-        last = self._filter_last
-        self._filter_last = u
-        if abs(u - last) > STALL_SPIKE_LIMIT:
-            u = last  # spike filter: keep the previous sample
+        if u - self._filter_last > STALL_SPIKE_LIMIT:
+            u = self._filter_last  # one-sided spike filter: keep the last (filtered) value
         x = self._filter_x = _LOWPASS_KEEP * self._filter_x + _LOWPASS_GAIN * u
-        if x > stall_threshold(self.motor.velocity_dps * _RAD_PER_DEG, self.stall_sensitivity):
+        omega = self.encoder_rpm / STALL_RPM_PER_RAD_S
+        if x > stall_threshold(omega, self.stall_sensitivity):
             self._set(FLAG_STALL)
-            self._filter_x = self._filter_last = 0.0
             self._hard_stop()
+            self._filter_x = self._filter_last = 0.0
+        else:
+            self._filter_last = u
 
     def _ramp(self) -> None:
         """Advance the ramped set-point velocity (trapezoidal profile)."""
@@ -477,8 +571,8 @@ class FirmwareCore:
             v -= acc_step
         else:
             v = target
-        if self.flags & FLAG_NOT_ENABLED and self.drive_current == 0:
-            v = 0.0
+        if self.motor_current == 0:
+            v = 0.0  # unpowered: the set point follows the rotor
         self.sp_velocity = v
         self._apply()
 
@@ -488,6 +582,35 @@ class FirmwareCore:
             self.tick()
 
 
+# How ``readValue``/``memcpy`` fill each command's value from the receive
+# buffer: ``memcpy(&val, rx_buf, rx_length)`` copies exactly the bytes that
+# arrived. Fewer than the value's size leave the rest of the value as it was:
+# the previous value for the firmware's static variables (read back from the
+# core below), stack garbage for locals (we use zero bytes). SETUP and HOME
+# copy fixed bytes of the buffer whatever arrived, so a short one reads stale
+# bytes of an earlier transaction. More bytes than the value holds overrun
+# memory next to it (undefined; the emulator keeps the value's own bytes).
+#: register -> (struct format of the value, previous value of a static, or None for a local)
+_READ_VALUE: dict[int, tuple[str, object]] = {
+    Reg.SETRPM: ("<f", lambda c: c.qd_set),
+    Reg.MOVETOANGLE: ("<f", lambda c: c.q_set),
+    Reg.HOMEOFFSET: ("<f", lambda c: c.home_offset),
+    # Limits are stored in steps (x 200/360) and converted after the memcpy.
+    Reg.SETMAXACCELERATION: ("<f", lambda c: c.max_acceleration * _STEPS_PER_DEG),
+    Reg.SETMAXVELOCITY: ("<f", lambda c: c.max_velocity * _STEPS_PER_DEG),
+    Reg.SETCURRENT: ("<B", lambda c: c.drive_current),
+    Reg.SETHOLDCURRENT: ("<B", lambda c: c.hold_current),
+    Reg.MOVESTEPS: ("<i", None),
+    Reg.CHECKORIENTATION: ("<f", None),
+    Reg.ENABLESTALLGUARD: ("<B", None),
+    Reg.SETBRAKEMODE: ("<B", None),
+    Reg.DISABLECLOSEDLOOP: ("<B", None),
+    Reg.STOP: ("<B", None),
+}
+#: Registers that answer a value (``writeValue``) whatever was written with them.
+_ANSWERING = frozenset({Reg.PING, Reg.ANGLEMOVED, Reg.GETENCODERRPM})
+
+
 class JointFirmware:
     """One joint's firmware behind its I2C address: bytes in, bytes out.
 
@@ -495,9 +618,18 @@ class JointFirmware:
         motor: The motor model (e.g. :class:`~bioscara_gym.hardware.motor.KinematicStepper`).
         clock: Time source; the firmware catches up on its 10 ms ticks to
             ``clock.now()`` before every transaction and on :meth:`update`.
+        core: An existing core instead of ``motor`` (the simulated arm's).
+        cancel_pending: Passed to a new :class:`FirmwareCore`.
     """
 
-    def __init__(self, motor: Motor | None, clock: Clock, core: FirmwareCore | None = None) -> None:
+    def __init__(
+        self,
+        motor: Motor | None,
+        clock: Clock,
+        core: FirmwareCore | None = None,
+        *,
+        cancel_pending: bool = True,
+    ) -> None:
         """Power up a joint in front of ``motor``, or wrap an existing ``core``.
 
         A core passed in is ticked by its owner (the simulated arm steps
@@ -507,8 +639,16 @@ class JointFirmware:
             raise ValueError("pass either a motor or an existing core")
         self.clock = clock
         self._owns_ticks = core is None
-        self.core = core if core is not None else FirmwareCore(motor, clock.now())
+        if core is None:
+            core = FirmwareCore(motor, clock.now(), cancel_pending=cancel_pending)  # type: ignore[arg-type]
+        self.core = core
         self.transactions = 0
+        self._power_up_buffers()
+
+    def _power_up_buffers(self) -> None:
+        self._reg = 0  # ``uint8_t reg = 0``: a bare read at power-up runs register 0x00
+        self._rx_buf = bytearray(MAX_PAYLOAD)
+        self._rx_length = 0
 
     @property
     def motor(self) -> Motor:
@@ -529,15 +669,18 @@ class JointFirmware:
         """Cut and restore the joint's power (HOMEOFFSET and homing are lost)."""
         self.update()
         self.core.power_cycle(self.clock.now())
+        self._power_up_buffers()
 
     def transfer(self, data: bytes, read_len: int) -> bytes:
         """Serve one combined write-then-read transaction.
 
-        ``receiveEvent`` takes the register and up to four payload bytes (more
-        are dropped, fewer are zero-padded as ``memcpy`` into a zeroed value
-        would leave them); ``requestEvent`` answers the payload of a read
-        register followed by the flags. Like an Arduino Wire slave, a longer
-        read is padded with 0xFF and a shorter one is cut.
+        The write phase (``receiveEvent``) stores the register and copies the
+        payload into the persistent 4-byte receive buffer; the read phase
+        (``requestEvent``) runs the stored register's handler on it and
+        answers its value (if any) and the flags. No read phase (``read_len``
+        0): nothing is executed. No write phase (empty ``data``): the last
+        register runs again on the buffer as it stands. Like an Arduino Wire
+        slave, a longer read is padded with 0xFF and a shorter one is cut.
 
         Args:
             data: Bytes the master wrote; ``data[0]`` is the register.
@@ -549,32 +692,39 @@ class JointFirmware:
         self.update()
         now = self.clock.now()
         self.transactions += 1
-        core = self.core
-        tx = b""
-        if not data:
-            core.touch(now)
-        else:
-            reg = data[0]
-            payload = data[1 : 1 + MAX_PAYLOAD]
-            if len(data) == 1 and reg in READ_REGISTERS:
-                tx = codec.encode(Reg(reg), core.read(reg, now))
-            elif len(data) == 1 and reg not in BLOCKING_COMMANDS and reg in _KNOWN:
-                core.touch(now)  # a known command without payload: nothing to do
-            else:
-                core.write(reg, _decode(reg, payload), now)
-        reply = tx + bytes((core.flags,))
+        if data:
+            self._reg = data[0]
+            payload = data[1:]
+            self._rx_buf[: len(payload[:MAX_PAYLOAD])] = payload[:MAX_PAYLOAD]
+            self._rx_length = len(payload)
+        if read_len <= 0:
+            return b""
+        tx = self._request(now)
+        reply = tx + bytes((self.core.flags,))
         if read_len <= len(reply):
             return reply[:read_len]
         return reply + b"\xff" * (read_len - len(reply))
 
+    def _request(self, now: float) -> bytes:
+        """``requestEvent``: the stored register's handler; returns the value bytes it answers."""
+        core, reg = self.core, self._reg
+        if reg in _ANSWERING:
+            return codec.encode(Reg(reg), core.read(reg, now))
+        if reg == Reg.HOMEOFFSET and not self._rx_length:
+            return codec.encode(Reg.HOMEOFFSET, core.read(reg, now))
+        if reg == Reg.GETDRIVERRPM:
+            core.touch(now)
+            return b""
+        core.write(reg, self._read_value(reg), now)
+        return b""
 
-_KNOWN = frozenset(int(r) for r in Reg if r is not Reg.NONE)  # NONE is host-only
-
-
-def _decode(reg: int, payload: bytes) -> float | int:
-    """Decode a payload as the firmware's ``readValue`` (memcpy into a zeroed value) would."""
-    size = codec.payload_size(reg)
-    value = codec.decode(reg, (payload + bytes(size))[:size])
-    if isinstance(value, float) and not math.isfinite(value):
-        return 0.0
-    return value
+    def _read_value(self, reg: int) -> float | int:
+        """The value the firmware's handler ``memcpy``'s out of the receive buffer."""
+        spec = _READ_VALUE.get(reg)
+        if spec is None:  # SETUP, HOME, unknown registers: the whole buffer, stale bytes included
+            return int.from_bytes(self._rx_buf, "little")
+        fmt, previous = spec
+        size = struct.calcsize(fmt)
+        old = struct.pack(fmt, previous(self.core)) if previous is not None else bytes(size)
+        n = min(self._rx_length, size)
+        return struct.unpack(fmt, bytes(self._rx_buf[:n]) + old[n:])[0]

@@ -157,11 +157,32 @@ HOMING_RPM_MAX = 250.0
 #: Main-loop period in seconds: stall detection and the deadman run once per
 #: 10 ms tick (firmware).
 TICK_S = 0.01
-#: Deadman: an enabled joint with a non-zero SETRPM set point stops (speed 0,
-#: NOT_ENABLED) after this silence on the bus, seconds (firmware: 50 ms).
+#: Deadman: an enabled joint whose last SETRPM value is non-zero (in any mode)
+#: stops (RPM 0, NOT_ENABLED) after more than this silence on the bus, seconds
+#: (firmware: 50 ms; see :data:`DEADMAN_MS`).
 DEADMAN_S = 0.05
+#: Deadman in whole milliseconds of ``millis()``: it fires when more than this
+#: has passed since the last transaction's reply, checked once per main-loop
+#: pass (firmware: ``diff > 50``).
+DEADMAN_MS = 50
 #: Homing stops hard and waits this long before it runs, seconds (firmware: 500 ms).
 HOMING_SETTLE_S = 0.5
+#: The homing loop reads the PID error this often, seconds (firmware: ``delay(1)``).
+HOMING_POLL_S = 0.001
+#: Divisor from encoder RPM to rad/s in the stall detector, as written in the
+#: firmware (60/2pi would be 9.549296585513721; firmware: 9.549296596425384).
+STALL_RPM_PER_RAD_S = 9.549296596425384
+#: How long the host must leave a joint alone after HOME, CHECKORIENTATION (or
+#: any other blocking command), seconds, so the main loop picks the command up
+#: first: any transaction before that cancels it while BUSY stays set until a
+#: STOP (firmware: ``non_blocking_handler`` begins with ``rx_data_ready = 0``).
+#: Worst case the command arrives just after the loop looked: the rest of that
+#: pass, ``delay(10)``, then the next pass's stall-detection branch, which
+#: prints about 40 characters at 9600 baud (about 42 ms if the serial port
+#: blocks, unmeasured; docs/firmware.md). 10 + 42 ms, rounded up with margin
+#: for the interrupt and library calls: 60 ms, i.e. six 10 ms ticks of the
+#: emulator, which picks a command up at the next tick (our choice).
+BLOCKING_PICKUP_S = 0.06
 
 # ------------------------------------------------------ stall detection
 # The firmware's stall detector, once per tick while enabled and not stalled:
@@ -181,3 +202,81 @@ STALL_SLOPE = 0.0
 STALL_MID_SPEED_OFFSET = 90.0
 #: Motor speed band in rad/s, inclusive, that gets the extra threshold (firmware: 12-450).
 STALL_MID_SPEED_BAND = (12.0, 450.0)
+
+# ------------------------------------------- host: retries and reply checks
+# The protocol has no checksum and no sequence number (docs/protocol.md), so
+# the host decides per register whether a failed transaction may be sent
+# again, and checks every reply against what the firmware can produce.
+
+#: Commands the driver may send again after a failed transaction (a NACK, a
+#: short, malformed or implausible reply), because running one twice leaves
+#: the joint as running it once does (firmware semantics, docs/firmware.md).
+#: Reads (PING, ANGLEMOVED, GETENCODERRPM, HOMEOFFSET without payload) change
+#: nothing but the deadman timer and are always retried. Not in the set, so
+#: sent at most once: MOVESTEPS (relative: a second run moves as far again),
+#: HOME (a second one restarts the 0.5 s stop-and-run, or runs a second
+#: homing after the first) and CHECKORIENTATION (turns the motor again); the
+#: original C++ driver retries nothing.
+IDEMPOTENT_COMMANDS = frozenset(
+    {
+        # currents := the payload, moveSteps(0) (stops where the motor is),
+        # stall detection off, STALL/NOTENABLED cleared, SETRPM memory 0:
+        # a second run finds the motor already stopped there.
+        Reg.SETUP,
+        Reg.SETRPM,  # an absolute speed, stored and applied (unless STALL)
+        Reg.MOVETOANGLE,  # an absolute target (from the encoder's home)
+        Reg.SETCURRENT,  # drive current := payload (0 also sets NOTENABLED)
+        Reg.SETHOLDCURRENT,  # hold current := payload (0 also sets NOTENABLED)
+        Reg.SETMAXACCELERATION,  # limit := payload
+        Reg.SETMAXVELOCITY,  # limit := payload
+        # threshold := 10 x payload, detection on, STALL cleared. A second run
+        # clears STALL again: only a stall detected in the few ms between the
+        # two attempts (the motor is then already stopped) would go unreported.
+        Reg.ENABLESTALLGUARD,
+        Reg.SETBRAKEMODE,  # mode := payload
+        Reg.DISABLECLOSEDLOOP,  # closed loop off, NOTENABLED set; once off it stays off
+        Reg.STOP,  # setRPM(0), BUSY cleared; a second STOP finds it stopped
+        Reg.HOMEOFFSET,  # offset := payload (the firmware never uses it)
+    }
+)
+
+#: Flags a command's reply must show set / clear whatever the joint's state,
+#: because the command's handler sets / clears them in the interrupt before
+#: the flags byte is appended (firmware ``requestEvent``): a reply without
+#: them is corrupted. SETCURRENT 0 and SETHOLDCURRENT 0 also set NOTENABLED
+#: (checked by the driver, the payload decides). Left out on purpose: SETUP's
+#: reply with NOTENABLED raises NotEnabledError as the C++ API's enable does
+#: (only STALL is checked), and DISABLECLOSEDLOOP's reply is not checked.
+REPLY_FLAGS_SET: dict[Reg, int] = {
+    Reg.HOME: int(Flag.BUSY | Flag.NOT_HOMED),
+    Reg.CHECKORIENTATION: int(Flag.BUSY),
+}
+#: See :data:`REPLY_FLAGS_SET`: flags the reply to a command must show clear.
+REPLY_FLAGS_CLEAR: dict[Reg, int] = {
+    Reg.SETUP: int(Flag.STALL),
+    Reg.ENABLESTALLGUARD: int(Flag.STALL),
+    Reg.STOP: int(Flag.BUSY),
+}
+
+#: Plausibility of a position read (ANGLEMOVED), as a fraction of the joint's
+#: range (max - min). The joint cannot pass its end stops, which are its
+#: limits (the homing zero is one of them, docs/arm.md), so a homed joint
+#: reads within [min, max] but for the encoder's lag and the stops'
+#: compliance; 10 % of the range (j1 0.61 rad, j2 34 mm) is far beyond that
+#: and still catches a flipped sign or high exponent bit of a position far
+#: from the zero (our choice). A joint that is not homed counts from wherever
+#: it was at power-up: it reads within one range (plus the margin) of 0, plus
+#: :data:`POSITION_UNHOMED_EXTRA_DEG`.
+POSITION_MARGIN_FRACTION = 0.1
+#: Extra motor degrees allowed on a joint that is not homed: the encoder is
+#: absolute within one motor turn and may count from its angle at power-up
+#: rather than from 0 (uStepper S32 encoder; our caution).
+POSITION_UNHOMED_EXTRA_DEG = 360.0
+#: Plausibility of an encoder speed read (GETENCODERRPM), motor RPM. Just
+#: above the top of the firmware's own stall-detection speed window, 450 rad/s
+#: = 4297 RPM (``configuration.h``, :data:`STALL_MID_SPEED_BAND`), the fastest
+#: speed the firmware's configuration anticipates; about four times the
+#: fastest configured joint speed (j3, j4: 120 rad/s = 1146 RPM at the motor),
+#: and beyond what a NEMA17 hybrid stepper turns under its own power
+#: (15 000 full steps/s) (our choice).
+MAX_PLAUSIBLE_RPM = 4500.0

@@ -138,8 +138,9 @@ class SimClock:
         return float(self._sim.data.time)
 
     def sleep(self, dt: float) -> None:
-        """Advance the simulation by ``dt`` seconds."""
-        self._sim.step(dt)
+        """Advance the simulation by ``dt`` seconds (no-op for dt <= 0, as the other clocks)."""
+        if dt > 0:
+            self._sim.step(dt)
 
 
 class ArmSim:
@@ -241,7 +242,16 @@ class ArmSim:
             self._pending -= TICK_S
             for core in cores:
                 core.tick()
-            mujoco.mj_step(m, d, nstep=n)
+            homing = [core for core in cores if core.homing_runs]
+            if not homing:
+                mujoco.mj_step(m, d, nstep=n)
+                continue
+            # The homing loop reads the PID error every 1 ms, not once a tick:
+            # poll after every physics step (2 ms, the finest the model resolves).
+            for _ in range(n):
+                mujoco.mj_step(m, d)
+                for core in homing:
+                    core.poll_homing()
 
     def joint_positions(self) -> np.ndarray:
         """True joint positions (rad, m), bypassing the firmware: for rewards and tests."""

@@ -1,0 +1,528 @@
+"""The firmware rules joint.ino enforces (and the ones it lacks), byte by byte.
+
+Every number here is a literal from the firmware source or docs/firmware.md;
+payloads are literal bytes. Each test is one behaviour; each of the rules a
+one-line change could break has a test that fails on that change.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
+from bioscara_gym.hardware.motor import KinematicStepper
+
+STALL, BUSY, NOT_HOMED, NOT_ENABLED = 0x01, 0x02, 0x04, 0x08
+
+PING = bytes([0x0F])
+GETENCODERRPM = bytes([0x2C])
+SETUP_20_20 = bytes([0x10, 20, 20, 0, 0])
+SETRPM_10 = bytes([0x11, 0x00, 0x00, 0x20, 0x41])  # 10.0 RPM
+SETRPM_MINUS_10 = bytes([0x11, 0x00, 0x00, 0x20, 0xC1])  # -10.0 RPM
+SETRPM_0 = bytes([0x11, 0x00, 0x00, 0x00, 0x00])
+MOVETOANGLE_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0x42])  # 90.0 deg
+MOVETOANGLE_MINUS_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0xC2])  # -90.0 deg
+MOVESTEPS_MINUS_10 = bytes([0x13, 0xF6, 0xFF, 0xFF, 0xFF])  # -10 full steps
+ENABLESTALLGUARD_6 = bytes([0x1E, 6])
+STOP = bytes([0x29, 0])
+#: HOME: direction, 10 RPM, sensitivity 30, current 15 %.
+HOME_PLUS = bytes([0x2D, 1, 10, 30, 15])
+HOME_MINUS = bytes([0x2D, 0, 10, 30, 15])
+HOME_DIR_2 = bytes([0x2D, 2, 10, 30, 15])
+CHECKORIENTATION_2 = bytes([0x2B, 0x00, 0x00, 0x00, 0x40])  # 2.0 deg
+
+TICK = 0.01
+
+
+# ----------------------------------------------------------------- helpers
+
+
+def make(lower: float = -720.0, upper: float = 360.0, *, cancel_pending: bool = True) -> JointFirmware:
+    """Firmware in front of a stepper at 0 deg between end stops (motor degrees)."""
+    motor = KinematicStepper(0.0, lower_stop_deg=lower, upper_stop_deg=upper)
+    return JointFirmware(motor, ManualClock(), cancel_pending=cancel_pending)
+
+
+#: Bytes a register answers before the flags: PING 'O', ANGLEMOVED and GETENCODERRPM a float.
+ANSWER_LENGTH = {0x0F: 1, 0x18: 4, 0x2C: 4}
+
+
+def send(fw: JointFirmware, data: bytes) -> int:
+    """One transaction: write ``data``, read its answer and the flags; return the flags."""
+    return fw.transfer(data, ANSWER_LENGTH.get(data[0], 0) + 1)[-1]
+
+
+def _f32(raw: bytes) -> float:
+    return struct.unpack("<f", raw)[0]
+
+
+def wait(fw: JointFirmware, seconds: float) -> None:
+    """Silence on the bus for ``seconds``."""
+    fw.clock.sleep(seconds)
+    fw.update()
+
+
+def ticks(fw: JointFirmware, n: int = 1) -> None:
+    wait(fw, n * TICK)
+
+
+def talk(fw: JointFirmware, n: int) -> None:
+    """``n`` ticks with a PING after each (the deadman stays fed)."""
+    for _ in range(n):
+        ticks(fw)
+        send(fw, PING)
+
+
+def home(fw: JointFirmware, payload: bytes = HOME_PLUS, timeout_ticks: int = 2000) -> None:
+    """SETUP, HOME, one silent tick for the main loop to take it, PING until BUSY clears."""
+    send(fw, SETUP_20_20)
+    send(fw, payload)
+    ticks(fw)
+    for _ in range(timeout_ticks):
+        if not send(fw, PING) & BUSY:
+            return
+        ticks(fw)
+    raise AssertionError("still BUSY")
+
+
+def stall(fw: JointFirmware) -> None:
+    """Homed, stall detection at 6, running at -10 RPM, rotor blocked until STALL."""
+    home(fw)
+    send(fw, ENABLESTALLGUARD_6)
+    send(fw, SETRPM_MINUS_10)
+    talk(fw, 20)
+    fw.motor.blocked = True
+    for _ in range(100):
+        ticks(fw)
+        if send(fw, PING) & STALL:
+            fw.motor.blocked = False
+            return
+    raise AssertionError("never stalled")
+
+
+# ------------------------------------------------- what blocks motion: STALL only
+
+
+def test_movetoangle_ignored_while_stalled() -> None:
+    fw = make()
+    stall(fw)
+    before = fw.motor.position_deg
+    send(fw, MOVETOANGLE_90)
+    talk(fw, 50)
+    assert fw.motor.position_deg == before
+
+
+def test_setrpm_ignored_while_stalled() -> None:
+    fw = make()
+    stall(fw)
+    before = fw.motor.position_deg
+    send(fw, SETRPM_10)
+    talk(fw, 50)
+    assert fw.motor.position_deg == before
+
+
+def test_movesteps_runs_while_stalled() -> None:
+    fw = make()
+    stall(fw)
+    before = fw.motor.position_deg
+    send(fw, MOVESTEPS_MINUS_10)
+    talk(fw, 50)
+    assert fw.motor.position_deg == pytest.approx(before - 18.0, abs=1e-3)
+
+
+def test_movetoangle_runs_while_not_homed() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, MOVETOANGLE_MINUS_90)
+    talk(fw, 100)
+    assert fw.motor.position_deg == pytest.approx(-90.0, abs=1e-3)
+
+
+def test_movetoangle_moves_the_joint_after_the_deadman_tripped() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    ticks(fw, 10)  # silence: the deadman trips, the currents stay on
+    assert send(fw, PING) & NOT_ENABLED
+    send(fw, MOVETOANGLE_MINUS_90)
+    talk(fw, 200)
+    assert fw.motor.position_deg == pytest.approx(360.0 - 90.0, abs=1e-3)
+
+
+def test_setrpm_without_payload_runs_the_stored_value_again() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    send(fw, STOP)
+    talk(fw, 10)
+    send(fw, bytes([0x11]))  # memcpy of 0 bytes: qd_set is still -10 RPM
+    talk(fw, 20)
+    assert _f32(fw.transfer(GETENCODERRPM, 5)[:4]) == pytest.approx(-10.0)
+
+
+# ---------------------------------------------------------------- deadman
+
+
+def test_deadman_trips_after_50_ms_of_silence_with_a_nonzero_setrpm() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    ticks(fw, 6)
+    assert fw.flags & NOT_ENABLED
+
+
+def test_deadman_holds_at_exactly_50_ms_of_silence() -> None:
+    # Transaction on a tick: the passes 10, 20, ... 50 ms later see diff <= 50.
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    ticks(fw, 5)
+    assert not fw.flags & NOT_ENABLED
+
+
+def test_deadman_trips_on_the_pass_55_ms_after_the_last_transaction() -> None:
+    # Transaction 5 ms after a pass: the passes see 5, 15, ... 45, 55 ms; 55 > 50.
+    fw = make()
+    home(fw)
+    wait(fw, 0.005)
+    send(fw, SETRPM_MINUS_10)
+    wait(fw, 0.045)
+    assert not fw.flags & NOT_ENABLED
+    wait(fw, 0.010)
+    assert fw.flags & NOT_ENABLED
+
+
+def test_deadman_cuts_a_position_move_after_a_nonzero_setrpm() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    send(fw, MOVETOANGLE_MINUS_90)  # qd_set stays -10: the deadman still watches
+    ticks(fw, 200)
+    assert fw.flags & NOT_ENABLED
+    assert fw.motor.position_deg > 360.0 - 90.0 + 1.0
+
+
+def test_deadman_watches_after_a_stop() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    send(fw, STOP)  # setRPM(0) but qd_set is kept
+    ticks(fw, 10)
+    assert fw.flags & NOT_ENABLED
+
+
+def test_deadman_ignores_a_zero_setrpm() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    send(fw, SETRPM_0)
+    ticks(fw, 100)
+    assert not fw.flags & NOT_ENABLED
+
+
+def test_deadman_keeps_the_currents_on() -> None:
+    fw = make()
+    home(fw)
+    send(fw, SETRPM_MINUS_10)
+    ticks(fw, 100)
+    assert fw.motor.torque_fraction > 0.0
+
+
+# ----------------------------------------------------------------- homing
+
+
+def test_homing_stays_still_for_500_ms_after_the_loop_takes_it() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 1)  # the pass that takes HOME
+    ticks(fw, 49)
+    assert fw.motor.position_deg == 0.0
+
+
+def test_homing_moves_within_530_ms_after_the_loop_takes_it() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 1)
+    ticks(fw, 53)
+    assert fw.motor.position_deg > 0.0
+
+
+def test_homing_runs_at_the_homing_current() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 100)
+    assert fw.motor.torque_fraction == 0.15
+
+
+def test_homing_restores_the_drive_current_after() -> None:
+    fw = make()
+    home(fw)
+    send(fw, MOVETOANGLE_MINUS_90)
+    ticks(fw, 2)
+    assert fw.motor.torque_fraction == 0.20
+
+
+def test_homing_energises_a_joint_that_was_never_enabled() -> None:
+    fw = make()
+    send(fw, HOME_PLUS)
+    ticks(fw, 1)
+    for _ in range(2000):
+        if not send(fw, PING) & BUSY:
+            break
+        ticks(fw)
+    assert fw.motor.position_deg == 360.0
+
+
+def test_homing_stops_a_running_motor_before_its_wait() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, SETRPM_MINUS_10)
+    talk(fw, 20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 1)  # the pass that takes HOME: hard stop
+    before = fw.motor.position_deg
+    ticks(fw, 40)
+    assert fw.motor.position_deg == before
+
+
+@pytest.mark.parametrize(
+    ("payload", "stop"),
+    [(HOME_PLUS, 360.0), (HOME_DIR_2, 360.0), (HOME_MINUS, -240.0)],
+    ids=["dir-1", "dir-2", "dir-0"],
+)
+def test_homing_direction_byte_nonzero_is_positive(payload: bytes, stop: float) -> None:
+    fw = make(lower=-240.0, upper=360.0)
+    home(fw, payload)
+    assert fw.motor.position_deg == stop
+
+
+class SoftStopMotor(KinematicStepper):
+    """A rotor that gives way past ``stop`` at half the set point's speed and stays (a soft end stop)."""
+
+    def __init__(self, stop: float) -> None:
+        super().__init__(0.0)
+        self.stop = stop
+
+    def advance(self, dt: float) -> None:
+        if self._torque_fraction <= 0.0:
+            return
+        self._setpoint += self._command_velocity * dt
+        sp = self._setpoint
+        new = sp if sp <= self.stop else max(self._position, self.stop + (sp - self.stop) / 2)
+        self._velocity = (new - self._position) / dt
+        self._position = new
+
+
+def test_homing_polls_the_pid_error_every_millisecond() -> None:
+    # Past the soft stop the error grows at 30 deg/s. Sensitivity 30 (1/16 microsteps,
+    # 3.375 deg) is passed 3.375 deg past the stop; at 1 ms polls the encoder is zeroed
+    # within 0.03 deg (1 ms of rotor travel) of that, at 10 ms within 0.3 deg.
+    motor = SoftStopMotor(90.0)
+    fw = JointFirmware(motor, ManualClock())
+    home(fw)
+    assert 90.0 + 3.375 < motor.position_deg <= 90.0 + 3.375 + 0.031
+
+
+class NoZeroStepMotor(KinematicStepper):
+    """A stepper that refuses to be advanced by no time at all."""
+
+    def advance(self, dt: float) -> None:
+        assert dt > 0.0
+        super().advance(dt)
+
+
+@pytest.mark.parametrize("start_deg", [356.0 + 0.06 * k for k in range(10)])
+def test_homing_that_ends_on_any_millisecond_of_a_tick_completes(start_deg: float) -> None:
+    # Starting 0.06 deg (1 ms at 10 RPM) apart, the homing returns on each of a tick's ten polls.
+    motor = NoZeroStepMotor(start_deg, upper_stop_deg=360.0)
+    fw = JointFirmware(motor, ManualClock())
+    home(fw)
+    assert motor.position_deg == 360.0
+
+
+def test_stop_during_homing_ends_it_aborted() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 70)
+    send(fw, STOP)
+    ticks(fw, 2)
+    assert send(fw, PING) == NOT_HOMED
+
+
+def test_setup_during_homing_stops_the_motor_but_leaves_busy() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 70)  # running toward the end stop
+    send(fw, SETUP_20_20)
+    before = fw.motor.position_deg
+    talk(fw, 300)
+    assert fw.motor.position_deg == before
+    assert send(fw, PING) == BUSY | NOT_HOMED
+
+
+def test_stop_ends_a_homing_that_setup_left_busy() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 70)
+    send(fw, SETUP_20_20)
+    talk(fw, 10)
+    send(fw, STOP)
+    ticks(fw, 1)
+    assert send(fw, PING) == NOT_HOMED
+
+
+# ------------------------------------- a transaction cancels a pending command
+
+
+def test_ping_before_the_loop_takes_home_cancels_it() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    send(fw, PING)  # rx_data_ready = 0 before the main loop looked
+    talk(fw, 200)
+    assert fw.motor.position_deg == 0.0
+
+
+def test_cancelled_home_leaves_busy_and_not_homed_set() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    send(fw, PING)
+    talk(fw, 200)
+    assert send(fw, PING) == BUSY | NOT_HOMED
+
+
+def test_stop_clears_the_busy_of_a_cancelled_home() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    send(fw, PING)
+    send(fw, STOP)
+    assert send(fw, PING) == NOT_HOMED
+
+
+def test_transaction_after_the_loop_took_home_does_not_cancel_it() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    ticks(fw, 1)
+    talk(fw, 1000)
+    assert fw.motor.position_deg == 360.0
+    assert send(fw, PING) == 0
+
+
+def test_ping_before_the_loop_takes_checkorientation_leaves_it_busy() -> None:
+    fw = make()
+    send(fw, SETUP_20_20)
+    send(fw, CHECKORIENTATION_2)
+    send(fw, PING)
+    talk(fw, 100)
+    assert send(fw, PING) == BUSY | NOT_HOMED
+
+
+def test_ping_before_the_loop_takes_an_unknown_register_leaves_it_busy() -> None:
+    fw = make()
+    send(fw, bytes([0x21, 0, 0, 0, 0]))
+    send(fw, PING)
+    talk(fw, 100)
+    assert send(fw, PING) == NOT_HOMED | NOT_ENABLED | BUSY
+
+
+def test_cancellation_can_be_switched_off() -> None:
+    fw = make(cancel_pending=False)
+    send(fw, SETUP_20_20)
+    send(fw, HOME_PLUS)
+    send(fw, PING)
+    talk(fw, 1000)
+    assert fw.motor.position_deg == 360.0
+
+
+# ------------------------------------------------------------ stall detector
+
+
+class FakeMotor:
+    """Set point, encoder and speed set by the test."""
+
+    def __init__(self) -> None:
+        self.setpoint_deg = 0.0
+        self.position_deg = 0.0
+        self.velocity_dps = 0.0
+
+    @property
+    def pid_error_deg(self) -> float:
+        return self.setpoint_deg - self.position_deg
+
+    def command(self, velocity_dps: float, torque_fraction: float) -> None:
+        pass
+
+    def hold_here(self) -> None:
+        self.setpoint_deg = self.position_deg
+
+    def advance(self, dt: float) -> None:
+        pass
+
+
+def feed(core: FirmwareCore, motor: FakeMotor, microsteps: list[float]) -> list[bool]:
+    """One pass per PID error (1/16 microsteps = 1.8/16 deg); STALL after each."""
+    out = []
+    for e in microsteps:
+        motor.setpoint_deg = motor.position_deg + e * 1.8 / 16
+        core.tick()
+        out.append(bool(core.flags & STALL))
+    return out
+
+
+@pytest.fixture
+def guarded() -> tuple[FirmwareCore, FakeMotor]:
+    """Enabled, stall detection at sensitivity 6 (threshold 60; 150 inside 12-450 rad/s)."""
+    motor = FakeMotor()
+    core = FirmwareCore(motor, 0.0)
+    core.write(0x10, 0x1414, 0.0)
+    core.write(0x1E, 6, 0.0)
+    return core, motor
+
+
+# Encoder speeds (deg/s) that the firmware's RPM / 9.549296596425384 makes exactly
+# 12.0 and 450.0 rad/s, the edges of the +90 window.
+EDGE_SPEEDS = {"12": 687.5493549426277, "450": 25783.100810348532}
+
+
+@pytest.mark.parametrize("edge", sorted(EDGE_SPEEDS))
+def test_stall_window_edge_speed_gets_the_extra_90(
+    guarded: tuple[FirmwareCore, FakeMotor], edge: str
+) -> None:
+    core, motor = guarded
+    motor.velocity_dps = EDGE_SPEEDS[edge]
+    # Ramped to 100 (no spikes): x -> 100, above 60 but below 150.
+    assert not any(feed(core, motor, [20.0, 40.0, 60.0, 80.0] + [100.0] * 100))
+
+
+def test_stall_without_the_window_trips_at_60(guarded: tuple[FirmwareCore, FakeMotor]) -> None:
+    core, motor = guarded
+    motor.velocity_dps = 600.0  # 10.5 rad/s, below the window
+    assert any(feed(core, motor, [20.0, 40.0, 60.0, 80.0] + [100.0] * 100))
+
+
+def test_enablestallguard_keeps_the_filter_state(guarded: tuple[FirmwareCore, FakeMotor]) -> None:
+    core, motor = guarded
+    # x = 100 (1 - 0.9^8) = 56.95 after eight passes at 100: below 60.
+    assert not any(feed(core, motor, [100.0] * 8))
+    core.write(0x1E, 6, core.time)  # the firmware does not reset the low pass
+    assert feed(core, motor, [100.0]) == [True]  # x = 61.26
+
+
+def test_sustained_jump_above_100_stays_filtered_after_it_settles(
+    guarded: tuple[FirmwareCore, FakeMotor],
+) -> None:
+    core, motor = guarded
+    # 50 for a while (x -> 50), then a jump to 400 held: 400 - 50 > 100, filtered every pass.
+    assert not any(feed(core, motor, [50.0] * 100 + [400.0] * 300))
