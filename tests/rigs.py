@@ -36,7 +36,7 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S, Flag, Reg
 from bioscara_gym.hardware.sim import ArmSim, SimJoint
 
 #: Features a rig may have; tests that need one skip rigs without it.
@@ -520,7 +520,10 @@ def enable_and_home_elsewhere(arm: Arm, name: str, speed: float) -> None:
 
     The homing is started through the joint's register primitive, so this
     process's driver knows nothing of it (no blocking command, no offset);
-    then the arm reads the state, as :meth:`Arm.configure` would.
+    the earlier process then ended, which takes longer than the firmware's
+    pick-up of a blocking command (any transaction before it would cancel
+    the homing: docs/firmware.md); then the arm reads the state, as
+    :meth:`Arm.configure` would.
     """
     cfg = CONFIG.joint(name)
     joint = arm.joints[name]
@@ -529,6 +532,7 @@ def enable_and_home_elsewhere(arm: Arm, name: str, speed: float) -> None:
     joint._command(
         Reg.HOME, pack_bytes(int(rpm > 0), int(abs(rpm)), cfg.homing.threshold, cfg.homing.current)
     )
+    arm.backend.step(BLOCKING_PICKUP_S)
     arm.read()
 
 

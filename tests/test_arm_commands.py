@@ -35,14 +35,6 @@ def test_claiming_velocity_starts_at_zero(homed_mock_arm: Arm) -> None:
     assert homed_mock_arm.commands["j3"] == 0.0
 
 
-def test_claiming_the_active_interface_again_is_a_no_op(homed_mock_arm: Arm) -> None:
-    homed_mock_arm.claim("j1", "position")
-    homed_mock_arm.set_command("j1", 1.0)
-    homed_mock_arm.claim("j1", "position")
-    assert homed_mock_arm.modes["j1"] is CommandMode.POSITION
-    assert homed_mock_arm.commands["j1"] == 1.0
-
-
 @pytest.mark.parametrize(
     ("first", "second"), [("position", "velocity"), ("velocity", "home"), ("home", "position")]
 )

@@ -62,7 +62,7 @@ def test_home_command_refused_while_another_blocking_command_runs(active_arm: Ar
     active_arm.set_command("j2", cfg.speed)
     with pytest.raises(IncorrectStateError, match="j2: HOME is running; cannot start homing"):
         active_arm.write()
-    assert active_arm.state is Lifecycle.INACTIVE  # a failed write deactivates the arm
+    assert active_arm.state is Lifecycle.UNCONFIGURED  # a failed write: on_error
 
 
 def test_joint_refuses_a_second_homing_while_the_arm_homes_it(active_arm: Arm) -> None:
@@ -159,8 +159,9 @@ def test_homing_restores_the_max_acceleration_afterwards(
     cycle_until(active_arm, lambda: not active_arm.joint_states["j4"].homing)
     cfg = CONFIG.joint("j4")
     assert traffic.values("j4", Reg.SETMAXACCELERATION) == [
+        pytest.approx(motor_rate_deg("j4", cfg.max_acceleration)),  # enabling first (start_homing)
         pytest.approx(motor_rate_deg("j4", cfg.homing.acceleration)),
-        pytest.approx(motor_rate_deg("j4", cfg.max_acceleration)),
+        pytest.approx(motor_rate_deg("j4", cfg.max_acceleration)),  # restored (stop_homing)
     ]
 
 
@@ -333,3 +334,128 @@ def test_joint_adopt_homing_refuses_a_zero_or_non_finite_velocity(mock_arm: Arm,
 def test_joint_adopt_homing_refused_before_init(mock_arm: Arm) -> None:
     with pytest.raises(NotInitError):
         mock_arm.joints["j1"].adopt_homing(0.03)
+
+
+# ------------------------------------- the seed's start_homing / stop_homing
+# Seed 000, BioscaraArmHardwareInterface::start_homing: "Activate the joint, set homing
+# acceleration and start homing"; ::stop_homing: "Stop the homing. Reset acceleration and
+# velocity and perform the postHoming cleanup, then deactivate the joint."
+
+#: What disable() sends: STOP, hold current 0, drive current 0, brake mode freewheel.
+DISABLE_REGS = [Reg.STOP, Reg.SETHOLDCURRENT, Reg.SETCURRENT, Reg.SETBRAKEMODE]
+
+
+def test_homing_a_disabled_joint_enables_it_first(active_arm: Arm, monkeypatch: pytest.MonkeyPatch) -> None:
+    active_arm.disable(["j1"])
+    traffic = spy(monkeypatch, active_arm)
+    active_arm.claim("j1", "home")
+    active_arm.set_command("j1", 1.0)
+    active_arm.write()
+    regs = [r for r in traffic.regs("j1") if r is not Reg.HOMEOFFSET]  # (the offset guard, if any)
+    assert regs == [
+        Reg.SETUP,
+        Reg.ENABLESTALLGUARD,
+        Reg.SETMAXVELOCITY,
+        Reg.SETMAXACCELERATION,
+        Reg.SETMAXACCELERATION,
+        Reg.HOME,
+    ]
+    # The second is the homing acceleration: j1 0.01 rad/s^2 x 35 = 20.05 deg/s^2.
+    assert traffic.values("j1", Reg.SETMAXACCELERATION)[-1] == pytest.approx(20.0535, abs=1e-3)
+
+
+def test_homing_after_a_disable_succeeds(active_arm: Arm) -> None:
+    active_arm.disable(["j3"])
+    active_arm.home(["j3"])
+    assert active_arm.joint_states["j3"].homed
+
+
+def test_end_of_homing_stops_restores_limits_stores_the_offset_then_disables(
+    active_arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    start_homing(active_arm, "j1", 0.03)
+    joint = active_arm.joints["j1"]
+    while joint.is_busy():
+        active_arm.backend.step(DT)
+        joint.get_flags()
+    traffic = spy(monkeypatch, active_arm)
+    active_arm.read()
+    regs = [r for r in traffic.regs("j1") if r not in (Reg.ANGLEMOVED, Reg.GETENCODERRPM)]
+    # post_homing refreshes the flags (PING) before it stores the offset.
+    assert regs == [
+        Reg.STOP,
+        Reg.SETMAXACCELERATION,
+        Reg.SETMAXVELOCITY,
+        Reg.PING,
+        Reg.HOMEOFFSET,
+        *DISABLE_REGS,
+    ]
+    cfg = CONFIG.joint("j1")
+    assert traffic.values("j1", Reg.SETMAXVELOCITY) == [pytest.approx(math.degrees(35 * cfg.max_velocity))]
+    assert not joint.is_enabled()
+    assert active_arm.joint_states["j1"].homed
+    assert active_arm.commands["j1"] == 0.0
+
+
+@pytest.mark.parametrize("mode", ["position", "velocity"])
+def test_claiming_motion_on_a_homed_disabled_joint_enables_it(
+    active_arm: Arm, mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    active_arm.home(["j1"])
+    assert not active_arm.joints["j1"].is_enabled()
+    traffic = spy(monkeypatch, active_arm)
+    active_arm.claim("j1", mode)
+    assert traffic.regs("j1")[:4] == [
+        Reg.SETUP,
+        Reg.ENABLESTALLGUARD,
+        Reg.SETMAXVELOCITY,
+        Reg.SETMAXACCELERATION,
+    ]
+    assert active_arm.joints["j1"].is_enabled()
+    expected = active_arm.joint_states["j1"].position if mode == "position" else 0.0
+    assert active_arm.commands["j1"] == expected
+
+
+@pytest.mark.parametrize("mode", ["position", "velocity", "home"])
+def test_claiming_an_interface_that_is_already_active_is_refused(homed_arm: Arm, mode: str) -> None:
+    homed_arm.claim("j1", mode)
+    with pytest.raises(ArmStateError, match=rf"j1: the {mode} interface is already active"):
+        homed_arm.claim("j1", mode)
+
+
+# -------------------------------------------------- no SETUP during a homing
+# The firmware's SETUP stops the motor but never clears BUSY: a homing then waits
+# forever for its end stop (docs/firmware.md). The host must never send it.
+
+
+def test_no_setup_reaches_a_joint_between_its_home_and_the_end_of_that_homing(
+    active_arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    traffic = spy(monkeypatch, active_arm)
+    active_arm.start_homing(["j1"])
+    attempts = [
+        lambda: active_arm.enable(["j1"]),
+        lambda: active_arm.enable(["j1", "j2"]),
+        lambda: active_arm.claim("j1", "position"),
+    ]
+    while "j1" in active_arm.homing_names():
+        for attempt in attempts:
+            with pytest.raises(ArmStateError):
+                attempt()
+        active_arm.cycle(DT)
+    regs = traffic.regs("j1")
+    home, stop = regs.index(Reg.HOME), regs.index(Reg.STOP, regs.index(Reg.HOME))
+    assert Reg.SETUP not in regs[home:stop]
+    assert active_arm.joint_states["j1"].homed
+
+
+def test_enable_refuses_a_joint_busy_with_a_homing_the_arm_did_not_start(
+    active_arm: Arm, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = CONFIG.joint("j2").homing
+    active_arm.joints["j2"].start_homing(cfg.speed, cfg.threshold, cfg.current)  # another process's
+    active_arm.read()
+    traffic = spy(monkeypatch, active_arm)
+    with pytest.raises(ArmStateError, match=r"j2: a homing .* is running and enabling would hang it"):
+        active_arm.enable(["j2"])
+    assert traffic.log == []

@@ -334,32 +334,35 @@ def test_recover_leaves_a_finalized_arm_finalized(mock_arm: Arm) -> None:
     assert mock_arm.state is Lifecycle.FINALIZED
 
 
-def test_failed_read_raises_and_deactivates_the_arm(emulated_homed_arm: Arm) -> None:
+# Seed 000, on_error: an error in any state deactivates and cleans up: unconfigured.
+def test_failed_read_raises_and_returns_the_arm_to_unconfigured(emulated_homed_arm: Arm) -> None:
     arm = emulated_homed_arm
     arm.claim("j1", "position")
     arm.backend.bus.faults = FaultPlan(nack=1.0)  # type: ignore[attr-defined]
     with pytest.raises(CommError, match=r"j1 \(0x11\): ANGLEMOVED failed"):
         arm.read()
-    assert arm.state is Lifecycle.INACTIVE
+    assert arm.state is Lifecycle.UNCONFIGURED
+    assert not any(j.initialized for j in arm.joints.values())
     assert set(arm.modes.values()) == {CommandMode.NONE}
 
 
-def test_failed_write_raises_and_deactivates_the_arm(emulated_homed_arm: Arm) -> None:
+def test_failed_write_raises_and_returns_the_arm_to_unconfigured(emulated_homed_arm: Arm) -> None:
     arm = emulated_homed_arm
     arm.claim("j2", "position")
     arm.backend.bus.faults = FaultPlan(nack=1.0)  # type: ignore[attr-defined]
     with pytest.raises(CommError, match=r"j2 \(0x12\): MOVETOANGLE failed"):
         arm.write()
-    assert arm.state is Lifecycle.INACTIVE
+    assert arm.state is Lifecycle.UNCONFIGURED
+    assert not any(j.initialized for j in arm.joints.values())
 
 
-def test_state_updates_again_after_a_failed_read_once_the_bus_recovers(emulated_homed_arm: Arm) -> None:
+def test_arm_comes_back_after_a_failed_read_once_the_bus_recovers(emulated_homed_arm: Arm) -> None:
     arm = emulated_homed_arm
     arm.backend.bus.faults = FaultPlan(nack=1.0)  # type: ignore[attr-defined]
     with pytest.raises(CommError):
         arm.read()
     arm.backend.bus.faults = FaultPlan()  # type: ignore[attr-defined]
-    arm.read()
+    arm.configure()  # ping again; the homing offsets are read back from the joints
     assert arm.joint_states["j1"].position == pytest.approx(CONFIG.joint("j1").max, abs=1e-3)
     arm.activate()
     assert arm.state is Lifecycle.ACTIVE
@@ -379,7 +382,7 @@ def test_failed_activate_falls_back_to_unconfigured(make_arm_backend: MakeBacken
 
 
 @pytest.mark.parametrize("name", ["sim", "emulated"])
-def test_stall_in_velocity_mode_raises_on_write_and_deactivates_the_arm(
+def test_stall_in_velocity_mode_raises_on_write_and_returns_the_arm_to_unconfigured(
     make_arm_backend: MakeBackend, name: str
 ) -> None:
     arm = Arm(make_arm_backend(name, initial_qpos=NEAR_END_STOPS))
@@ -390,7 +393,7 @@ def test_stall_in_velocity_mode_raises_on_write_and_deactivates_the_arm(
     arm.set_command("j1", 0.5)  # into the max end stop it homed against
     with pytest.raises(StalledError, match="j1: joint stalled"):
         cycle_until(arm, lambda: False, max_s=2.0)
-    assert arm.state is Lifecycle.INACTIVE
+    assert arm.state is Lifecycle.UNCONFIGURED
 
 
 def test_failed_deactivate_falls_back_to_unconfigured(emulated_homed_arm: Arm) -> None:

@@ -188,12 +188,15 @@ def test_enable_home_status_homes_every_joint_at_its_limit(bioscara: Run, state:
     assert bioscara("enable", "--state", str(state))[0] == 0
     code, out, _ = bioscara("home", "--state", str(state))
     assert code == 0
-    assert "j1 homed at max: +3.0464 rad" in out
+    homed_at = re.search(r"j1 homed at max: ([+-]\d+\.\d{4}) rad", out)
+    assert homed_at is not None
+    assert float(homed_at.group(1)) == pytest.approx(3.04647, abs=1e-3)  # j1's max (SPEC table)
     table = status(bioscara, state)
     for name, (_, high) in LIMITS.items():
         position = float(table[name][0].split()[0])
         assert position == pytest.approx(high, abs=1e-3)
-        assert table[name][3:5] == ["yes", "OK"]
+        # The seed's stop_homing disables each joint once it is homed.
+        assert table[name][3:5] == ["yes", "NOT_ENABLED"]
 
 
 def test_home_without_enable_is_refused(bioscara: Run) -> None:
@@ -240,7 +243,8 @@ def test_home_abort_stops_a_running_homing(bioscara: Run, state: Path) -> None:
     code, out, _ = bioscara("home", "--abort", "--state", str(state))
     assert code == 0
     assert "aborted homing of j1 (not homed)" in out
-    assert status(bioscara, state)["j1"][2:5] == ["yes", "no", "NOT_HOMED"]
+    # stop_homing runs on an abort too: the joint is left disabled.
+    assert status(bioscara, state)["j1"][2:5] == ["no", "no", "NOT_HOMED NOT_ENABLED"]
 
 
 def test_home_no_wait_needs_state(bioscara: Run) -> None:
@@ -288,31 +292,36 @@ def all_disabled(table: dict[str, list[str]]) -> bool:
     return all(enabled(table, n) == "no" for n in (*CONFIG.names, "gripper"))
 
 
-def test_unknown_joint_is_refused_and_the_arm_disabled(bioscara: Run, state: Path) -> None:
+# A request refused for its arguments is refused before a byte is sent: the arm stays as it was.
+def test_unknown_joint_is_refused_and_the_arm_left_as_it_was(bioscara: Run, state: Path) -> None:
     bioscara("enable", "--state", str(state))
     code, _, err = bioscara("move", "j9", "1.0", "--state", str(state))
     assert code == 2
     assert err == "bioscara move: error: unknown joint 'j9'; known joints: j1, j2, j3, j4"
-    assert all_disabled(status(bioscara, state))
+    assert not any(enabled(status(bioscara, state), n) == "no" for n in (*CONFIG.names, "gripper"))
 
 
-def test_unknown_group_is_refused_and_the_arm_disabled(bioscara: Run, state: Path) -> None:
+def test_unknown_group_is_refused_and_the_arm_left_as_it_was(bioscara: Run, state: Path) -> None:
     bioscara("enable", "--state", str(state))
     code, _, err = bioscara("disable", "legs", "--state", str(state))
     assert code == 2
     assert "unknown joint or group 'legs'; joints: j1, j2, j3, j4, gripper; groups: all, arm, gripper" in err
-    assert all_disabled(status(bioscara, state))
+    assert not any(enabled(status(bioscara, state), n) == "no" for n in (*CONFIG.names, "gripper"))
 
 
 def test_move_outside_the_limits_is_refused_and_nothing_moves(bioscara: Run, state: Path) -> None:
     bioscara("enable", "--state", str(state))
     bioscara("home", "j4", "--state", str(state))
+    before = status(bioscara, state)
     code, _, err = bioscara("move", "j4", "4", "--state", str(state))
     assert code == 2
     assert "j4: 4 rad is outside the joint limits [-3.01069, 3.01069] rad" in err
-    table = status(bioscara, state)
-    assert all_disabled(table)
-    assert table["j4"][0] == "+3.0103 rad"
+    table = status(bioscara, state)  # refused before a byte was sent: the arm is as it was
+    assert table["j4"][0] == before["j4"][0]
+    assert [enabled(table, n) for n in table if n != "gripper"] == [
+        enabled(before, n) for n in before if n != "gripper"
+    ]
+    assert enabled(table, "gripper") == enabled(before, "gripper") == "yes"
 
 
 def test_gripper_width_outside_the_limits_is_refused(bioscara: Run) -> None:
@@ -449,7 +458,7 @@ def test_dashboard_renders_an_arm_homed_in_the_session(session: Session) -> None
     session.enable(resolve_target(session.config, None))
     session.home(["j4"])
     text = rendered(MonitorApp(session).snapshot())
-    assert re.search(r"j4\s+\+3\.0103 rad\s+├─+●┤\s+\S+ rad/s\s+OK\s+homed", text)
+    assert re.search(r"j4\s+\+3\.010\d rad\s+├─+●┤\s+\S+ rad/s\s+NOT_ENABLED\s+homed", text)
     assert re.search(r"gripper\s+0\.0800 m\s+├─+●─+┤\s+ENABLED", text)
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from gymnasium import spaces
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import CommError, NotEnabledError, StalledError
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag, Reg
@@ -53,30 +53,6 @@ def run_without(blocked: tuple[str, ...], code: str) -> subprocess.CompletedProc
 
 
 # ------------------------------------------------------- a listened-to backend
-class ListenedJoint(MockJoint):
-    """A mock joint that reports its exchanges, as ``BaseJoint.on_exchange`` specifies."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.listeners: list[Callable[[], None]] = []
-
-    def on_exchange(self, listener: Callable[[], None]) -> Callable[[], None]:
-        self.listeners.append(listener)
-        return lambda: self.listeners.remove(listener)
-
-    def _command(self, reg: Reg, value: float | int) -> int:
-        flags = super()._command(reg, value)
-        for listener in list(self.listeners):
-            listener()
-        return flags
-
-    def _query(self, reg: Reg) -> tuple[float | int, int]:
-        reply = super()._query(reg)
-        for listener in list(self.listeners):
-            listener()
-        return reply
-
-
 class FlagsBackend(Backend):
     """A backend that can read its devices' flags without a transaction."""
 
@@ -91,7 +67,7 @@ class FlagsBackend(Backend):
 def listened() -> Backend:
     mock = make_backend("mock")
     clock = ManualClock()
-    joints = {n: ListenedJoint(n, clock=clock) for n in ("j1", "j2")}
+    joints = {n: MockJoint(n, clock=clock) for n in ("j1", "j2")}
     return FlagsBackend(mock.config, joints, mock.gripper, clock)
 
 
@@ -129,12 +105,16 @@ def test_deadman_guard_sees_a_gap_between_exchanges_within_a_cycle(listened: Bac
 
 def test_deadman_guard_listens_through_the_joints_and_detaches(listened: Backend) -> None:
     guard = DeadmanGuard(listened)
-    assert all(len(j.listeners) == 1 for j in listened.joints.values())
-    guard.note_cycle()  # every joint reports its exchanges: a cycle marks none of them
-    listened.clock.sleep(DEADMAN_S + 0.01)
-    assert min(guard.silences().values()) > DEADMAN_S
+    j1 = listened.joints["j1"]
+    j1.init()
+    listened.clock.sleep(0.03)
+    j1.get_flags()  # heard: the silence starts again
+    assert guard.silences()["j1"] == pytest.approx(0.03)
     guard.detach()
-    assert all(not j.listeners for j in listened.joints.values())
+    listened.clock.sleep(0.03)
+    j1.get_flags()  # no longer heard: the silence goes on
+    listened.clock.sleep(0.01)
+    assert guard.silences()["j1"] == pytest.approx(0.04)
 
 
 def test_deadman_guard_on_the_emulated_bus_gives_the_bus_back(gripper_state_file: Path) -> None:
@@ -161,7 +141,7 @@ def test_safe_stop_disables_every_joint_and_final_state_reads_the_devices(listen
 
 
 def test_final_state_falls_back_to_the_last_reply_where_the_device_cannot_be_seen(listened: Backend) -> None:
-    listened.joints["j3"] = ListenedJoint("j3")
+    listened.joints["j3"] = MockJoint("j3")
     listened.device_flags = lambda name: None  # type: ignore[method-assign]
     state = final_state(listened)
     assert {s["source"] for s in state.values()} == {"last reply"}
@@ -219,3 +199,45 @@ def test_safety_layer_clamps_and_refuses_non_finite_actions(listened: Backend) -
     with pytest.raises(SafetyStop) as stop:
         layer.filter_action([np.inf, 0.0])
     assert stop.value.reason is StopReason.NAN_ACTION
+
+
+def test_safe_stop_cuts_the_current_of_a_joint_the_deadman_tripped(gripper_state_file: Path) -> None:
+    # The firmware's deadman sets NOT_ENABLED but leaves drive and hold current on
+    # (joint.ino: setRPM(0); notEnabled = 1): the flags alone must not end the stop.
+    arm = Arm(make_backend("emulated", state_file=gripper_state_file))
+    arm.configure()
+    arm.activate()
+    arm.home(["j4"])
+    arm.claim("j4", "velocity")
+    arm.set_command("j4", -0.5)
+    arm.write()
+    arm.backend.step(0.2)  # 200 ms of silence: the deadman trips
+    core = arm.backend.sim.cores["j4"]  # type: ignore[union-attr]
+    assert core.flags & Flag.NOT_ENABLED and core.drive_current == 20 and core.hold_current == 20
+    report = safe_stop(arm)
+    assert (core.drive_current, core.hold_current) == (0, 0)
+    assert "j4" not in report.not_confirmed
+
+
+def test_safe_stop_after_an_arm_error_reconnects_and_cuts_every_current(gripper_state_file: Path) -> None:
+    arm = Arm(make_backend("emulated", state_file=gripper_state_file))
+    arm.configure()
+    arm.activate()
+    arm.backend.bus.faults = FaultPlan(nack=1.0)  # type: ignore[attr-defined]
+    with pytest.raises(CommError):
+        arm.read()  # the arm's on-error transition: unconfigured, joints disconnected
+    arm.backend.bus.faults = FaultPlan()  # type: ignore[attr-defined]
+    report = safe_stop(arm)
+    cores = arm.backend.sim.cores  # type: ignore[union-attr]
+    assert [(cores[n].drive_current, cores[n].hold_current) for n in arm.names] == [(0, 0)] * 4
+    assert report.not_confirmed == []
+
+
+def test_safe_stop_reports_joints_it_could_not_reach(gripper_state_file: Path) -> None:
+    arm = Arm(make_backend("emulated", state_file=gripper_state_file))
+    arm.configure()
+    arm.activate()
+    arm.backend.bus.faults = FaultPlan(nack=1.0)  # type: ignore[attr-defined]
+    report = safe_stop(arm)
+    assert report.not_confirmed == ["j1", "j2", "j3", "j4"]
+    assert any(p.startswith("j1: disable failed") for p in report.problems)

@@ -99,7 +99,6 @@ class SafetyLayer:
         safe, clamped = self.filter_action(action)
         self.guard.check()  # the policy's own time counts on the wall clock
         result = self._step_env(safe)
-        self.guard.note_cycle()
         silence = self.guard.check()
         self._check_stall(result[4])
         self._check_enabled()

@@ -39,6 +39,7 @@ from bioscara_gym.hardware.errors import (
     NotHomedError,
 )
 from bioscara_gym.hardware.gripper import Gripper, read_saved_width
+from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S
 
 #: Period of the arm's read/write cycle while a command waits, s (25 Hz).
 CYCLE_S = 0.04
@@ -137,15 +138,24 @@ class Session:
 
     # ------------------------------------------------------------- closing
     def _close(self, exc: BaseException | None) -> None:
-        """After an error the on-error transition; always save the state and release."""
+        """After an error the on-error transition; always save the state and release.
+
+        A request refused for its arguments (:class:`InvalidArgumentError`:
+        an unknown joint, a position outside the limits) was refused before
+        any byte was sent, so it leaves the arm as it was: only something that
+        went wrong on the arm makes it safe.
+        """
         if not self._opened:
             return
+        failed = exc is not None and not isinstance(exc, InvalidArgumentError)
         try:
-            if exc is not None:
+            if failed:
                 self._on_error()
+            else:
+                self._let_blocking_commands_start()
         finally:
             try:
-                self._save_state(failed=exc is not None)
+                self._save_state(failed=failed)
             finally:
                 self._release()
 
@@ -184,6 +194,16 @@ class Session:
         if gripper.is_initialized and gripper.is_enabled:
             self.facts.gripper_width_m = gripper.get_position()
 
+    def _let_blocking_commands_start(self) -> None:
+        """Before leaving, let the firmware pick up a homing just started (``home --no-wait``).
+
+        The next command's first transaction to that joint would cancel a
+        blocking command the firmware's main loop has not taken yet, leaving
+        the joint BUSY until a STOP (docs/firmware.md).
+        """
+        if any(joint.picking_up for joint in self.arm.joints.values()):
+            self.backend.step(BLOCKING_PICKUP_S)
+
     def _release(self) -> None:
         """Release the connections; enabled joints and an enabled gripper stay so."""
         for joint in self.arm.joints.values():
@@ -214,14 +234,17 @@ class Session:
         return saved if saved is not None else self.config.gripper.backup_init_pos
 
     def require(self, name: str, *, homed: bool = False) -> None:
-        """Refuse a joint that is not enabled, busy, or (``homed``) not homed.
+        """Refuse a joint of an arm that is not enabled, a busy joint, or (``homed``) an unhomed one.
+
+        A joint the arm disabled at the end of its homing (the seed's
+        stop_homing) is fine: claiming its command interface enables it again.
 
         Raises:
             NotEnabledError, IncorrectStateError, NotHomedError: The joint
                 cannot take the command; the message names the command to run first.
         """
         joint = self.arm.joints[name]
-        if not joint.is_enabled():
+        if self.arm.state is not Lifecycle.ACTIVE:
             raise NotEnabledError(f"{name}: not enabled; run `bioscara enable {name}` first")
         if joint.is_busy():
             raise IncorrectStateError(

@@ -173,7 +173,7 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
     if not isinstance(stats, dict) or not all(
         n in names
         and isinstance(c, dict)
-        and set(c) == counters
+        and set(c) <= counters  # a file saved by an older version has fewer counters
         and all(isinstance(v, int) for v in c.values())
         for n, c in stats.items()
     ):

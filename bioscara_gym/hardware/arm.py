@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from enum import Enum
 
 from bioscara_gym.hardware.backends import Backend
-from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig
 from bioscara_gym.hardware.errors import (
     ArmStateError,
@@ -169,22 +168,14 @@ class Arm:
         self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="enable")
         joints, gripper = self._split(names)
         for name in joints:
-            if name in self._homing:
-                raise ArmStateError(
-                    f"{name}: homing is running and enabling would stop it; abort it (home command 0) first"
-                )
+            self._refuse_setup_while_busy(name, "enabling")
         if not joints and not gripper:
             return
         was_active = self.state is Lifecycle.ACTIVE
 
         def body() -> None:
             for name in joints:
-                cfg = self.config.joint(name)
-                joint = self.joints[name]
-                joint.enable(cfg.drive_current, cfg.hold_current)
-                joint.enable_stallguard(cfg.stall_threshold)
-                joint.set_max_velocity(cfg.max_velocity)
-                joint.set_max_acceleration(cfg.max_acceleration)
+                self._enable_joint(name)
             if gripper:
                 self.gripper.enable()
                 self.gripper_command = self.gripper.get_position()
@@ -198,6 +189,33 @@ class Arm:
                 self._hold_measured()
 
         self._transition(body)
+
+    def _refuse_setup_while_busy(self, name: str, action: str) -> None:
+        """Refuse to send SETUP to a joint that runs a blocking command.
+
+        The firmware's SETUP stops the motor but leaves BUSY set, so a homing
+        would wait forever for its end stop (docs/firmware.md, SETUP). Checked
+        on the arm's own homings and on the joint's last flags, before any
+        byte is sent.
+
+        Raises:
+            ArmStateError: The joint is homing or busy.
+        """
+        if name in self._homing or self.joints[name].is_busy():
+            raise ArmStateError(
+                f"{name}: a homing (or another blocking command) is running and {action} would hang it; "
+                "abort it (home command 0) first"
+            )
+
+    def _enable_joint(self, name: str) -> None:
+        """SETUP with the configured currents, stall detection, max velocity and acceleration."""
+        self._refuse_setup_while_busy(name, "enabling")
+        cfg = self.config.joint(name)
+        joint = self.joints[name]
+        joint.enable(cfg.drive_current, cfg.hold_current)
+        joint.enable_stallguard(cfg.stall_threshold)
+        joint.set_max_velocity(cfg.max_velocity)
+        joint.set_max_acceleration(cfg.max_acceleration)
 
     def disable(self, names: Iterable[str]) -> None:
         """Disable joints (stopped, no current, back-drivable) and ``"gripper"``.
@@ -217,7 +235,7 @@ class Arm:
             InvalidArgumentError: An unknown name.
             JointError: A device could not be disabled, or the state could
                 not be read afterwards; every device is disabled (best
-                effort) and the arm left inactive.
+                effort) and the arm left unconfigured (the on-error rule).
         """
         self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="disable")
         joints, gripper = self._split(names)
@@ -410,9 +428,15 @@ class Arm:
     def claim(self, name: str, mode: CommandMode | str) -> None:
         """Make ``mode`` the joint's active command interface.
 
+        Position or velocity on a homed joint that is disabled (after a
+        homing, :meth:`disable` or a deadman trip) enables it again first:
+        SETUP, stall detection, limits. The set point starts at the measured
+        position (position) or 0 (velocity and home), so nothing moves.
+
         Raises:
-            ArmStateError: The arm is not active, or another interface is
-                already active on the joint (release it first).
+            ArmStateError: The arm is not active, the interface is already
+                active, or another one is (release it first; the seed's
+                prepare_command_mode_switch refuses both).
             NotHomedError: Position or velocity on an unhomed joint.
         """
         try:
@@ -423,14 +447,18 @@ class Arm:
         self._require(Lifecycle.ACTIVE, action=f"claim {mode.value} on {name}")
         current = self._mode(name)
         if current is mode:
-            return
+            raise ArmStateError(f"{name}: the {mode.value} interface is already active")
         if current is not CommandMode.NONE:
             raise ArmStateError(
                 f"{name}: {current.value} interface is active; release it before claiming {mode.value}"
             )
         joint = self.joints[name]
-        if mode in (CommandMode.POSITION, CommandMode.VELOCITY) and not joint.is_homed():
-            raise NotHomedError(f"{name}: cannot command {mode.value} on an unhomed joint; home it first")
+        if mode in (CommandMode.POSITION, CommandMode.VELOCITY):
+            if not joint.is_homed():
+                raise NotHomedError(f"{name}: cannot command {mode.value} on an unhomed joint; home it first")
+            if not joint.is_enabled():  # after a homing, a disable or a deadman trip: enable it again
+                self._guarded(lambda: self._enable_joint(name))
+                self._read_joint(name)
         state = self.joint_states[name]
         self.commands[name] = {
             CommandMode.POSITION: state.position,
@@ -451,12 +479,9 @@ class Arm:
         if mode is CommandMode.HOME and name in self._homing:
             raise ArmStateError(f"{name}: homing is running; abort it (home command 0) before releasing")
         self.modes[name] = CommandMode.NONE
-        if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE:
-            try:
-                self.joints[name].set_velocity(0.0)
-            except JointError:
-                self._fail()
-                raise
+        joint = self.joints[name]
+        if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE and joint.is_enabled():
+            self._guarded(lambda: joint.set_velocity(0.0))
 
     def _mode(self, name: str) -> CommandMode:
         try:
@@ -512,37 +537,49 @@ class Arm:
             JointError: A read failed; the arm is deactivated first.
         """
         self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="read")
-        try:
-            for name, joint in self.joints.items():
-                st = self.joint_states[name]
-                st.position = joint.get_position()
-                st.velocity = joint.get_velocity()
-                self._read_home(name, joint, st)
-        except JointError:
-            self._fail()
-            raise
+        for name in self.names:
+            self._guarded(lambda name=name: self._read_joint(name))
         return self.joint_states
 
-    def _read_home(self, name: str, joint: BaseJoint, st: JointState) -> None:
+    def _read_joint(self, name: str) -> None:
+        """Position, velocity, then the home state of one joint (a finished homing is stopped).
+
+        A joint whose blocking command the firmware may not have picked up
+        yet is left alone this cycle: a transaction now would have to wait
+        (:attr:`BaseJoint.picking_up`), longer than the other joints' deadman.
+        """
+        joint, st = self.joints[name], self.joint_states[name]
+        if joint.picking_up:  # the last reply's flags (the blocking command's own) still hold
+            st.flags, st.homed, st.homing = joint.flags, joint.is_homed(), name in self._homing
+            return
+        st.position = joint.get_position()
+        st.velocity = joint.get_velocity()
         st.flags = joint.flags
         st.homed = joint.is_homed()
         if name in self._homing and joint.current_blocking_command is Reg.HOME and not joint.is_busy():
-            self._homing.discard(name)
-            self.commands[name] = 0.0
-            try:
-                joint.post_homing()
-            except NotHomedError:
-                pass  # aborted or failed: the state says not homed; home() reports it
-            finally:
-                cfg = self.config.joint(name)
-                joint.set_max_acceleration(cfg.max_acceleration)
-                st.flags = joint.flags
-                st.homed = joint.is_homed()
-                if not st.homed:
-                    st.position = 0.0
-                else:
-                    st.position = joint.get_position()
+            self._stop_homing(name)
         st.homing = name in self._homing
+
+    def _stop_homing(self, name: str) -> None:
+        """A homing ended (BUSY cleared): the seed's stop_homing.
+
+        Stop, restore the max acceleration and velocity, post_homing (store
+        the offset on the joint), then disable the joint; its home command
+        goes back to 0. Claiming position or velocity enables it again.
+        """
+        joint, st, cfg = self.joints[name], self.joint_states[name], self.config.joint(name)
+        self._homing.discard(name)
+        self.commands[name] = 0.0
+        joint.stop()
+        joint.set_max_acceleration(cfg.max_acceleration)
+        joint.set_max_velocity(cfg.max_velocity)
+        with contextlib.suppress(NotHomedError):  # aborted or failed: the state says not homed
+            joint.post_homing()
+        joint.disable()
+        st.flags = joint.flags
+        st.homed = joint.is_homed()
+        st.position = joint.get_position() if st.homed else 0.0
+        st.velocity = 0.0
 
     def write(self) -> None:
         """Send every active command interface's value to its joint.
@@ -552,43 +589,49 @@ class Arm:
                 is deactivated first.
         """
         self._require(Lifecycle.ACTIVE, action="write")
-        try:
-            for name, joint in self.joints.items():
-                mode = self.modes[name]
-                if mode is CommandMode.POSITION:
-                    joint.set_position(self.commands[name])
-                elif mode is CommandMode.VELOCITY:
-                    joint.set_velocity(self.commands[name])
-                elif mode is CommandMode.HOME:
-                    self._write_home(name)
-            if self.gripper.is_enabled and self.gripper_command != self.gripper.get_position():
-                self.gripper.set_position(self.gripper_command)
-        except JointError:
-            self._fail()
-            raise
+        self._guarded(self._write_commands)
+
+    def _write_commands(self) -> None:
+        for name, joint in self.joints.items():
+            mode = self.modes[name]
+            if mode is CommandMode.POSITION:
+                joint.set_position(self.commands[name])
+            elif mode is CommandMode.VELOCITY:
+                joint.set_velocity(self.commands[name])
+            elif mode is CommandMode.HOME:
+                self._write_home(name)
+        if self.gripper.is_enabled and self.gripper_command != self.gripper.get_position():
+            self.gripper.set_position(self.gripper_command)
 
     def _write_home(self, name: str) -> None:
         """Start (a non-zero command: its sign is the direction) or abort (0) a homing."""
         joint = self.joints[name]
         command = self.commands[name]
         if command != 0.0 and name not in self._homing:
-            if joint.current_blocking_command is not Reg.NONE and joint.is_busy():
-                raise IncorrectStateError(
-                    f"{name}: {joint.current_blocking_command.name} is running; cannot start homing"
-                )
+            if joint.is_busy():
+                running = joint.current_blocking_command
+                what = running.name if running is not Reg.NONE else "a blocking command"
+                raise IncorrectStateError(f"{name}: {what} is running; cannot start homing")
             cfg = self.config.joint(name).homing
+            self._enable_joint(name)  # the seed's start_homing: activate, homing acceleration, home
             joint.set_max_acceleration(cfg.acceleration)
             joint.start_homing(math.copysign(abs(cfg.speed), command), cfg.threshold, cfg.current)
             self._homing.add(name)
         elif command == 0.0 and name in self._homing:
             joint.stop()  # aborts; read() finishes it (post_homing reports not homed)
 
+    def _guarded(self, operation: Callable[[], None]) -> None:
+        """Run a read or write; a failure runs the on-error transition, then re-raises."""
+        try:
+            operation()
+        except JointError:
+            self._fail()
+            raise
+
     def _fail(self) -> None:
-        """A failed read or write: deactivate (best effort) so the arm is safe."""
-        if self.state is Lifecycle.ACTIVE:
-            with contextlib.suppress(JointError):
-                self._disable_all()
-            self.state = Lifecycle.INACTIVE
+        """A failed read or write: the seed's on_error (deactivate, clean up: unconfigured)."""
+        if self.state in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
+            self._on_error()
 
     # ------------------------------------------------------- homing, moving
     def homing_names(self) -> list[str]:

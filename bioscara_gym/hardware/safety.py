@@ -23,16 +23,13 @@ The policy-facing half (NaN check, action clamp) is
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from bioscara_gym.hardware.arm import Arm, Lifecycle
+from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend
-from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.errors import JointError
-from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
@@ -75,9 +72,8 @@ class DeadmanGuard:
     """Longest silence of each joint, on the backend's clock.
 
     Every exchange the joint's device received counts (a NACK reaches no
-    firmware, so it does not feed the deadman). Joints that cannot report
-    their exchanges are counted as talked to once per control cycle
-    (:meth:`note_cycle`: every cycle reads every joint).
+    firmware, so it does not feed the deadman), as the joints report them
+    (:meth:`BaseJoint.on_exchange`).
 
     Args:
         backend: The backend whose joints to watch.
@@ -91,14 +87,9 @@ class DeadmanGuard:
         self.names = tuple(backend.joints)
         self._last = dict.fromkeys(self.names, self.clock.now())
         self._max = dict.fromkeys(self.names, 0.0)
-        self._stop_listening: list[Callable[[], None]] = []
-        self._per_cycle: list[str] = []
-        for name, joint in backend.joints.items():
-            remove = _listen(joint, functools.partial(self._heard, name))
-            if remove is None:
-                self._per_cycle.append(name)
-            else:
-                self._stop_listening.append(remove)
+        self._stop_listening = [
+            joint.on_exchange(functools.partial(self._heard, name)) for name, joint in backend.joints.items()
+        ]
 
     def _heard(self, name: str) -> None:
         """An exchange with ``name`` was delivered now."""
@@ -112,11 +103,6 @@ class DeadmanGuard:
         for name in self.names:
             self._last[name] = now
             self._max[name] = 0.0
-
-    def note_cycle(self) -> None:
-        """A control cycle talked to every joint (counts for those that cannot report exchanges)."""
-        for name in self._per_cycle:
-            self._heard(name)
 
     def silences(self) -> dict[str, float]:
         """Longest silence per joint since the last :meth:`check`, including the current one, s."""
@@ -148,55 +134,6 @@ class DeadmanGuard:
             self._stop_listening.pop()()
 
 
-def _listen(joint: BaseJoint, listener: Callable[[], None]) -> Callable[[], None] | None:
-    """Call ``listener`` after every exchange ``joint``'s device received.
-
-    Returns:
-        A function that stops the calls, or ``None`` if ``joint`` cannot report them.
-    """
-    on_exchange = getattr(joint, "on_exchange", None)  # TRANSITIONAL: BaseJoint.on_exchange (issue 12)
-    if on_exchange is not None:
-        return on_exchange(listener)
-    if isinstance(joint, Joint):  # TRANSITIONAL: until on_exchange lands, a tap on the joint's bus
-        return _BusTap.install(joint, listener)
-    return None
-
-
-class _BusTap:
-    """TRANSITIONAL (issue 12): a bus in front of one joint's that calls back per delivered transaction.
-
-    Remove together with the fallback in :func:`_listen` once
-    ``BaseJoint.on_exchange`` exists.
-    """
-
-    def __init__(self, inner: Any, listener: Callable[[], None]) -> None:
-        """Wrap ``inner``."""
-        self.inner = inner
-        self.listener = listener
-
-    @classmethod
-    def install(cls, joint: Joint, listener: Callable[[], None]) -> Callable[[], None]:
-        """Put a tap in front of ``joint``'s bus; return what takes it away."""
-        tap = cls(joint.bus, listener)
-        joint.bus = tap
-
-        def remove() -> None:
-            if joint.bus is tap:
-                joint.bus = tap.inner
-
-        return remove
-
-    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
-        """Forward one transaction; call back if it was delivered."""
-        reply = self.inner.transfer(address, data, read_len)
-        self.listener()
-        return reply
-
-    def close(self) -> None:
-        """Close the wrapped bus."""
-        self.inner.close()
-
-
 # ----------------------------------------------------------------- safe stop
 @dataclass
 class SafeStopReport:
@@ -204,7 +141,7 @@ class SafeStopReport:
 
     Attributes:
         problems: Steps that failed (empty: every joint confirmed disabled).
-        not_confirmed: Joints whose last reply did not say not enabled.
+        not_confirmed: Joints whose disable did not go through (current maybe still on).
         gripper_width_m: The gripper's last width, m (``None`` if it was never initialized).
         gripper_saved: Whether the width went to the gripper's state file.
     """
@@ -216,24 +153,25 @@ class SafeStopReport:
 
 
 def safe_stop(arm: Arm) -> SafeStopReport:
-    """Speed 0 to every joint, disable every joint and the gripper, shut the arm down.
+    """Speed 0 to every joint, cut every joint's current, disable the gripper, shut the arm down.
 
     Best effort: each step is tried on every device even if another failed.
     The order stops all motion first (one STOP per joint), then disables
-    (stop, currents 0, freewheel), so a slow or failing bus delays no joint's
-    stop behind another's disable.
+    each joint (stop, currents 0, freewheel), so a slow or failing bus
+    delays no joint's stop behind another's disable. Every joint is
+    disabled whatever its flags say: a deadman trip sets NOT_ENABLED but
+    leaves the currents on (docs/firmware.md, deadman). Joints the arm's
+    on-error transition disconnected are connected again first, so their
+    current can still be cut. A joint counts as confirmed disabled only when
+    its own disable went through.
     """
-    problems = _stop_joints(arm)
     gripper = arm.gripper
     was_enabled = gripper.is_enabled
-    if arm.state is Lifecycle.ACTIVE:
-        try:
-            arm.deactivate()
-        except JointError as e:
-            problems.append(f"deactivate failed: {e}")
-    problems += _disable_devices(arm)
-    joints = arm.joints
-    not_confirmed = [n for n, j in joints.items() if j.initialized and not j.flags & Flag.NOT_ENABLED]
+    problems = _reconnect_joints(arm)
+    problems += _stop_joints(arm)
+    disabled, failures = _disable_joints(arm)
+    problems += failures + _disable_gripper(arm)
+    not_confirmed = [n for n in arm.names if n not in disabled]
     width = float(gripper.get_position()) if gripper.is_initialized else None
     saved = was_enabled and not gripper.is_enabled and gripper.state_file is not None
     try:
@@ -241,6 +179,18 @@ def safe_stop(arm: Arm) -> SafeStopReport:
     except (JointError, OSError) as e:
         problems.append(f"shutdown: {e}")
     return SafeStopReport(problems, not_confirmed, width, saved)
+
+
+def _reconnect_joints(arm: Arm) -> list[str]:
+    """Connect again the joints an on-error transition disconnected; the failures."""
+    problems = []
+    for name, joint in arm.joints.items():
+        if not joint.initialized:
+            try:
+                joint.init()
+            except JointError as e:
+                problems.append(f"{name}: not reachable, its current could not be cut: {e}")
+    return problems
 
 
 def _stop_joints(arm: Arm) -> list[str]:
@@ -255,21 +205,29 @@ def _stop_joints(arm: Arm) -> list[str]:
     return problems
 
 
-def _disable_devices(arm: Arm) -> list[str]:
-    """Disable every joint not reporting disabled, and the gripper; the failures."""
-    problems = []
+def _disable_joints(arm: Arm) -> tuple[set[str], list[str]]:
+    """Disable every connected joint; the joints whose disable went through, and the failures."""
+    disabled, problems = set(), []
     for name, joint in arm.joints.items():
-        if joint.initialized and not joint.flags & Flag.NOT_ENABLED:
+        if joint.initialized:
             try:
                 joint.disable()
             except JointError as e:
                 problems.append(f"{name}: disable failed: {e}")
-    if arm.gripper.is_enabled:
-        try:
-            arm.gripper.disable()
-        except (JointError, OSError) as e:
-            problems.append(f"gripper: disable failed: {e}")
-    return problems
+            else:
+                disabled.add(name)
+    return disabled, problems
+
+
+def _disable_gripper(arm: Arm) -> list[str]:
+    """Disable the gripper if it is driven; the failure, if any."""
+    if not arm.gripper.is_enabled:
+        return []
+    try:
+        arm.gripper.disable()
+    except (JointError, OSError) as e:
+        return [f"gripper: disable failed: {e}"]
+    return []
 
 
 # --------------------------------------------------------------- final state
