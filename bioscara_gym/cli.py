@@ -40,6 +40,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             resume=args.resume,
             progress=not args.no_progress,
             threads=args.threads,
+            demos=args.demos,
         )
     )
     con = _console()
@@ -111,13 +112,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
     p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
-    p.add_argument("--algo", default="sac", help="sac, td3 or ppo (default: sac)")
+    p.add_argument("--algo", default="sac", help="sac, td3, ppo or bc (behaviour cloning) (default: sac)")
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/reach"), help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1)")
+    p.add_argument("--demos", help="Minari dataset of demonstrations to learn from (bioscara collect)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
@@ -140,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: Modules that add subcommands: each has ``register(subparsers)`` and sets ``func``.
 EXTRA_COMMAND_MODULES = (
+    "bioscara_gym.training.collect",
     "bioscara_gym.training.deploy",
     "bioscara_gym.training.export",
     "bioscara_gym.console.commands",

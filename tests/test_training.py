@@ -646,7 +646,7 @@ def test_load_hyperparams_reads_the_rl_zoo3_form(tmp_path: Path) -> None:
 @pytest.mark.parametrize("env_id", [REACH, PICK])
 def test_packaged_config_takes_its_evaluation_from_the_success_callback(algo: str, env_id: str) -> None:
     entry = yaml.safe_load(default_config_path(algo).read_text(encoding="utf-8"))[env_id]
-    (callback,) = entry["callback"]
+    callback = next(c for c in entry["callback"] if ZOO_SUCCESS in c)
     hp = load_hyperparams(default_config_path(algo), env_id)
     assert (hp.eval_freq, hp.eval_episodes, hp.target_success) == tuple(
         callback[ZOO_SUCCESS][k] for k in ("eval_freq", "eval_episodes", "target_success")
@@ -849,3 +849,21 @@ def test_a_broken_dependency_is_not_reported_as_a_missing_extra() -> None:
     with pytest.raises(ModuleNotFoundError) as caught, needs_train():
         raise ModuleNotFoundError("No module named 'sympy'", name="sympy")
     assert not isinstance(caught.value, MissingExtraError)
+
+
+def test_packaged_pickplace_config_learns_from_demonstrations() -> None:
+    from bioscara_gym.training.zoo import DemonstrationCallback
+
+    hp = load_hyperparams(default_config_path("sac"), PICK)
+    assert any(cls is DemonstrationCallback for cls, _ in hp.callbacks)
+    assert hp.env_kwargs["control_mode"] == "cartesian"
+
+
+def test_train_demos_with_another_algo_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "run"
+    rc = main(["train", "--env", "Bioscara-PickPlace", "--algo", "td3", "--demos", "x", "--out", str(out)])
+    assert rc != 0
+    assert "--algo sac" in one_line_error(capsys, "train")
+    assert not out.exists()

@@ -22,6 +22,9 @@ with needs_train():
     from stable_baselines3.common.base_class import BaseAlgorithm
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
+#: The class each ``algo`` of a model's metadata loads with: behaviour cloning
+#: (``bioscara train --algo bc``) saves a SAC model whose actor was only cloned.
+MODEL_CLASSES: dict[str, type[BaseAlgorithm]] = {**ALGOS, "bc": SAC}
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -43,7 +46,7 @@ def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
     metadata = read_metadata(model_file)
     if not model_file.exists():
         raise FileNotFoundError(f"no model at {model_file}")
-    algo = ALGOS[metadata.get("algo", "sac")]
+    algo = MODEL_CLASSES[metadata.get("algo", "sac")]
     act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
     model = algo.load(model_file, env=None, device="cpu", custom_objects=act_only)
     return model, metadata

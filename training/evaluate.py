@@ -138,6 +138,20 @@ def evaluate_model(
         env.close()
 
 
+def load_model(path: Path) -> tuple[Any, dict[str, Any]]:
+    """:func:`bioscara_gym.training.algos.load_model`, imported on use (it needs the [train] extra)."""
+    from bioscara_gym.training.algos import load_model as load
+
+    return load(Path(path))
+
+
+def sb3_policy(model: Any) -> Policy:
+    """:func:`bioscara_gym.training.algos.sb3_policy`, imported on use."""
+    from bioscara_gym.training.algos import sb3_policy as policy
+
+    return policy(model)
+
+
 def evaluate_expert(
     env_id: str,
     episodes: int = 100,

@@ -20,14 +20,14 @@ import numpy as np
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.fsutil import atomic_write_text
-from bioscara_gym.training.evaluate import EvalStats
+from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
 from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
 
 with needs_train():
     import torch
-    from stable_baselines3 import HerReplayBuffer
+    from stable_baselines3 import SAC, HerReplayBuffer
     from stable_baselines3.common.base_class import BaseAlgorithm
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList
     from stable_baselines3.common.env_util import make_vec_env
@@ -35,7 +35,8 @@ with needs_train():
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
     from bioscara_gym.training.algos import ALGOS
-    from bioscara_gym.training.zoo import SuccessEvalCallback
+    from bioscara_gym.training.bc import bc_pretrain
+    from bioscara_gym.training.zoo import EVAL_SEED_OFFSET, DemonstrationCallback, SuccessEvalCallback
 
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
 #: Keys whose value may be one of rl-zoo3's schedule strings ``lin_<initial value>``.
@@ -62,6 +63,8 @@ class TrainArgs:
             process, and on a 2-core machine a second torch thread only
             contends with it (measured 20x slower matrix products).
         verbose: Print each evaluation.
+        demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
+            2018, see :mod:`bioscara_gym.training.bc`; ``bc``: cloned alone).
     """
 
     env: str = "Bioscara-Reach"
@@ -75,6 +78,7 @@ class TrainArgs:
     checkpoint_freq: int = 10_000
     threads: int | None = None
     verbose: int = 1
+    demos: str | None = None
 
 
 @dataclass(frozen=True)
@@ -91,10 +95,11 @@ class TrainResult:
 
 
 def load_run_hyperparams(args: TrainArgs, env_id: str) -> Hyperparams:
-    """The hyperparameters of this run (config file or packaged defaults)."""
-    if args.algo not in ALGOS:
-        raise TrainingError(f"unknown algo {args.algo!r}; choose one of {', '.join(ALGOS)}")
-    path = Path(args.config) if args.config else default_config_path(args.algo)
+    """The hyperparameters of this run (config file or packaged defaults; ``bc`` reads SAC's)."""
+    if args.algo not in ALGOS and args.algo != "bc":
+        raise TrainingError(f"unknown algo {args.algo!r}; choose one of {', '.join(ALGOS)}, bc")
+    algo = "sac" if args.algo == "bc" else args.algo
+    path = Path(args.config) if args.config else default_config_path(algo)
     try:
         return load_hyperparams(path, env_id)
     except HyperparamError as e:
@@ -195,16 +200,44 @@ def _callbacks(hp: Hyperparams, eval_env: gym.Env, args: TrainArgs) -> tuple[Any
         env=eval_env,
         **eval_kwargs,
     )
+    specs = list(hp.callbacks)
+    if args.demos:  # --demos: this dataset, in the config's demonstration callback or a default one
+        specs = [
+            (c, {**k, "dataset": args.demos}) if c is DemonstrationCallback else (c, k) for c, k in specs
+        ]
+        if not any(c is DemonstrationCallback for c, _ in specs):
+            specs.append((DemonstrationCallback, {"dataset": args.demos}))
+    if any(c is DemonstrationCallback for c, _ in specs) and args.algo != "sac":
+        raise TrainingError(f"demonstrations are learned with --algo sac (or bc), not {args.algo}")
     try:
-        others = [cls(**kwargs) for cls, kwargs in hp.callbacks]
+        others = [cls(**kwargs) for cls, kwargs in specs]
     except (TypeError, ValueError) as e:
         raise TrainingError(f"config {hp.source}: callback: {e}") from e
     return evaluator, others
 
 
+def _demo_facts(callbacks: list[BaseCallback]) -> dict[str, Any]:
+    """What the run learned from besides its own experience (for the metadata)."""
+    for cb in callbacks:
+        if isinstance(cb, DemonstrationCallback) and cb.demos is not None:
+            return {
+                "demos": {
+                    "dataset": cb.dataset,
+                    "episodes": len(cb.demos.successes),
+                    "steps": len(cb.demos),
+                    "collect_s": round(cb.collect_s, 1),
+                    "pretrain_steps": cb.pretrain_steps,
+                }
+            }
+    return {}
+
+
 def train(args: TrainArgs) -> TrainResult:
     """Train, evaluate and save a policy (see the module docstring)."""
     env_id = resolve_env_id(args.env)
+    if args.algo == "bc":
+
+        return train_bc(args, env_id, load_run_hyperparams(args, env_id))
     out = Path(args.out)
     state_path = out / STATE_NAME
     state: dict[str, Any] = {}
@@ -217,6 +250,7 @@ def train(args: TrainArgs) -> TrainResult:
                 f"{out} holds a {state['algo']} run on {state['env_id']}, not {args.algo} on {env_id}"
             )
         args.seed, total = state["seed"], int(state["total_timesteps"])
+        args.demos = args.demos or state.get("demos")
         hp = (
             load_run_hyperparams(args, env_id)
             if not state.get("config")
@@ -227,6 +261,8 @@ def train(args: TrainArgs) -> TrainResult:
         total = int(args.timesteps or hp.n_timesteps)
     if total <= 0:
         raise TrainingError(f"timesteps must be > 0, got {total}")
+    if args.demos and args.algo != "sac":
+        raise TrainingError(f"demonstrations are learned with --algo sac (or bc), not {args.algo}")
     torch.set_num_threads(args.threads or 1)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
@@ -238,6 +274,7 @@ def train(args: TrainArgs) -> TrainResult:
                 "seed": args.seed,
                 "total_timesteps": total,
                 "config": str(args.config) if args.config else (state.get("config") if args.resume else None),
+                "demos": args.demos if not args.resume else state.get("demos"),
             },
             indent=2,
         ),
@@ -295,6 +332,7 @@ def train(args: TrainArgs) -> TrainResult:
             timesteps=model.num_timesteps,
             config=hp.as_dict(),
             final_eval=final.as_dict() if final else None,
+            **_demo_facts(others),
         ),
     )
     eval_env.close()
@@ -306,4 +344,85 @@ def train(args: TrainArgs) -> TrainResult:
         final_eval=final,
         target_reached_at=evaluator.reached_at,
         target_reached_after_s=evaluator.reached_after_s,
+    )
+
+
+#: Behaviour-cloning steps of ``bioscara train --algo bc`` without ``--timesteps``.
+BC_STEPS = 10_000
+
+
+def train_bc(args: TrainArgs, env_id: str, hp: Hyperparams) -> TrainResult:
+    """``bioscara train --algo bc``: clone the demonstrations into a SAC actor, evaluate, save.
+
+    The policy, its kwargs and the env's kwargs are those of the SAC config's
+    entry; ``--timesteps`` counts gradient steps (default :data:`BC_STEPS`).
+    Without ``--demos`` the scripted expert's episodes are collected first.
+    """
+    from bioscara_gym.experts import expert_for
+    from bioscara_gym.training.demos import check_demos, load_demos, rollout_demos
+
+    if args.resume:
+        raise TrainingError("--algo bc trains in one go; there is nothing to resume")
+    steps = int(args.timesteps or BC_STEPS)
+    if steps <= 0:
+        raise TrainingError(f"timesteps must be > 0, got {steps}")
+    torch.set_num_threads(args.threads or 1)
+    settings = next((k for c, k in hp.callbacks if c is DemonstrationCallback), {})
+    start = time.perf_counter()
+    env = gym.make(env_id, **hp.env_kwargs)
+    try:
+        if args.demos:
+            demos = load_demos(args.demos, successful_only=True)
+            check_demos(demos, env)
+        else:
+            expert = expert_for(env.unwrapped)
+            episodes, seed = int(settings.get("episodes", 100)), int(settings.get("seed", 1_000_000))
+            demos = rollout_demos(env, expert, expert.reset, episodes, seed=seed)
+        kwargs = _algo_kwargs(hp, env, "sac")
+        kwargs.update(replay_buffer_class=None, replay_buffer_kwargs=None, buffer_size=1, action_noise=None)
+        model = SAC(hp.policy, env, seed=args.seed, device="cpu", verbose=0, **kwargs)
+        loss = bc_pretrain(
+            model, demos, steps, init_std=float(settings.get("init_std", 0.1)), seed=args.seed
+        )
+        eval_env = gym.make(env_id, **hp.env_kwargs)
+        try:
+
+            def act(obs: dict[str, np.ndarray]) -> np.ndarray:
+                return model.predict(obs, deterministic=True)[0]
+
+            final = run_episodes(eval_env, act, hp.eval_episodes, seed=args.seed + EVAL_SEED_OFFSET)
+        finally:
+            eval_env.close()
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        model_path = out / "model.zip"
+        model.save(model_path)
+        metadata_path = write_metadata(
+            out,
+            build_metadata(
+                env,
+                env_id,
+                hp.env_kwargs,
+                algo="bc",
+                seed=args.seed,
+                timesteps=0,
+                bc_steps=steps,
+                bc_loss=loss,
+                demos={"dataset": args.demos, "episodes": len(demos.successes), "steps": len(demos)},
+                config=hp.as_dict(),
+                final_eval=final.as_dict(),
+            ),
+        )
+    finally:
+        env.close()
+    if args.verbose:
+        print(f"[bc] {steps} steps on {len(demos)} demonstration steps, loss {loss:.4f}", flush=True)
+    return TrainResult(
+        model_path=model_path,
+        metadata_path=metadata_path,
+        timesteps=0,
+        wall_time_s=time.perf_counter() - start,
+        final_eval=final,
+        target_reached_at=None,
+        target_reached_after_s=None,
     )

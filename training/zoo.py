@@ -33,6 +33,7 @@ import time
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 import bioscara_gym  # noqa: F401 - registers the tasks (rl-zoo3 may import us before --gym-packages)
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
@@ -188,4 +189,96 @@ class SuccessEvalCallback(BaseCallback):
             if self.verbose:
                 print(f"[eval] target {self.target:.0%} reached: stopping", flush=True)
             return False
+        return True
+
+
+class DemonstrationCallback(BaseCallback):
+    """Learn from demonstrations: BC pre-training, then SAC with demos (:mod:`bioscara_gym.training.bc`).
+
+    At the start of training it loads the Minari dataset ``dataset`` or, with
+    none, records ``episodes`` successful episodes of the env's scripted
+    expert in memory (seeds from ``seed``); fits the actor to them
+    (``pretrain_steps`` behaviour-cloning steps; skipped when resuming) and
+    makes the SAC model sample ``demo_batch_size`` of them in every batch,
+    with a Q-filtered behaviour-cloning loss of weight ``bc_weight``.
+
+    Args:
+        dataset: Minari dataset name; ``None``: collect with the expert.
+        episodes: Expert episodes to collect when there is no dataset.
+        pretrain_steps: Behaviour-cloning steps before the first env step.
+        demo_batch_size: Demonstrations per batch.
+        bc_weight: Weight of the behaviour-cloning loss.
+        q_filter: Clone only where the critic prefers the demonstrated action.
+        init_std: SAC's exploration noise after pre-training.
+        seed: Seed of the first collected episode.
+        verbose: Print what was loaded or collected.
+    """
+
+    def __init__(
+        self,
+        dataset: str | None = None,
+        episodes: int = 100,
+        pretrain_steps: int = 3000,
+        demo_batch_size: int = 128,
+        bc_weight: float = 1.0,
+        q_filter: bool = True,
+        init_std: float = 0.1,
+        seed: int = 1_000_000,
+        verbose: int = 1,
+    ) -> None:
+        """Store the settings; everything happens at the start of training."""
+        super().__init__(verbose)
+        self.dataset = dataset
+        self.episodes = int(episodes)
+        self.pretrain_steps = int(pretrain_steps)
+        self.demo_batch_size = int(demo_batch_size)
+        self.bc_weight = float(bc_weight)
+        self.q_filter = bool(q_filter)
+        self.init_std = float(init_std)
+        self.seed = int(seed)
+        self.demos: Any = None
+        self.collect_s = 0.0
+        self.pretrain_s = 0.0
+
+    def _on_training_start(self) -> None:
+        from bioscara_gym.experts import expert_for
+        from bioscara_gym.training.bc import attach_demos, bc_pretrain
+        from bioscara_gym.training.demos import check_demos, load_demos, rollout_demos
+
+        env = env_like(self.training_env)
+        try:
+            start = time.perf_counter()
+            if self.dataset:
+                self.demos = load_demos(self.dataset, successful_only=True)
+                check_demos(self.demos, env)
+            else:
+                expert = expert_for(env.unwrapped)
+                self.demos = rollout_demos(env, expert, expert.reset, self.episodes, seed=self.seed)
+            self.collect_s = time.perf_counter() - start
+            d = self.demos
+            rewards = np.asarray(
+                env.unwrapped.compute_reward(d.next_obs["achieved_goal"], d.next_obs["desired_goal"], None)
+            )
+        finally:
+            env.close()
+        if self.verbose:
+            source = d.dataset_id if self.dataset else "the expert"
+            print(
+                f"[demos] {len(d.successes)} successful episodes, {len(d)} steps from {source} "
+                f"({self.collect_s:.0f} s)",
+                flush=True,
+            )
+        if self.model.num_timesteps == 0 and self.pretrain_steps > 0:
+            start = time.perf_counter()
+            loss = bc_pretrain(self.model, d, self.pretrain_steps, init_std=self.init_std, seed=self.seed)
+            self.pretrain_s = time.perf_counter() - start
+            if self.verbose:
+                print(
+                    f"[demos] BC pre-training: {self.pretrain_steps} steps, loss {loss:.4f} "
+                    f"({self.pretrain_s:.0f} s)",
+                    flush=True,
+                )
+        attach_demos(self.model, d, rewards, self.demo_batch_size, self.bc_weight, self.q_filter)
+
+    def _on_step(self) -> bool:
         return True
