@@ -18,8 +18,12 @@ from __future__ import annotations
 
 import functools
 import math
+import subprocess
+import sys
+import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -621,3 +625,28 @@ def dynamixel_emulated_j1() -> JointRig:
 
 
 RIG_FACTORIES["dynamixel_emulated_j1"] = dynamixel_emulated_j1
+
+
+# ------------------------------------------------------- blocked imports
+def run_blocked(code: str, blocked: tuple[str, ...]) -> subprocess.CompletedProcess[str]:
+    """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails."""
+    prelude = textwrap.dedent(
+        f"""
+        import sys
+
+        class _Blocked:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in {blocked!r}:
+                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
+                return None
+
+        sys.meta_path.insert(0, _Blocked())
+        """
+    )
+    return subprocess.run(
+        [sys.executable, "-c", prelude + textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+    )

@@ -8,15 +8,13 @@ an env that raises driver errors. Full deployments are in test_deploy.py.
 
 from __future__ import annotations
 
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from gymnasium import spaces
+from rigs import run_blocked
 
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
@@ -29,27 +27,6 @@ from bioscara_gym.hardware.safety import DeadmanGuard, SafetyStop, StopReason, f
 from bioscara_gym.training.deploy_safety import SafetyLayer
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def run_without(blocked: tuple[str, ...], code: str) -> subprocess.CompletedProcess[str]:
-    """Run ``code`` in a fresh interpreter in which importing ``blocked`` raises ModuleNotFoundError."""
-    prelude = textwrap.dedent(
-        f"""
-        import sys
-
-        class _Blocked:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in {blocked!r}:
-                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
-                return None
-
-        sys.meta_path.insert(0, _Blocked())
-        """
-    )
-    return subprocess.run(
-        [sys.executable, "-c", prelude + textwrap.dedent(code)],
-        capture_output=True, text=True, timeout=180, cwd=ROOT,
-    )  # fmt: skip
 
 
 # ------------------------------------------------------- a listened-to backend
@@ -149,9 +126,9 @@ def test_final_state_falls_back_to_the_last_reply_where_the_device_cannot_be_see
 
 def test_hardware_safety_imports_no_gymnasium_mujoco_or_torch() -> None:
     heavy = ("gymnasium", "mujoco", "torch", "stable_baselines3")
-    result = run_without(
-        heavy,
-        f"""
+    result = run_blocked(
+        blocked=heavy,
+        code=f"""
         from bioscara_gym.hardware.safety import DeadmanGuard, final_state, safe_stop
         print(sorted(m for m in sys.modules if m.split(".")[0] in {heavy!r}))
         """,

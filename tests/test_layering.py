@@ -18,41 +18,17 @@ import ast
 import shutil
 import subprocess
 import sys
-import textwrap
 import tomllib
 import zipfile
 from pathlib import Path
 
 import pytest
+from rigs import run_blocked
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Import name to source folder (the repository's training/ is installed as bioscara_gym.training).
 PACKAGES = {"bioscara_gym": ROOT / "bioscara_gym", "bioscara_gym.training": ROOT / "training"}
 HEAVY = ("gymnasium", "mujoco", "torch", "stable_baselines3")
-
-
-def run_blocked(code: str, blocked: tuple[str, ...]) -> subprocess.CompletedProcess[str]:
-    """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails."""
-    prelude = textwrap.dedent(
-        f"""
-        import sys
-
-        class _Blocked:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in {blocked!r}:
-                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
-                return None
-
-        sys.meta_path.insert(0, _Blocked())
-        """
-    )
-    return subprocess.run(
-        [sys.executable, "-c", prelude + textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=ROOT,
-    )
 
 
 def test_hardware_layer_imports_without_gymnasium_mujoco_torch_sb3() -> None:

@@ -38,7 +38,6 @@ from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
 from bioscara_gym.hardware.registers import (
     ACK,
     DEADMAN_MS,
-    DEADMAN_S,
     FLAG_BUSY,
     FLAG_MASK,
     FLAG_NOT_ENABLED,
@@ -62,12 +61,8 @@ from bioscara_gym.hardware.registers import (
 from bioscara_gym.hardware.transmission import steps_to_degrees
 
 __all__ = [
-    # Timings re-exported for older imports; their home is registers.
-    "DEADMAN_S",
-    "HOMING_SETTLE_S",
     "MICROSTEPS_PER_DEG",
     "MICROSTEPS_PER_FULL_STEP",
-    "TICK_S",
     "FirmwareCore",
     "JointFirmware",
     "Mode",
