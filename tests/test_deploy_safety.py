@@ -20,10 +20,10 @@ from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, NotEnabledError, StalledError
+from bioscara_gym.hardware.errors import CommError, NotEnabledError, SafetyStop, StalledError, StopReason
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag, Reg
-from bioscara_gym.hardware.safety import DeadmanGuard, SafetyStop, StopReason, final_state, safe_stop
+from bioscara_gym.hardware.safety import DeadmanGuard, final_state, safe_stop
 from bioscara_gym.training.deploy_safety import SafetyLayer
 
 ROOT = Path(__file__).resolve().parents[1]

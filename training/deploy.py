@@ -67,16 +67,9 @@ from bioscara_gym.errors import DeployError, MetadataError
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, JointError
+from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StopReason
 from bioscara_gym.hardware.joint import Joint
-from bioscara_gym.hardware.safety import (
-    DeadmanGuard,
-    SafeStopReport,
-    SafetyStop,
-    StopReason,
-    final_state,
-    safe_stop,
-)
+from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
 from bioscara_gym.training.deploy_log import LoopStats, RunLog
 from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
 from bioscara_gym.training.metadata import check_metadata, read_metadata

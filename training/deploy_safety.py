@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 
 from bioscara_gym.hardware.arm import Arm, Lifecycle
-from bioscara_gym.hardware.errors import CommError, JointError, StalledError
+from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StalledError, StopReason
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.hardware.safety import DeadmanGuard, SafetyStop, StopReason
+from bioscara_gym.hardware.safety import DeadmanGuard
 
 StepResult = tuple[Any, float, bool, bool, dict[str, Any]]
 

@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from types import FrameType
 from typing import Any
 
-from bioscara_gym.hardware.safety import StopReason
+from bioscara_gym.hardware.errors import StopReason
 
 
 class Interrupted(KeyboardInterrupt):

@@ -7,7 +7,7 @@ every :class:`JointError` carries its :class:`ErrType` in ``.code``.
 
 from __future__ import annotations
 
-from enum import IntEnum
+from enum import Enum, IntEnum
 
 
 class ErrType(IntEnum):
@@ -209,3 +209,32 @@ class UnknownJointError(InvalidArgumentError, ConfigError):
     and a :class:`ConfigError` (raised by
     :meth:`~bioscara_gym.hardware.config.ArmConfig.joint`).
     """
+
+
+class StopReason(Enum):
+    """Why a deployment ended."""
+
+    COMPLETED = "completed"
+    NAN_ACTION = "nan_action"
+    STALL = "stall"
+    COMM_ERROR = "comm_error"
+    JOINT_ERROR = "joint_error"
+    DEADMAN = "deadman"
+    INTERRUPTED = "interrupted"
+    TERMINATED = "terminated"
+    ERROR = "error"
+
+
+class SafetyStop(Exception):
+    """The safety layer stopped the run; the message names the cause.
+
+    Attributes:
+        reason: What tripped.
+        joint: The joint concerned, if one is.
+    """
+
+    def __init__(self, reason: StopReason, message: str, joint: str | None = None) -> None:
+        """Record the reason, the message and the joint."""
+        super().__init__(message)
+        self.reason = reason
+        self.joint = joint

@@ -24,47 +24,17 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from enum import Enum
 from typing import Any
 
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend
-from bioscara_gym.hardware.errors import JointError
+from bioscara_gym.hardware.errors import JointError, SafetyStop, StopReason
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
 #: backend can see the device; otherwise they are the flags of the joint's last reply.
 FLAG_SOURCES = {"sim": "emulator", "emulated": "emulator", "mock": "mock device"}
 LAST_REPLY = "last reply"
-
-
-class StopReason(Enum):
-    """Why a deployment ended."""
-
-    COMPLETED = "completed"
-    NAN_ACTION = "nan_action"
-    STALL = "stall"
-    COMM_ERROR = "comm_error"
-    JOINT_ERROR = "joint_error"
-    DEADMAN = "deadman"
-    INTERRUPTED = "interrupted"
-    TERMINATED = "terminated"
-    ERROR = "error"
-
-
-class SafetyStop(Exception):
-    """The safety layer stopped the run; the message names the cause.
-
-    Attributes:
-        reason: What tripped.
-        joint: The joint concerned, if one is.
-    """
-
-    def __init__(self, reason: StopReason, message: str, joint: str | None = None) -> None:
-        """Record the reason, the message and the joint."""
-        super().__init__(message)
-        self.reason = reason
-        self.joint = joint
 
 
 # ------------------------------------------------------------- deadman guard
