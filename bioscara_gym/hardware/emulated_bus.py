@@ -66,28 +66,43 @@ class FaultPlan:
         Raises:
             ValueError: Unknown key or a value that is not a number.
         """
-        kwargs: dict[str, float] = {}
-        for item in filter(None, (s.strip() for s in spec.split(","))):
-            key, sep, value = item.partition("=")
-            key = key.strip()
-            if not sep:
-                raise ValueError(f"fault '{item}': expected KEY=VALUE")
-            try:
-                number = float(value)
-            except ValueError as e:
-                raise ValueError(f"fault '{key}': '{value}' is not a number") from e
-            if not math.isfinite(number):
-                raise ValueError(f"fault '{key}': {value} must be finite")
-            if key == "latency_ms":
-                key, number = "latency_s", number / 1000.0
-            elif key not in ("nack", "short_read", "corrupt", "latency_s"):
-                raise ValueError(
-                    f"unknown fault '{key}'; expected nack, short_read, corrupt, latency_ms, latency_s"
-                )
-            if key in kwargs:
-                raise ValueError(f"fault '{key}' given twice")
-            kwargs[key] = number
-        return cls(seed=seed, **kwargs)
+        return cls(seed=seed, **parse_fault_spec(spec, ("nack", "short_read", "corrupt"), "latency"))
+
+
+def parse_fault_spec(spec: str, rates: tuple[str, ...], duration: str) -> dict[str, float]:
+    """Parse ``"KEY=VALUE,..."`` into keyword arguments of a fault plan.
+
+    Args:
+        spec: The specification, e.g. ``"nack=0.01,latency_ms=2"``.
+        rates: The keys that are probabilities.
+        duration: The time fault's name: ``NAME_ms`` and ``NAME_s`` are
+            accepted and both give ``NAME_s`` in seconds.
+
+    Raises:
+        ValueError: Not KEY=VALUE, a value that is not a finite number, an
+            unknown key (the message lists the known ones) or a key given twice.
+    """
+    known = (*rates, f"{duration}_ms", f"{duration}_s")
+    kwargs: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep:
+            raise ValueError(f"fault '{item}': expected KEY=VALUE")
+        try:
+            number = float(value)
+        except ValueError as e:
+            raise ValueError(f"fault '{key}': '{value}' is not a number") from e
+        if not math.isfinite(number):
+            raise ValueError(f"fault '{key}': {value} must be finite")
+        if key not in known:
+            raise ValueError(f"unknown fault '{key}'; expected {', '.join(known)}")
+        if key == f"{duration}_ms":
+            key, number = f"{duration}_s", number / 1000.0
+        if key in kwargs:
+            raise ValueError(f"fault '{key}' given twice")
+        kwargs[key] = number
+    return kwargs
 
 
 class EmulatedI2CBus:

@@ -50,6 +50,7 @@ from bioscara_gym.hardware.dynamixel.control_table import (
     to_unsigned,
 )
 from bioscara_gym.hardware.dynamixel.protocol import Packet, PacketParser
+from bioscara_gym.hardware.emulated_bus import parse_fault_spec
 
 #: rad per position unit of the emulated motor (2*pi / 4096).
 _RAD_PER_UNIT = 2 * math.pi / 4096
@@ -384,24 +385,7 @@ class DxlFaultPlan:
         Raises:
             ValueError: Unknown key or a value that is not a finite number.
         """
-        kwargs: dict[str, float] = {}
-        for item in filter(None, (s.strip() for s in spec.split(","))):
-            key, sep, value = item.partition("=")
-            key = key.strip()
-            if not sep:
-                raise ValueError(f"fault '{item}': expected KEY=VALUE")
-            try:
-                number = float(value)
-            except ValueError as e:
-                raise ValueError(f"fault '{key}': '{value}' is not a number") from e
-            if not math.isfinite(number):
-                raise ValueError(f"fault '{key}': {value} must be finite")
-            if key == "delay_ms":
-                key, number = "delay_s", number / 1000.0
-            elif key not in ("drop", "corrupt", "delay_s"):
-                raise ValueError(f"unknown fault '{key}'; expected drop, corrupt, delay_ms, delay_s")
-            kwargs[key] = number
-        return cls(seed=seed, **kwargs)
+        return cls(seed=seed, **parse_fault_spec(spec, ("drop", "corrupt"), "delay"))
 
 
 class EmulatedRS485Bus:
