@@ -628,7 +628,9 @@ RIG_FACTORIES["dynamixel_emulated_j1"] = dynamixel_emulated_j1
 
 
 # ------------------------------------------------------- blocked imports
-def run_blocked(code: str, blocked: tuple[str, ...]) -> subprocess.CompletedProcess[str]:
+def run_blocked(
+    code: str, blocked: tuple[str, ...] = (), env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
     """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails."""
     prelude = textwrap.dedent(
         f"""
@@ -649,4 +651,13 @@ def run_blocked(code: str, blocked: tuple[str, ...]) -> subprocess.CompletedProc
         text=True,
         timeout=120,
         cwd=Path(__file__).resolve().parents[1],
+        env=env,
     )
+
+
+def wait_for_homing_end(arm: Arm, name: str) -> None:
+    """Let time pass, without the arm's read, until the firmware ends ``name``'s homing (BUSY clear)."""
+    joint = arm.joints[name]
+    while joint.is_busy():
+        arm.backend.step(DT)
+        joint.get_flags()

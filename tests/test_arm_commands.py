@@ -12,7 +12,17 @@ import math
 from collections.abc import Callable
 
 import pytest
-from rigs import CONFIG, DT, KNOWN_JOINTS, NAMES, MakeBackend, cycle_until, spy, start_homing
+from rigs import (
+    CONFIG,
+    DT,
+    KNOWN_JOINTS,
+    NAMES,
+    MakeBackend,
+    cycle_until,
+    spy,
+    start_homing,
+    wait_for_homing_end,
+)
 
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
 from bioscara_gym.hardware.errors import (
@@ -215,10 +225,7 @@ def test_read_finishes_a_homing_after_position_and_velocity(
     active_arm: Arm, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     start_homing(active_arm, "j1", 0.03)
-    joint = active_arm.joints["j1"]
-    while joint.is_busy():
-        active_arm.backend.step(DT)
-        joint.get_flags()
+    wait_for_homing_end(active_arm, "j1")
     traffic = spy(monkeypatch, active_arm)
     active_arm.read()
     j1 = [(reg, value) for name, reg, value in traffic.log if name == "j1"]

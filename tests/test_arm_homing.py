@@ -22,6 +22,7 @@ from rigs import (
     motor_rate_deg,
     spy,
     start_homing,
+    wait_for_homing_end,
 )
 
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
@@ -374,10 +375,8 @@ def test_end_of_homing_stops_restores_limits_stores_the_offset_then_disables(
     active_arm: Arm, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     start_homing(active_arm, "j1", 0.03)
+    wait_for_homing_end(active_arm, "j1")
     joint = active_arm.joints["j1"]
-    while joint.is_busy():
-        active_arm.backend.step(DT)
-        joint.get_flags()
     traffic = spy(monkeypatch, active_arm)
     active_arm.read()
     regs = [r for r in traffic.regs("j1") if r not in (Reg.ANGLEMOVED, Reg.GETENCODERRPM)]

@@ -7,9 +7,6 @@ sets it for the suite, and an env with a ``render_mode`` sets it itself.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-import textwrap
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +15,7 @@ import gymnasium as gym
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from rigs import run_blocked
 
 from bioscara_gym.envs import BioscaraReachEnv, rendering
 
@@ -120,27 +118,7 @@ def test_prepare_sets_mujoco_gl_only_if_unset_and_headless(
 
 def _run(code: str, blocked: tuple[str, ...] = (), env: dict[str, str] | None = None) -> str:
     """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails; its stdout."""
-    prelude = textwrap.dedent(
-        f"""
-        import sys
-
-        class _Blocked:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in {blocked!r}:
-                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
-                return None
-
-        sys.meta_path.insert(0, _Blocked())
-        """
-    )
-    result = subprocess.run(
-        [sys.executable, "-c", prelude + textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=ROOT,
-        env=env,
-    )
+    result = run_blocked(code, blocked, env)
     assert result.returncode == 0, result.stderr
     return result.stdout.strip()
 

@@ -65,6 +65,19 @@ def gripper_state_file(config: ArmConfig, option: str | Path | None, default: bo
     return default_state_dir() / "gripper.json" if default else None
 
 
+def mock_gripper(config: ArmConfig, state_file: str | Path | None = None) -> MockGripper:
+    """A :class:`MockGripper` with the configured transmission and limits (no state file by default)."""
+    g = config.gripper
+    return MockGripper(
+        g.reduction,
+        g.offset,
+        g.min,
+        g.max,
+        g.backup_init_pos,
+        state_file=gripper_state_file(config, state_file, default=False),
+    )
+
+
 class Backend:
     """Joints, gripper and clock of one arm.
 
@@ -220,16 +233,7 @@ class MockBackend(Backend):
         joints = {
             j.name: MockJoint(j.name, j.reduction, j.min, j.max, clock, homing_time_s) for j in config.joints
         }
-        g = config.gripper
-        gripper = MockGripper(
-            g.reduction,
-            g.offset,
-            g.min,
-            g.max,
-            g.backup_init_pos,
-            state_file=gripper_state_file(config, state_file, default=False),
-        )
-        super().__init__(config, joints, gripper, clock)
+        super().__init__(config, joints, mock_gripper(config, state_file), clock)
 
     def device_flags(self, name: str) -> Flag | None:
         """The mirror's own flags (see :meth:`Backend.device_flags`)."""

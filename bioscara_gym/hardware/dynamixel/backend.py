@@ -23,14 +23,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-from bioscara_gym.hardware.backends import Backend, gripper_state_file
+from bioscara_gym.hardware.backends import Backend, mock_gripper
 from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, DynamixelBusConfig, JointConfig
 from bioscara_gym.hardware.dynamixel.bus import DynamixelBus, LoopStats, load_sdk, port_module
 from bioscara_gym.hardware.dynamixel.control_table import position_to_raw
 from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
 from bioscara_gym.hardware.dynamixel.joint import DynamixelJoint
-from bioscara_gym.hardware.gripper import MockGripper
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
@@ -102,16 +101,7 @@ class DynamixelBackend(Backend):
             )
             for j in config.joints
         }
-        g = config.gripper
-        gripper = MockGripper(
-            g.reduction,
-            g.offset,
-            g.min,
-            g.max,
-            g.backup_init_pos,
-            state_file=gripper_state_file(config, state_file, default=False),
-        )
-        super().__init__(config, joints, gripper, clock)
+        super().__init__(config, joints, mock_gripper(config, state_file), clock)
         if synced:
             self.bus.start_loops()
         self._next = clock.now()
