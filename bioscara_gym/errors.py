@@ -9,6 +9,7 @@ prints it as is.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from bioscara_gym.hardware.errors import MissingExtraError
@@ -16,6 +17,7 @@ from bioscara_gym.hardware.errors import MissingExtraError
 __all__ = [
     "EXIT_ERROR",
     "EXIT_INTERRUPTED",
+    "CheckpointWarning",
     "CliError",
     "ConsoleUsageError",
     "DeployError",
@@ -23,7 +25,9 @@ __all__ = [
     "HyperparamError",
     "MetadataError",
     "MissingExtraError",
+    "PolicyFileError",
     "StateFileError",
+    "StateFileInUseError",
     "TrainingError",
 ]
 
@@ -53,6 +57,25 @@ class StateFileError(ValueError):
     """
 
 
+class StateFileInUseError(StateFileError):
+    """Another ``bioscara`` command holds the ``--state`` file (its lock).
+
+    Attributes:
+        path: The state file.
+        pid: The process holding it, ``None`` if it could not be read.
+    """
+
+    def __init__(self, path: Path, pid: int | None) -> None:
+        """Name the file and its holder."""
+        holder = f" (pid {pid})" if pid is not None else ""
+        super().__init__(
+            f"{path} is in use by another bioscara command{holder}; wait for it to finish "
+            "(or stop it), then run this command again"
+        )
+        self.path = path
+        self.pid = pid
+
+
 class HyperparamError(ValueError):
     """A hyperparameter file that cannot be used; the message names file and key."""
 
@@ -61,8 +84,16 @@ class TrainingError(ValueError):
     """Bad training input (unknown env or algorithm, bad config, nothing to resume)."""
 
 
+class CheckpointWarning(UserWarning):
+    """A checkpoint that cannot be loaded was skipped; training resumes from an older one."""
+
+
 class MetadataError(ValueError):
     """A policy's metadata is missing, unreadable or does not match the env."""
+
+
+class PolicyFileError(ValueError):
+    """A policy file (``model.zip``) that cannot be loaded: truncated, not a model, another algorithm."""
 
 
 class ExportError(ValueError):

@@ -661,3 +661,34 @@ def wait_for_homing_end(arm: Arm, name: str) -> None:
     while joint.is_busy():
         arm.backend.step(DT)
         joint.get_flags()
+
+
+# ------------------------------------------------------------ a trained policy
+def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
+    """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import SAC, HerReplayBuffer
+
+    from bioscara_gym.training.features import GoalErrorExtractor
+    from bioscara_gym.training.metadata import build_metadata, write_metadata
+
+    torch.set_num_threads(1)
+    env_kwargs = {"control_mode": "cartesian", "reward_type": "log"}
+    env = gym.make(env_id, **env_kwargs)
+    model = SAC(
+        "MultiInputPolicy",
+        env,
+        learning_starts=100,
+        batch_size=32,
+        buffer_size=1000,
+        replay_buffer_class=HerReplayBuffer,
+        policy_kwargs={"net_arch": [32, 32], "features_extractor_class": GoalErrorExtractor},
+        seed=0,
+        device="cpu",
+    )
+    model.learn(200)
+    model.save(out / "model.zip")
+    write_metadata(out, build_metadata(env, env_id, env_kwargs, algo="sac"))
+    env.close()
+    return out / "model.zip"

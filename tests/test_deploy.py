@@ -7,6 +7,7 @@ subprocess whose emulator state is read back from the run log's summary.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -23,14 +24,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from rich.console import Console
-from rigs import place_obstacle
+from rigs import place_obstacle, train_tiny_sac
 
 from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployArgs, Deployment
-from bioscara_gym.training.metadata import build_metadata, read_metadata, write_metadata
+from bioscara_gym.training.metadata import read_metadata
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 REACH = "Bioscara-Reach-v0"
@@ -82,9 +83,10 @@ def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., Run]:
         fields.setdefault("backend", "emulated")
         fields.setdefault("log", tmp_path / "run.jsonl")
         fields.setdefault("state_file", gripper_state_file)
-        if policy is None and "model" not in fields and "onnx" not in fields:
-            fields.setdefault("expert", True)
-            fields.setdefault("env", REACH)
+        if "model" not in fields and "onnx" not in fields:
+            fields.setdefault("expert", policy is None)
+            if metadata is None:
+                fields.setdefault("env", REACH)
         out = io.StringIO()
         deployment = Deployment(
             DeployArgs(**fields),
@@ -134,31 +136,7 @@ class PushJ1:
 @pytest.fixture(scope="module")
 def sac_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
-    import torch
-    from stable_baselines3 import SAC, HerReplayBuffer
-
-    from bioscara_gym.training.features import GoalErrorExtractor
-
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("sac")
-    env_kwargs = {"control_mode": "cartesian", "reward_type": "log"}
-    env = gym.make(REACH, **env_kwargs)
-    model = SAC(
-        "MultiInputPolicy",
-        env,
-        learning_starts=100,
-        batch_size=32,
-        buffer_size=1000,
-        replay_buffer_class=HerReplayBuffer,
-        policy_kwargs={"net_arch": [32, 32], "features_extractor_class": GoalErrorExtractor},
-        seed=0,
-        device="cpu",
-    )
-    model.learn(200)
-    model.save(out / "model.zip")
-    write_metadata(out, build_metadata(env, REACH, env_kwargs, algo="sac"))
-    env.close()
-    return out / "model.zip"
+    return train_tiny_sac(tmp_path_factory.mktemp("sac"))
 
 
 @pytest.fixture(scope="module")
@@ -275,6 +253,102 @@ def test_deadman_guard_stops_when_a_joint_is_silent_over_50_ms(deploy: Callable[
     summary = read_log(run.log)[-1]
     assert summary["stop_reason"] == "deadman" and summary["joint"] in ("j1", "j2", "j3", "j4")
     assert_every_joint_disabled(summary)
+
+
+# ------------------------------------------------------ bus statistics, log
+def test_recovered_bus_errors_appear_in_the_cycles_and_the_summary(deploy: Callable[..., Run]) -> None:
+    run = deploy(faults="nack=0.02,short_read=0.01,corrupt=0.01")
+    assert run.error is None, run.output
+    records = read_log(run.log)
+    summary = records[-1]
+    per_record = [r["bus"] for r in records if r["type"] == "cycle" and "bus" in r]
+    per_record += [r["joints"] for r in records if r["type"] == "bus"]
+    assert per_record, "faults were injected, yet no cycle reports a retry or an error"
+    bus_stats = run.backend.comm_stats()
+    for name, totals in summary["bus"].items():
+        logged = {k: sum(r.get(name, {}).get(k, 0) for r in per_record) for k in ("retries", "bus_errors")}
+        # The log's per-cycle differences add up to the summary, which is what the driver counted.
+        assert logged["retries"] == totals["retries"] == bus_stats[name].total_retries
+        assert logged["bus_errors"] == totals["errors"]["bus"] == bus_stats[name].total_bus_errors
+    # Every transaction on the bus is some joint's: the counts are per attempt, retries included.
+    assert sum(t["transactions"] for t in summary["bus"].values()) == run.backend.bus.transactions
+    assert sum(t["errors"]["bus"] for t in summary["bus"].values()) > 0
+    assert "bus j1: transactions / retries / errors" in run.output
+
+
+class FillingDisk:
+    """A log file whose writes fail with ENOSPC while ``full``; ``full_for`` writes, then space returns."""
+
+    def __init__(self, f: Any, full_for: int | None) -> None:
+        self._f = f
+        self.full_for = full_for
+        self.full = False
+
+    def write(self, text: str) -> int:
+        if self.full:
+            if self.full_for is not None:
+                self.full_for -= 1
+                self.full = self.full_for > 0
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return self._f.write(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._f, name)
+
+
+@pytest.mark.parametrize("full_for", [1, None], ids=["space-returns", "stays-full"])
+def test_a_full_disk_stops_the_run_safely_and_ends_the_log_where_it_can(
+    deploy: Callable[..., Run], full_for: int | None
+) -> None:
+    holder: dict[str, Deployment] = {}
+
+    def fill(cycle: int, env: gym.Env) -> None:
+        log = holder["deployment"]._log
+        if cycle == 0:
+            log._f = FillingDisk(log._f, full_for)
+        if cycle == 5:
+            log._f.full = True
+
+    original_init = Deployment.__init__
+
+    def init(self: Deployment, *args: Any, **kwargs: Any) -> None:
+        original_init(self, *args, **kwargs)
+        holder["deployment"] = self
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Deployment, "__init__", init)
+        run = deploy(on_cycle=fill)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "cannot write the run log" in str(run.error) and "No space left on device" in str(run.error)
+    assert_every_joint_disabled(run.summary)
+    records = read_log(run.log)
+    assert [r["cycle"] for r in records if r["type"] == "cycle"] == list(range(5))
+    if full_for == 1:
+        assert records[-2]["type"] == "stop" and records[-2]["reason"] == "log_error"
+        assert records[-1]["type"] == "summary" and records[-1]["log_error"]
+        assert "log incomplete: 1 record(s) not written" in run.output
+    else:
+        assert records[-1]["type"] == "cycle"
+        assert "log incomplete: 3 record(s) not written" in run.output  # cycle 5, stop, summary
+
+
+def test_the_gripper_width_is_called_saved_only_when_it_was(
+    deploy: Callable[..., Run], tmp_path: Path, gripper_state_file: Path
+) -> None:
+    run = deploy()
+    assert run.error is None, run.output
+    assert f"gripper width 0.080 m saved to {gripper_state_file}" in run.output
+    assert json.loads(gripper_state_file.read_text()) == {"width_m": 0.08}
+    assert run.summary["gripper"]["saved_width_m"] == 0.08
+
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    unwritable = blocker / "gripper.json"
+    run = deploy(state_file=unwritable, log=tmp_path / "second.jsonl")
+    assert run.error is None, run.output
+    assert f"gripper width 0.080 m NOT saved to {unwritable}: " in run.output
+    assert "warning: gripper: cannot save width 0.08 m" in run.output
+    assert run.summary["gripper"]["saved_width_m"] is None
 
 
 @pytest.mark.parametrize(

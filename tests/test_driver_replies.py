@@ -398,14 +398,39 @@ def test_lost_reply_of_home_reads_the_flags_only_after_the_pickup_window(
     assert times[2] - times[1] >= BLOCKING_PICKUP_S - 1e-12
 
 
-def test_lost_reply_of_a_blocking_command_that_did_not_start_raises(
+def test_lost_reply_of_a_blocking_command_that_did_not_start_is_sent_again(
     scripted_bus: Any, make_j1: Callable[..., Joint]
 ) -> None:
     joint = make_j1(state=NOT_HOMED)
-    scripted_bus.queue(flags(NOT_HOMED), OSError(121, "Remote I/O error"), ack(NOT_HOMED))
+    # HOMEOFFSET (NaN) ok; HOME lost; PING: not busy, so it did not start; HOME again: taken.
+    scripted_bus.queue(flags(NOT_HOMED), OSError(121, "x"), ack(NOT_HOMED), flags(BUSY | NOT_HOMED))
+    joint.start_homing(0.03, 30, 15)
+    assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.HOMEOFFSET, Reg.HOME, Reg.PING, Reg.HOME]
+    assert joint.current_blocking_command is Reg.HOME
+    assert (joint.stats.transactions, joint.stats.retries, joint.stats.bus_errors) == (4, 1, 1)
+
+
+def test_lost_reply_of_a_blocking_command_that_never_starts_raises_after_the_retries(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(state=NOT_HOMED, retries=1)
+    lost, idle = OSError(121, "Remote I/O error"), ack(NOT_HOMED)
+    scripted_bus.queue(flags(NOT_HOMED), lost, idle, lost, idle)
     with pytest.raises(CommError, match=r"HOME: the reply was lost and the joint is not busy") as info:
         joint.start_homing(0.03, 30, 15)
-    assert info.value.joint == "j1"
+    assert info.value.joint == "j1" and "sent 2 time(s)" in str(info.value)
+    assert [data[0] for _, data, _ in scripted_bus.log].count(Reg.HOME) == 2
+    assert joint.current_blocking_command is Reg.NONE
+
+
+def test_lost_reply_of_a_blocking_command_is_not_resent_when_the_flags_are_lost_too(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(state=NOT_HOMED, retries=2)
+    lost = OSError(121, "Remote I/O error")
+    scripted_bus.queue(flags(NOT_HOMED), lost, lost, lost, lost)
+    with pytest.raises(CommError, match=r"HOME failed"):
+        joint.start_homing(0.03, 30, 15)
     assert [data[0] for _, data, _ in scripted_bus.log].count(Reg.HOME) == 1
     assert joint.current_blocking_command is Reg.NONE
 

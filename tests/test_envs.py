@@ -332,6 +332,25 @@ def test_control_freq_below_deadman_floor_raises(freq: float) -> None:
         gym.make(REACH, control_freq=freq)
 
 
+@pytest.mark.parametrize("freq", [100.1, 1e9, math.inf])
+def test_control_freq_above_the_firmware_tick_raises(freq: float) -> None:
+    with pytest.raises(ValueError, match=r"within 20-100 Hz: the joint firmware's loop runs every 10 ms"):
+        gym.make(REACH, control_freq=freq)
+
+
+@pytest.mark.parametrize("freq", ["fast", None, True])
+def test_control_freq_that_is_not_a_number_raises(freq: object) -> None:
+    with pytest.raises(ValueError, match="control_freq must be a rate in Hz"):
+        gym.make(REACH, control_freq=freq)
+
+
+def test_control_freq_at_the_bounds_is_accepted() -> None:
+    for freq in (20.0, 100):
+        env = gym.make(REACH, control_freq=freq, backend="mock")
+        assert env.unwrapped.dt == pytest.approx(1.0 / freq)
+        env.close()
+
+
 @pytest.mark.parametrize(
     ("kwarg", "value"), [("backend", "usb"), ("control_mode", "torque"), ("reward_type", "shaped")]
 )

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from bioscara_gym.errors import MetadataError, PolicyFileError
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.metadata import read_metadata
 
@@ -38,18 +39,37 @@ def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
     by a one-entry plain one.
 
     Raises:
-        MetadataError: No or unreadable metadata.
-        FileNotFoundError: No model file.
+        MetadataError: No, unreadable or incomplete metadata, or an ``algo``
+            it does not state or that is unknown.
+        PolicyFileError: No model file, or one stable-baselines3 cannot load
+            (truncated, not a model, saved by another algorithm).
     """
     path = Path(path)
     model_file = path / "model.zip" if path.is_dir() else path
     metadata = read_metadata(model_file)
-    if not model_file.exists():
-        raise FileNotFoundError(f"no model at {model_file}")
-    algo = MODEL_CLASSES[metadata.get("algo", "sac")]
+    if not model_file.is_file():
+        raise PolicyFileError(f"no model at {model_file}")
+    name = metadata.get("algo")
+    if name not in MODEL_CLASSES:
+        said = "does not say which algorithm trained the policy" if name is None else f"has algo {name!r}"
+        raise MetadataError(
+            f"metadata.json next to {model_file} {said}; expected one of {', '.join(MODEL_CLASSES)}"
+        )
     act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
-    model = algo.load(model_file, env=None, device="cpu", custom_objects=act_only)
+    try:
+        model = MODEL_CLASSES[name].load(model_file, env=None, device="cpu", custom_objects=act_only)
+    except Exception as e:  # zipfile, pickle, torch and SB3's own asserts: all mean "not loadable"
+        raise PolicyFileError(
+            f"cannot load {model_file} as a {name.upper()} model (truncated or not a "
+            f"stable-baselines3 zip?): {type(e).__name__}: {_first_line(e)}"
+        ) from e
     return model, metadata
+
+
+def _first_line(e: BaseException) -> str:
+    """The first line of an exception's message (some libraries' messages span many)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else "no message"
 
 
 def sb3_policy(model: Any) -> Policy:

@@ -14,7 +14,14 @@ Reads top to bottom, as a deployment runs:
    at a fixed rate; every cycle goes to the run log.
 6. **deactivate** (joints disabled, gripper width saved) and **clean up**.
 
-Any stop (NaN action, stall, bus error, deadman, Ctrl-C/SIGTERM) ends in
+Before step 2, every argument is checked, and a policy is checked twice:
+its metadata must state the task, the control mode and rate and the spaces
+(nothing is defaulted), and the policy's own inputs and outputs (the SB3
+model's spaces, the ONNX graph's input and output widths) must fit the env
+the metadata builds. A refusal is one line and nothing is sent to the arm.
+
+Any stop (NaN action, stall, bus error, deadman, a run log that cannot be
+written, Ctrl-C/SIGTERM) ends in
 :func:`~bioscara_gym.hardware.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
 sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
 the arm is left disabled in every case. The run log is JSON Lines, one line
@@ -28,15 +35,26 @@ written and flushed per record, so it is complete after Ctrl-C:
 ``phase``      phase, detail, t (backend clock, s)
 ``cycle``      cycle, episode, step, t, period_s (backend clock), wall_period_s, work_s
                (host time for policy + step), silence_s (longest joint silence), overrun,
-               action (policy output), clamped, commands / q / qd / flags (per joint), reward;
-               the cycle a safety stop cut short: action, flags, ``stopped: true``
+               action (policy output), clamped, commands / q / qd / flags (per joint), reward,
+               bus (only when the cycle had any: per joint, retries and errors by kind that
+               the driver recovered from or not); the cycle a safety stop cut short: action,
+               flags, bus, ``stopped: true``
+``bus``        phase ``bring-up``, joints: retries and errors during configure/activate/home
 ``episode``    episode, success, distance, steps, return, stalled
 ``stop``       reason, message, joint
 ``summary``    episodes, successes, cycles, period/jitter/overrun statistics, stop_reason,
                message, joint, final_state (per-joint flags after the stop, read from the
                emulator where there is one), arm_disabled, not_confirmed_disabled,
-               gripper (width_m, state_file), exit_code
+               bus (per joint: transactions, retries, errors by kind ``bus`` / ``malformed``
+               / ``implausible``, as ``bioscara status`` counts them), gripper (width_m,
+               state_file, saved_width_m: what was written, ``null`` if nothing), log_error,
+               exit_code
 =============  ======================================================================
+
+A record that cannot be written (disk full) stops the run like any safety
+stop (exit 3, arm disabled); the stop and summary records are then written
+if the disk lets them, and the printed summary says how many records are
+missing. A log that cannot be opened or take its header refuses the run.
 
 On ``mock`` and ``emulated`` time is simulated: ``period_s`` is simulated and
 the loop runs as fast as the host can unless ``--realtime`` paces it on the
@@ -50,8 +68,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,20 +79,29 @@ from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import load_env_creator
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from bioscara_gym.errors import DeployError, MetadataError
+from bioscara_gym.envs.base import check_control_freq
+from bioscara_gym.errors import DeployError, MetadataError, TrainingError
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StopReason
+from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
-from bioscara_gym.training.deploy_log import LoopStats, RunLog
+from bioscara_gym.training.deploy_log import BusStats, LoopStats, RunLog
 from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
-from bioscara_gym.training.metadata import check_metadata, read_metadata
+from bioscara_gym.training.metadata import (
+    PolicyShapes,
+    check_metadata,
+    check_policy_shapes,
+    read_metadata,
+    resolve_env_id,
+)
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 #: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``).
@@ -112,6 +141,7 @@ class DeployArgs:
         realtime: On simulated backends, pace the loop on the wall clock too.
         state_file: Gripper state file; default the backend's (on the arm) or
             ``gripper.json`` beside the log (simulated backends).
+        record: Bus trace: every I2C transaction as a JSON line (docs/traces.md).
     """
 
     model: Path | None = None
@@ -128,6 +158,7 @@ class DeployArgs:
     seed: int = 10_000
     realtime: bool = False
     state_file: Path | None = None
+    record: Path | None = None
 
 
 @dataclass
@@ -185,34 +216,58 @@ def _env_id(env: gym.Env) -> str:
     return spec.id if spec is not None else type(env.unwrapped).__name__
 
 
-def load_policy(args: DeployArgs) -> tuple[Callable[[gym.Env], Policy], dict[str, Any] | None, str]:
-    """A factory of the policy (given the env), its metadata and a description.
+@dataclass(frozen=True)
+class LoadedPolicy:
+    """A policy ready to be given its env.
+
+    Attributes:
+        make: Builds the policy for the env (the scripted expert needs it).
+        metadata: What the policy was trained for (``None`` for the expert).
+        description: One line for the operator.
+        shapes: What the policy itself takes and gives (``None`` for the expert).
+    """
+
+    make: Callable[[gym.Env], Policy]
+    metadata: dict[str, Any] | None
+    description: str
+    shapes: PolicyShapes | None = None
+
+
+def load_policy(args: DeployArgs) -> LoadedPolicy:
+    """Load the policy the arguments name.
 
     Only ``--model`` imports torch and stable-baselines3, only ``--onnx`` onnxruntime.
 
     Raises:
-        DeployError: No policy source, or more than one.
-        MetadataError: ``--model`` without a readable ``metadata.json``.
+        DeployError: No policy source, or more than one; ``--expert`` without ``--env``.
+        MetadataError: Missing, incomplete or unreadable metadata.
+        PolicyFileError: A ``model.zip`` that cannot be loaded.
+        ExportError: An ONNX file that cannot be loaded.
         MissingExtraError: The extra the policy source needs is not installed.
     """
     sources = [s for s in (args.model is not None, args.onnx is not None, args.expert) if s]
     if len(sources) != 1:
         raise DeployError("deploy needs exactly one of --model PATH, --onnx FILE or --expert --env ID")
     if args.expert:
+        if args.env is None:
+            raise DeployError("--expert needs --env ID: the task is never guessed")
         from bioscara_gym.experts import expert_for
 
-        return (lambda env: expert_for(env.unwrapped)), None, "scripted expert"
+        return LoadedPolicy(lambda env: expert_for(env.unwrapped), None, "scripted expert")
     if args.onnx is not None:
         from bioscara_gym.training.export import OnnxPolicy
 
         onnx_policy = OnnxPolicy(args.onnx)
-        return (lambda env: onnx_policy), onnx_policy.metadata, f"ONNX {args.onnx}"
+        return LoadedPolicy(
+            lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
+        )
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
     from bioscara_gym.training.algos import load_model, sb3_policy
 
     model, metadata = load_model(Path(args.model))
     sb3 = sb3_policy(model)
-    return (lambda env: sb3), metadata, f"{str(metadata.get('algo', 'sb3')).upper()} {args.model}"
+    shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {args.model}")
+    return LoadedPolicy(lambda env: sb3, metadata, f"{metadata['algo'].upper()} {args.model}", shapes)
 
 
 # ---------------------------------------------------------------- deployment
@@ -238,16 +293,7 @@ class Deployment:
         on_cycle: Callable[[int, gym.Env], None] | None = None,
     ) -> None:
         """Validate the arguments; nothing is built or sent yet."""
-        if args.backend not in DEPLOY_BACKENDS:
-            raise DeployError(
-                f"backend {args.backend!r} is not deployable; expected one of {', '.join(DEPLOY_BACKENDS)}"
-            )
-        if args.episodes < 1:
-            raise DeployError(f"--episodes must be >= 1, got {args.episodes}")
-        if args.rate is not None and not args.rate > 0:
-            raise DeployError(f"--rate must be > 0 Hz, got {args.rate}")
-        if args.faults and args.backend != "emulated":
-            raise DeployError("--faults needs --backend emulated (faults are injected by the emulated bus)")
+        _check_args(args)
         self.args = args
         self.console = console or Console(highlight=False, soft_wrap=True)
         self.on_cycle = on_cycle
@@ -265,6 +311,7 @@ class Deployment:
         self._signals = SignalGuard()
         self._guard: DeadmanGuard | None = None
         self._stats: LoopStats | None = None
+        self._bus: BusStats | None = None
         self._counts = {"episodes": 0, "successes": 0, "cycles": 0}
 
     # --------------------------------------------------------------- output
@@ -291,42 +338,56 @@ class Deployment:
                 (code 3); the arm is safe and the summary is attached.
             Interrupted: SIGINT/SIGTERM; the arm is safe, ``self.summary`` is set.
         """
-        make_policy, metadata, description = self._load_policy()
-        env = self.env = self._make_env(metadata)
-        try:
-            target = f"{_describe_env(env)} on {self.args.backend}"
-            self.console.print(f"[bold]deploy[/bold]     {escape(description)} -> {target}")
-            self._check(env, metadata)
-            return self._run(env, make_policy(env), description)
-        finally:
-            env.close()
+        loaded = self._load_policy()
+        env = self.env = self._make_env(loaded.metadata)
+        with warnings.catch_warnings():
+            warnings.showwarning = self._show_warning  # one line each, with the phases
+            try:
+                target = f"{_describe_env(env)} on {self.args.backend}"
+                self.console.print(f"[bold]deploy[/bold]     {escape(loaded.description)} -> {target}")
+                self._check(env, loaded)
+                return self._run(env, loaded.make(env), loaded.description)
+            finally:
+                env.close()
 
-    def _load_policy(self) -> tuple[Callable[[gym.Env], Policy], dict[str, Any] | None, str]:
+    def _show_warning(self, message: Warning | str, *args: Any, **kwargs: Any) -> None:
+        """Print a warning (e.g. the gripper's state file) as one line among the phases."""
+        self.console.print(f"[yellow]warning[/yellow]: {escape(str(message))}")
+
+    def _load_policy(self) -> LoadedPolicy:
         """Load the policy: the one given to the constructor, else the one the arguments name."""
         if self._policy_override is None:
             return load_policy(self.args)
-        given = self._policy_override
-        return (lambda env: given), self._metadata_override, "given policy"
+        given, metadata = self._policy_override, self._metadata_override
+        if metadata is None and self.args.env is None:
+            raise DeployError("a policy without metadata needs --env ID: the task is never guessed")
+        return LoadedPolicy(lambda env: given, metadata, "given policy")
 
-    def _check(self, env: gym.Env, metadata: dict[str, Any] | None) -> None:
-        """Refuse a policy trained for another env, before anything is sent to the arm."""
-        if metadata is None:
+    def _check(self, env: gym.Env, loaded: LoadedPolicy) -> None:
+        """Refuse a policy trained for another env, or one that does not fit it, before anything is sent."""
+        if loaded.metadata is None:
             self._phase("check", "no metadata to check (scripted policy)")
             return
         try:
-            check_metadata(metadata, env, _env_id(env))
+            check_metadata(loaded.metadata, env, _env_id(env))
+            if loaded.shapes is not None:
+                check_policy_shapes(loaded.shapes, env)
         except MetadataError as e:
             raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
-        self._phase("check", "policy metadata matches the env; nothing sent to the arm yet")
+        checked = "metadata and own inputs and outputs match" if loaded.shapes else "metadata matches"
+        self._phase("check", f"policy {checked} the env; nothing sent to the arm yet")
 
     def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
         """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet."""
         args = self.args
-        kwargs: dict[str, Any] = dict(metadata.get("env_kwargs", {})) if metadata else {}
-        if metadata:
-            env_id = args.env if args.env is not None else metadata.get("env_id")  # checked in _check
-        else:
-            env_id = args.env or "Bioscara-Reach-v0"
+        kwargs: dict[str, Any] = dict(metadata["env_kwargs"]) if metadata else {}
+        # With a policy the metadata names the env (--env, if given, must agree: _check);
+        # the expert has --env (load_policy).
+        try:
+            env_id = resolve_env_id(args.env if args.env is not None else metadata["env_id"])
+        except TrainingError as e:
+            raise DeployError(str(e)) from e
+        _check_env_kwargs(env_id, kwargs)
         config = load_config(args.config)
         if args.bus is not None:
             config = dataclasses.replace(config, bus=args.bus)
@@ -336,7 +397,7 @@ class Deployment:
             kwargs["control_freq"] = float(args.rate)
         try:
             return gym.make(env_id, **kwargs)
-        except gym.error.Error as e:
+        except (gym.error.Error, ValueError, TypeError) as e:
             raise DeployError(f"cannot make env {env_id!r}: {e}") from e
 
     def _backend_options(self) -> dict[str, Any]:
@@ -349,17 +410,30 @@ class Deployment:
         if state_file is not None:
             options["state_file"] = state_file
         if args.faults:
-            options["faults"] = FaultPlan.parse(args.faults)
+            options["faults"] = FaultPlan.parse(args.faults)  # checked in _check_args
+        if args.record is not None:  # every bus transaction to a trace (docs/traces.md)
+            from bioscara_gym.hardware.recording import Recording
+
+            options["record"] = Recording(args.record, "deploy", args)
         return options
 
     def _run(self, env: gym.Env, policy: Policy, description: str) -> dict[str, Any]:
         """Bring up, run and shut down; every way out makes the arm safe first."""
         arm = env.unwrapped.arm
-        self._log = RunLog(self.log_path)
+        try:
+            self._log = RunLog(self.log_path)
+        except OSError as e:
+            raise DeployError(
+                f"cannot open the run log {self.log_path}: {e.strerror or e}; nothing was sent to the arm"
+            ) from e
         self._stats = LoopStats(nominal_s=env.unwrapped.dt)
+        self._bus = BusStats(arm.backend.comm_stats())
         outcome = Outcome()
         try:
-            self._write_header(env, description)
+            try:
+                self._write_header(env, description)
+            except SafetyStop as e:  # the log cannot be written: refuse before the arm is touched
+                raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
             with self._signals:
                 try:
                     self._bring_up(env)
@@ -436,6 +510,9 @@ class Deployment:
         """Run every episode behind the safety layer."""
         self._guard = DeadmanGuard(env.unwrapped.arm.backend)
         safety = SafetyLayer(env, self._guard)
+        recovered = self._bus.cycle()
+        if recovered:
+            self._log.write({"type": "bus", "phase": "bring-up", "joints": recovered})
         self._phase(
             "run",
             f"{self.args.episodes} episode(s) at {env.unwrapped.control_freq:g} Hz, log {self.log_path}",
@@ -486,16 +563,21 @@ class Deployment:
             result, check = safety.step(raw)
         except SafetyStop:
             flags = {n: int(arm.joint_states[n].flags) for n in env.unwrapped.joint_names}
-            self._log.write(
-                {"type": "cycle", **where, "action": _floats(raw), "flags": flags, "stopped": True}
-            )
+            record = {"type": "cycle", **where, "action": _floats(raw), "flags": flags, "stopped": True}
+            self._log.write({**record, **self._bus_record()})
             raise
         timing = self._account_cycle(env, period, wall_period, time.perf_counter() - t_wall, check)
+        state = self._cycle_state(env, raw, check)
         self._log.write(
-            {"type": "cycle", **where, **timing, **self._cycle_state(env, raw, check), "reward": result[1]}
+            {"type": "cycle", **where, **timing, **state, "reward": result[1], **self._bus_record()}
         )
         self._counts["cycles"] += 1
         return result
+
+    def _bus_record(self) -> dict[str, Any]:
+        """``{"bus": ...}`` with the cycle's retries and errors per joint, or nothing if it had none."""
+        changes = self._bus.cycle()
+        return {"bus": changes} if changes else {}
 
     def _account_cycle(
         self, env: gym.Env, period: float | None, wall_period: float | None, work: float, check: CycleCheck
@@ -566,7 +648,7 @@ class Deployment:
         with self._signals.shielded():
             arm.deactivate()
             self._gripper_width = arm.gripper.get_position()
-            saved = "saved" if arm.gripper.state_file else "not kept (no state file)"
+            saved = _gripper_saved(arm.gripper)
             self._phase("deactivate", f"joints disabled, gripper width {self._gripper_width:.3f} m {saved}")
             arm.cleanup()
             self._phase("cleanup", "joints and gripper disconnected")
@@ -608,6 +690,7 @@ class Deployment:
             **counts,
             "success_rate": counts["successes"] / counts["episodes"] if counts["episodes"] else None,
             **self._stats.summary(),
+            "bus": self._bus.summary(),
             "stop_reason": outcome.reason.value,
             "message": outcome.message,
             "joint": outcome.joint,
@@ -619,7 +702,9 @@ class Deployment:
             "gripper": {
                 "width_m": self._gripper_width,
                 "state_file": str(arm.gripper.state_file) if arm.gripper.state_file else None,
+                "saved_width_m": arm.gripper.saved_width_m,
             },
+            "log_error": None if self._log.error is None else str(self._log.error),
             "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
@@ -670,11 +755,100 @@ class Deployment:
         table.add_row("host work per cycle mean / max", f"{ms('work_mean_s')} / {ms('work_max_s')}")
         table.add_row("longest joint silence", ms("max_silence_s"))
         table.add_row("overruns", str(s["overruns"]))
+        for name, bus in s["bus"].items():
+            errors = ", ".join(f"{k} {v}" for k, v in bus["errors"].items())
+            table.add_row(
+                f"bus {name}: transactions / retries / errors",
+                f"{bus['transactions']} / {bus['retries']} / {errors}",
+            )
         table.add_row("stop", escape(s["message"]))
         flags = ", ".join(f"{n} {st['flag_names']}" for n, st in s["final_state"].items())
         table.add_row("final flags", flags)
         self.console.print(table)
         self.console.print(f"log        {self.log_path}", markup=False)
+        if self._log.error is not None:
+            self.console.print(
+                f"log incomplete: {self._log.dropped} record(s) not written "
+                f"({self._log.error.strerror or self._log.error})",
+                markup=False,
+            )
+
+
+def _check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
+    """Refuse a policy's env kwargs that the env does not take, naming them.
+
+    Raises:
+        DeployError: Unknown env id, or a kwarg the env's constructor lacks.
+    """
+    try:
+        spec = gym.spec(env_id)
+    except gym.error.Error as e:
+        raise DeployError(f"cannot make env {env_id!r}: {e}") from e
+    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
+    known = _keyword_parameters(creator)
+    unknown = [k for k in kwargs if k not in known]
+    if unknown:
+        settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
+        raise DeployError(
+            f"the policy's env_kwargs has {unknown[0]!r}, which {env_id} does not take; it takes {settings}"
+        )
+
+
+def _keyword_parameters(creator: Any) -> list[str]:
+    """The keyword parameters an env class takes, following ``**kwargs`` up its bases."""
+    classes = creator.__mro__ if isinstance(creator, type) else (creator,)
+    names: list[str] = []
+    for cls in classes:
+        target = cls.__init__ if isinstance(creator, type) else cls
+        if isinstance(creator, type) and "__init__" not in vars(cls):
+            continue
+        params = inspect.signature(target).parameters.values()
+        names += [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return [n for n in dict.fromkeys(names) if n != "self"]
+
+
+def _check_args(args: DeployArgs) -> None:
+    """Refuse a bad argument before anything is built or sent.
+
+    Raises:
+        DeployError: One line naming the argument and what was expected.
+    """
+    if args.backend not in DEPLOY_BACKENDS:
+        raise DeployError(
+            f"backend {args.backend!r} is not deployable; expected one of {', '.join(DEPLOY_BACKENDS)}"
+        )
+    if args.episodes < 1:
+        raise DeployError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        raise DeployError(f"--seed must be >= 0, got {args.seed}")
+    if args.bus is not None and args.bus < 0:
+        raise DeployError(f"--bus must be an I2C bus number >= 0 (/dev/i2c-N), got {args.bus}")
+    if args.rate is not None:
+        try:
+            check_control_freq(args.rate, "--rate")
+        except ValueError as e:
+            raise DeployError(str(e)) from e
+    if args.faults:
+        if args.backend != "emulated":
+            raise DeployError("--faults needs --backend emulated (faults are injected by the emulated bus)")
+        try:
+            FaultPlan.parse(args.faults)
+        except ValueError as e:
+            raise DeployError(f"--faults: {e}") from e
+
+
+def _gripper_saved(gripper: BaseGripper) -> str:
+    """Whether the gripper's width was written to its state file, in words."""
+    path = gripper.state_file
+    if path is None:
+        return "not kept (no state file)"
+    if gripper.save_error is not None:
+        return f"NOT saved to {path}: {gripper.save_error.strerror or gripper.save_error}"
+    if gripper.saved_width_m is None:
+        return f"not saved (the gripper was not enabled; {path} unchanged)"
+    return f"saved to {path}"
 
 
 def _floats(action: Any) -> np.ndarray:
@@ -753,4 +927,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")
     p.add_argument("--state-file", type=Path, help="gripper state file")
+    p.add_argument("--record", type=Path, metavar="FILE", help="bus trace to write (docs/traces.md)")
     p.set_defaults(func=cmd_deploy)

@@ -1,8 +1,10 @@
-"""What a deployment records: the JSON Lines run log and the control loop's timing.
+"""What a deployment records: the JSON Lines run log, the loop's timing, the bus's errors.
 
 :class:`RunLog` writes one line per record and flushes it, so the log is
-complete after Ctrl-C; :class:`LoopStats` gathers period, jitter, host work
-and overruns for the summary.
+complete after Ctrl-C; a record it cannot write (disk full) stops the run,
+and the stop and summary records are then written where they still can be.
+:class:`LoopStats` gathers period, jitter, host work and overruns for the
+summary, :class:`BusStats` each joint's transactions, retries and errors.
 """
 
 from __future__ import annotations
@@ -16,6 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from bioscara_gym.hardware.errors import SafetyStop, StopReason
+from bioscara_gym.hardware.stats import CommStats
 
 #: fsync the log at least this often (every line is flushed), s.
 FSYNC_INTERVAL_S = 1.0
@@ -46,6 +51,10 @@ class RunLog:
 
     Args:
         path: The log file (parents created; an existing file is replaced).
+
+    Attributes:
+        error: The first write that failed, if one did.
+        dropped: Records not written because of it.
     """
 
     def __init__(self, path: Path) -> None:
@@ -55,23 +64,96 @@ class RunLog:
         self._f = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
         self._synced = time.monotonic()
         self.lines = 0
+        self.error: OSError | None = None
+        self.dropped = 0
 
     def write(self, record: dict[str, Any]) -> None:
-        """Append one record as a line."""
-        self._f.write(json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n")
-        self._f.flush()
+        """Append one record as a line.
+
+        Raises:
+            SafetyStop: The first record that cannot be written (``LOG_ERROR``):
+                a run that can no longer be recorded is stopped. Later records
+                (the stop, the summary) are tried and, if they fail too, counted
+                in :attr:`dropped`.
+        """
+        line = json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n"
+        try:
+            self._f.write(line)
+            self._f.flush()
+            now = time.monotonic()
+            if now - self._synced >= FSYNC_INTERVAL_S:
+                os.fsync(self._f.fileno())
+                self._synced = now
+        except OSError as e:
+            self.dropped += 1
+            if self.error is not None:
+                return
+            self.error = e
+            raise SafetyStop(
+                StopReason.LOG_ERROR, f"cannot write the run log {self.path}: {e.strerror or e}"
+            ) from e
         self.lines += 1
-        now = time.monotonic()
-        if now - self._synced >= FSYNC_INTERVAL_S:
-            os.fsync(self._f.fileno())
-            self._synced = now
 
     def close(self) -> None:
-        """Flush, fsync and close."""
-        if not self._f.closed:
+        """Flush, fsync and close (after a failed write, as far as the file system lets it)."""
+        if self._f.closed:
+            return
+        try:
             self._f.flush()
             os.fsync(self._f.fileno())
-            self._f.close()
+        except OSError as e:
+            self.error = self.error or e
+        finally:
+            try:
+                self._f.close()
+            except OSError as e:  # the buffered tail could not be written either
+                self.error = self.error or e
+
+
+class BusStats:
+    """Each joint's transactions, retries and errors by kind, per cycle and for the run.
+
+    Reads the drivers' :class:`~bioscara_gym.hardware.stats.CommStats` (the
+    same counters ``bioscara status`` shows) as differences of their totals,
+    so a retry the driver recovered from still shows in the cycle it happened.
+
+    Args:
+        stats: Joint name to its driver's counters (``Backend.comm_stats()``;
+            empty on ``mock``, which has no bus).
+    """
+
+    #: Counters reported, from the ``total_`` fields of ``CommStats``.
+    FIELDS = ("transactions", "retries", "bus_errors", "malformed", "implausible")
+
+    def __init__(self, stats: dict[str, CommStats]) -> None:
+        """Start counting from the counters' present totals."""
+        self._stats = stats
+        self._start = self._totals()
+        self._last = self._start
+
+    def _totals(self) -> dict[str, dict[str, int]]:
+        return {n: {f: getattr(s, f"total_{f}") for f in self.FIELDS} for n, s in self._stats.items()}
+
+    def cycle(self) -> dict[str, dict[str, int]]:
+        """The retries and errors since the previous call, for the joints that had any."""
+        now = self._totals()
+        changes = {}
+        for name, counts in now.items():
+            delta = {f: counts[f] - self._last[name][f] for f in self.FIELDS[1:]}
+            if any(delta.values()):
+                changes[name] = {k: v for k, v in delta.items() if v}
+        self._last = now
+        return changes
+
+    def summary(self) -> dict[str, dict[str, Any]]:
+        """Per joint since the start: transactions, retries and errors by kind."""
+        now = self._totals()
+        out = {}
+        for name, counts in now.items():
+            d = {f: counts[f] - self._start[name][f] for f in self.FIELDS}
+            errors = {"bus": d["bus_errors"], "malformed": d["malformed"], "implausible": d["implausible"]}
+            out[name] = {"transactions": d["transactions"], "retries": d["retries"], "errors": errors}
+        return out
 
 
 @dataclass

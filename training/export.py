@@ -35,8 +35,9 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from bioscara_gym.errors import ExportError
+from bioscara_gym.errors import ExportError, MetadataError
 from bioscara_gym.training.extras import needs_onnx, needs_train
+from bioscara_gym.training.metadata import PolicyShapes, validate_metadata
 
 #: metadata_props key holding the training metadata (JSON).
 METADATA_KEY = "bioscara_metadata"
@@ -225,11 +226,16 @@ class OnnxPolicy:
         path: The ``.onnx`` file.
 
     Attributes:
-        metadata: The training metadata stored in the file.
+        metadata: The training metadata stored in the file (validated).
         obs_keys: Observation keys and sizes, in input order.
+        shapes: What the graph itself takes and gives, for
+            :func:`~bioscara_gym.training.metadata.check_policy_shapes`.
 
     Raises:
-        ExportError: The file lacks the metadata :func:`export_onnx` writes.
+        ExportError: The file cannot be loaded or lacks the metadata
+            :func:`export_onnx` writes.
+        MetadataError: The embedded metadata is incomplete, or the graph's
+            input width disagrees with its ``obs_keys``.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -249,12 +255,39 @@ class OnnxPolicy:
             raise ExportError(f"cannot load {self.path}: {e}") from e
         props = self.session.get_modelmeta().custom_metadata_map
         try:
-            self.metadata: dict[str, Any] = json.loads(props[METADATA_KEY])
+            metadata = json.loads(props[METADATA_KEY])
             self.obs_keys: list[tuple[str, int]] = [(k, int(n)) for k, n in json.loads(props[OBS_KEYS_KEY])]
-        except (KeyError, ValueError) as e:
+        except (KeyError, ValueError, TypeError) as e:
             raise ExportError(
                 f"{self.path} has no {METADATA_KEY}/{OBS_KEYS_KEY} metadata; export it with `bioscara export`"
             ) from e
+        self.metadata: dict[str, Any] = validate_metadata(metadata, f"{self.path} (embedded metadata)")
+        self.shapes = self._graph_shapes()
+
+    def _graph_shapes(self) -> PolicyShapes:
+        """The graph's own input and output widths, checked against its ``obs_keys``.
+
+        Raises:
+            MetadataError: The graph's input width is not what ``obs_keys`` adds up to,
+                or its input or output is not the one :func:`export_onnx` writes.
+        """
+        inputs = {i.name: i.shape for i in self.session.get_inputs()}
+        outputs = {o.name: o.shape for o in self.session.get_outputs()}
+        if INPUT_NAME not in inputs or OUTPUT_NAME not in outputs:
+            raise MetadataError(
+                f"{self.path}: expected a graph from `bioscara export` with input '{INPUT_NAME}' and output "
+                f"'{OUTPUT_NAME}', got inputs {sorted(inputs)} and outputs {sorted(outputs)}"
+            )
+        width, act = inputs[INPUT_NAME][-1], outputs[OUTPUT_NAME][-1]
+        if not isinstance(width, int) or not isinstance(act, int):
+            raise MetadataError(f"{self.path}: the graph's last input and output dimensions must be fixed")
+        layout = sum(n for _, n in self.obs_keys)
+        if layout != width:
+            raise MetadataError(
+                f"{self.path}: the graph's input '{INPUT_NAME}' takes {width} values, but its "
+                f"{OBS_KEYS_KEY} add up to {layout}"
+            )
+        return PolicyShapes(dict(self.obs_keys), act, f"ONNX graph {self.path}")
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The deterministic action for one observation (float32, shape of the action space)."""

@@ -8,19 +8,41 @@ control mode or rate), before anything touches the arm.
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 import bioscara_gym
 from bioscara_gym.errors import MetadataError, TrainingError
 from bioscara_gym.fsutil import atomic_write_text
 
 METADATA_NAME = "metadata.json"
-#: env kwargs that change what the policy's actions mean; they must match to deploy.
+#: env kwargs that change what the policy's actions mean; they must match to deploy,
+#: and metadata that does not state them is refused (a guessed control mode turns
+#: a cartesian policy's actions into joint velocities).
 BEHAVIOUR_KWARGS = ("control_mode", "control_freq")
+#: The keys every metadata file must have, with their JSON types.
+REQUIRED_KEYS: Mapping[str, type] = {
+    "env_id": str,
+    "env_kwargs": dict,
+    "observation_space": dict,
+    "action_space": dict,
+}
+#: How JSON names Python's types, for messages.
+_JSON_NAMES: Mapping[type, str] = {
+    dict: "an object",
+    list: "a list",
+    str: "a string",
+    bool: "a boolean",
+    type(None): "null",
+}
 
 
 def space_description(space: gym.Space) -> Any:
@@ -62,23 +84,71 @@ def write_metadata(directory: Path, metadata: dict[str, Any]) -> Path:
     return path
 
 
-def read_metadata(model_path: Path) -> dict[str, Any]:
-    """Read the metadata next to ``model_path`` (a ``model.zip`` or its directory).
+def validate_metadata(metadata: Any, source: str) -> dict[str, Any]:
+    """Refuse metadata that lacks a setting or has one of the wrong type; nothing is defaulted.
+
+    Args:
+        metadata: The parsed JSON.
+        source: Where it came from, for the message (a path).
+
+    Returns:
+        ``metadata``, checked.
 
     Raises:
-        MetadataError: Missing or unreadable file.
+        MetadataError: One line naming ``source`` and the key.
+    """
+    if not isinstance(metadata, dict):
+        raise MetadataError(f"{source}: expected a JSON object, got {_json_type(metadata)}")
+    for key, kind in REQUIRED_KEYS.items():
+        if key not in metadata:
+            raise MetadataError(f"{source}: '{key}' is missing; re-export or retrain the policy")
+        if not isinstance(metadata[key], kind):
+            raise MetadataError(
+                f"{source}: '{key}' must be {_JSON_NAMES[kind]}, got {_json_type(metadata[key])}"
+            )
+    kwargs = metadata["env_kwargs"]
+    for key in BEHAVIOUR_KWARGS:
+        if key not in kwargs:
+            raise MetadataError(
+                f"{source}: env_kwargs.{key} is missing: the setting the policy was trained with "
+                "must be stated, it is never guessed"
+            )
+    if not isinstance(kwargs["control_mode"], str):
+        raise MetadataError(
+            f"{source}: env_kwargs.control_mode must be a string, got {_json_type(kwargs['control_mode'])}"
+        )
+    freq = kwargs["control_freq"]
+    if isinstance(freq, bool) or not isinstance(freq, numbers.Real) or not math.isfinite(freq) or freq <= 0:
+        raise MetadataError(f"{source}: env_kwargs.control_freq must be a rate in Hz > 0, got {freq!r}")
+    return metadata
+
+
+def _json_type(value: Any) -> str:
+    """How JSON would name the type of ``value``, with the value when it is short."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        return f"the number {value!r}"
+    name = _JSON_NAMES.get(type(value), type(value).__name__)
+    return f"{name} {value!r}" if isinstance(value, str) and len(value) <= 20 else name
+
+
+def read_metadata(model_path: Path) -> dict[str, Any]:
+    """Read and validate the metadata next to ``model_path`` (a ``model.zip`` or its directory).
+
+    Raises:
+        MetadataError: Missing, unreadable or incomplete file (:func:`validate_metadata`).
     """
     model_path = Path(model_path)
     directory = model_path if model_path.is_dir() else model_path.parent
     path = directory / METADATA_NAME
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        metadata = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as e:
         raise MetadataError(
             f"no {METADATA_NAME} next to {model_path}: cannot tell what the policy was trained for"
         ) from e
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise MetadataError(f"cannot read {path}: {e}") from e
+    return validate_metadata(metadata, str(path))
 
 
 def check_metadata(metadata: dict[str, Any], env: gym.Env, env_id: str) -> None:
@@ -102,6 +172,63 @@ def check_metadata(metadata: dict[str, Any], env: gym.Env, env_id: str) -> None:
             raise MetadataError(
                 f"{name} differs: policy {metadata.get(name)} vs env {space_description(space)}"
             )
+
+
+@dataclass(frozen=True)
+class PolicyShapes:
+    """What a policy itself takes and gives, read from the policy, not its metadata.
+
+    Attributes:
+        observation: Observation key to its number of values, in the policy's order.
+        action: Number of action values.
+        source: What the shapes were read from, for messages.
+    """
+
+    observation: dict[str, int]
+    action: int
+    source: str
+
+    @classmethod
+    def of_spaces(cls, observation_space: gym.Space, action_space: gym.Space, source: str) -> PolicyShapes:
+        """The shapes of a policy that carries Gymnasium spaces (a stable-baselines3 model)."""
+        if isinstance(observation_space, gym.spaces.Dict):
+            obs = {k: _size(s) for k, s in observation_space.spaces.items()}
+        else:
+            obs = {"": _size(observation_space)}
+        return cls(obs, _size(action_space), source)
+
+
+def _size(space: gym.Space) -> int:
+    return int(np.prod(space.shape)) if space.shape is not None else -1
+
+
+def check_policy_shapes(shapes: PolicyShapes, env: gym.Env) -> None:
+    """Refuse a policy whose own inputs or outputs do not fit ``env``.
+
+    The metadata says what the policy was trained for; this checks the policy
+    itself, so a model file next to another policy's metadata is refused
+    before the arm is touched.
+
+    Raises:
+        MetadataError: The first difference: a missing or extra observation
+            key, a size, or the action size; named with ``shapes.source``.
+    """
+    expected = PolicyShapes.of_spaces(env.observation_space, env.action_space, "env")
+    for key, size in expected.observation.items():
+        if key not in shapes.observation:
+            raise MetadataError(f"{shapes.source} takes no observation '{key}', which the env gives")
+        if shapes.observation[key] != size:
+            raise MetadataError(
+                f"{shapes.source} takes {shapes.observation[key]} values of observation '{key}', "
+                f"the env gives {size}"
+            )
+    extra = [k for k in shapes.observation if k not in expected.observation]
+    if extra:
+        raise MetadataError(f"{shapes.source} takes observation '{extra[0]}', which the env does not give")
+    if shapes.action != expected.action:
+        raise MetadataError(
+            f"{shapes.source} gives {shapes.action} action values, the env takes {expected.action}"
+        )
 
 
 def resolve_env_id(env: str) -> str:

@@ -154,6 +154,10 @@ class BaseJoint(abc.ABC):
 
     #: Whether the subclass reports each delivered bus transfer itself (retries included).
     _reports_transfers = False
+    #: Extra attempts after a failed transaction (bus drivers set it; simulated joints never fail).
+    retries = 0
+    #: True while a blocking command that did not start is sent again (counted as a retry).
+    _resending = False
 
     def on_exchange(self, listener: Callable[[], None]) -> Callable[[], None]:
         """Call ``listener`` after every exchange the joint's device received.
@@ -236,34 +240,49 @@ class BaseJoint(abc.ABC):
         return value
 
     def _send_blocking(self, reg: Reg, value: float | int) -> None:
-        """Send HOME or CHECKORIENTATION once; on a lost reply, learn from BUSY whether it started.
+        """Send HOME or CHECKORIENTATION; on a lost reply, learn from BUSY whether it started.
 
-        The command is never sent twice: a reply lost on the bus may follow a
-        command the joint took. After the pick-up window the flags are read:
-        BUSY means it started (success); otherwise the original
-        :class:`CommError` is raised and no blocking command is running.
+        A reply lost on the bus may follow a command the joint took, so the
+        command is not simply sent again: after the pick-up window the flags
+        are read. BUSY means it started (success). Not BUSY means it did not
+        start, and only then is it sent again, up to :attr:`retries` times
+        (homing lasts seconds: a joint not busy 60 ms after the command has
+        not run it). If the flags cannot be read either, or every attempt
+        was lost, :class:`CommError` is raised and no blocking command is running.
         """
         self._current_b_cmd = reg
         self._wait_for_abort()
+        for attempt in range(self.retries + 1):
+            try:
+                self._send_once(reg, value, resend=attempt > 0)
+            except CommError as lost:
+                self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
+                try:
+                    started = bool(self.get_flags() & FLAG_BUSY)
+                except CommError:
+                    self._current_b_cmd = Reg.NONE
+                    raise lost from None
+                if started:
+                    return
+                last = lost
+                continue
+            self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
+            return
+        self._current_b_cmd = Reg.NONE
+        raise CommError(
+            f"{reg.name}: the reply was lost and the joint is not busy, so it did not start; "
+            f"sent {self.retries + 1} time(s) ({last})",
+            joint=self.name,
+            register=reg,
+        ) from last
+
+    def _send_once(self, reg: Reg, value: float | int, resend: bool) -> None:
+        """Send a blocking command; ``resend`` counts it as a retry in the bus statistics."""
+        self._resending = resend
         try:
             self._send(reg, value)
-        except CommError as lost:
-            self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
-            try:
-                started = bool(self.get_flags() & FLAG_BUSY)
-            except CommError:
-                self._current_b_cmd = Reg.NONE
-                raise lost from None
-            if not started:
-                self._current_b_cmd = Reg.NONE
-                raise CommError(
-                    f"{reg.name}: the reply was lost and the joint is not busy, so it did not "
-                    f"start; not sent again ({lost})",
-                    joint=self.name,
-                    register=reg,
-                ) from lost
-            return
-        self._pickup_until = self.clock.now() + BLOCKING_PICKUP_S
+        finally:
+            self._resending = False
 
     def _send_motion(self, reg: Reg, value: float | int) -> None:
         """Send a motion command and raise if the reply says it was not taken."""

@@ -222,6 +222,7 @@ class StopReason(Enum):
     DEADMAN = "deadman"
     INTERRUPTED = "interrupted"
     TERMINATED = "terminated"
+    LOG_ERROR = "log_error"
     ERROR = "error"
 
 

@@ -293,6 +293,10 @@ class BaseGripper(abc.ABC):
         self._width_m = backup
         self._initialized = False
         self._enabled = False
+        #: The width the last ``disable()`` wrote to the state file (``None``: nothing written yet).
+        self.saved_width_m: float | None = None
+        #: Why the last save failed (``None`` if it did not).
+        self.save_error: OSError | None = None
 
     # -- properties ---------------------------------------------------------
 
@@ -602,10 +606,13 @@ class BaseGripper(abc.ABC):
         try:
             save_width(path, width_m)
         except OSError as e:
+            self.save_error = e
             self._warn_state(
                 f"cannot save width {width_m:g} m to state file {path} ({e}); "
                 "the next enable() will not know where the fingers are"
             )
+        else:
+            self.saved_width_m, self.save_error = width_m, None
 
 
 class Gripper(BaseGripper):

@@ -184,14 +184,14 @@ class Joint(BaseJoint):
                 self._exchanged()  # delivered: the device reset its deadman timer
                 value = self._check(reg, reply, read_len, size, read_payload, sent)
             except OSError as e:
-                self.stats.record(ok=False, kind="bus", retry=attempt > 0)
+                self.stats.record(ok=False, kind="bus", retry=attempt > 0 or self._resending)
                 last = e
                 continue
             except _BadReply as e:
-                self.stats.record(ok=False, kind=e.kind, retry=attempt > 0)
+                self.stats.record(ok=False, kind=e.kind, retry=attempt > 0 or self._resending)
                 last = _BadReply(e.kind, f"{e} (reply {reply.hex(' ') or 'empty'})")
                 continue
-            self.stats.record(ok=True, retry=attempt > 0)
+            self.stats.record(ok=True, retry=attempt > 0 or self._resending)
             return value, reply[-1]
         what = (
             f"{reg.name} failed after {attempts} attempts: {last}. Check wiring, power and the address"

@@ -1,0 +1,255 @@
+"""``bioscara deploy`` refuses bad input in one line, before a byte reaches the arm.
+
+A table of the ways a user gets deploy wrong (hand-edited or mismatched
+policy files, arguments out of range), run through the real command line
+in-process, the way test_config walks bad YAML. Each row must end with
+exactly one line on stderr that names the problem, exit code 2, no
+traceback, no run log, and no transaction on the emulated bus.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import pytest
+from rigs import train_tiny_sac
+
+from bioscara_gym.cli import main
+from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
+from bioscara_gym.training.metadata import build_metadata, write_metadata
+
+REACH = "Bioscara-Reach-v0"
+PICK_PLACE = "Bioscara-PickPlace-v0"
+
+
+@pytest.fixture(scope="module")
+def sac_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny trained Reach policy (cartesian) with its metadata; rows copy it before editing."""
+    return train_tiny_sac(tmp_path_factory.mktemp("sac")).parent
+
+
+@pytest.fixture(scope="module")
+def onnx_path(sac_dir: Path) -> Path:
+    from bioscara_gym.training.export import export_onnx
+
+    return export_onnx(sac_dir / "model.zip", sac_dir / "policy.onnx", check_samples=0).path
+
+
+@pytest.fixture
+def bus_traffic(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bytes]]:
+    """Every transaction any emulated bus carries during the test."""
+    sent: list[tuple[int, bytes]] = []
+    original = EmulatedI2CBus.transfer
+
+    def transfer(self: EmulatedI2CBus, address: int, data: bytes, read_len: int) -> bytes:
+        sent.append((address, bytes(data)))
+        return original(self, address, data, read_len)
+
+    monkeypatch.setattr(EmulatedI2CBus, "transfer", transfer)
+    return sent
+
+
+# ------------------------------------------------------------ file editors
+def edit_metadata(change: Callable[[dict[str, Any]], Any]) -> Callable[[Path], list[str]]:
+    """A row's setup: copy the policy, replace its metadata by ``change(metadata)``."""
+
+    def setup(run: Path) -> list[str]:
+        metadata = json.loads((run / "metadata.json").read_text())
+        new = change(metadata)
+        (run / "metadata.json").write_text(json.dumps(metadata if new is None else new))
+        return ["--model", str(run / "model.zip")]
+
+    return setup
+
+
+def without(*path: str) -> Callable[[dict[str, Any]], None]:
+    def change(metadata: dict[str, Any]) -> None:
+        node = metadata
+        for key in path[:-1]:
+            node = node[key]
+        del node[path[-1]]
+
+    return change
+
+
+def setting(value: Any, *path: str) -> Callable[[dict[str, Any]], None]:
+    def change(metadata: dict[str, Any]) -> None:
+        node = metadata
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+
+    return change
+
+
+def truncate_model(run: Path) -> list[str]:
+    zip_path = run / "model.zip"
+    data = zip_path.read_bytes()
+    zip_path.write_bytes(data[: len(data) // 2])
+    return ["--model", str(zip_path)]
+
+
+def pick_place_metadata(run: Path) -> list[str]:
+    """The Reach model.zip next to the metadata of a PickPlace policy (which is self-consistent)."""
+    env = gym.make(PICK_PLACE, control_mode="cartesian", backend="mock")
+    write_metadata(run, build_metadata(env, PICK_PLACE, {"control_mode": "cartesian"}, algo="sac"))
+    env.close()
+    return ["--model", str(run / "model.zip")]
+
+
+def model(run: Path) -> list[str]:
+    return ["--model", str(run / "model.zip")]
+
+
+def expert(run: Path) -> list[str]:
+    return ["--expert", "--env", REACH]
+
+
+def onnx_props(change: Callable[[dict[str, str]], None]) -> Callable[[Path], list[str]]:
+    """A row's setup: the exported ONNX file with its metadata_props changed."""
+
+    def setup(run: Path) -> list[str]:
+        import onnx
+
+        proto = onnx.load(str(run / "policy.onnx"))
+        props = {p.key: p.value for p in proto.metadata_props}
+        change(props)
+        del proto.metadata_props[:]
+        for key, value in props.items():
+            proto.metadata_props.add(key=key, value=value)
+        onnx.save(proto, str(run / "edited.onnx"))
+        return ["--onnx", str(run / "edited.onnx")]
+
+    return setup
+
+
+def obs_keys_of_pick_place(props: dict[str, str]) -> None:
+    """Claim the PickPlace observation layout in a graph that takes Reach's."""
+    keys = [[k, 22 if k == "observation" else n] for k, n in json.loads(props["obs_keys"])]
+    props["obs_keys"] = json.dumps(keys)
+
+
+def metadata_of_pick_place(props: dict[str, str]) -> None:
+    """Embed PickPlace metadata in the Reach graph (its obs_keys stay Reach's)."""
+    env = gym.make(PICK_PLACE, control_mode="cartesian", backend="mock")
+    props["bioscara_metadata"] = json.dumps(
+        build_metadata(env, PICK_PLACE, {"control_mode": "cartesian"}, algo="sac")
+    )
+    env.close()
+
+
+# ------------------------------------------------------------------- table
+ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
+    # (id, setup -> policy arguments, extra arguments, expected part of the one line)
+    ("truncated-model-zip", truncate_model, [], "truncated or not a stable-baselines3 zip"),
+    ("metadata-a-list", edit_metadata(lambda m: [m]), [], "expected a JSON object, got a list"),
+    ("metadata-not-json", edit_metadata(lambda m: "{"), [], "expected a JSON object, got a string"),
+    ("metadata-unknown-algo", edit_metadata(setting("a2c", "algo")), [], "has algo 'a2c'; expected one of"),
+    ("metadata-no-algo", edit_metadata(without("algo")), [], "does not say which algorithm"),
+    (
+        "metadata-unknown-kwarg",
+        edit_metadata(setting(3, "env_kwargs", "arm_speed")),
+        [],
+        "env_kwargs has 'arm_speed', which Bioscara-Reach-v0 does not take",
+    ),
+    (
+        "metadata-control-freq-text",
+        edit_metadata(setting("fast", "env_kwargs", "control_freq")),
+        [],
+        "env_kwargs.control_freq must be a rate in Hz > 0, got 'fast'",
+    ),
+    (
+        "metadata-control-mode-a-number",
+        edit_metadata(setting(2, "env_kwargs", "control_mode")),
+        [],
+        "env_kwargs.control_mode must be a string, got the number 2",
+    ),
+    (
+        "metadata-bad-control-mode",
+        edit_metadata(setting("torque", "env_kwargs", "control_mode")),
+        [],
+        "control_mode 'torque' must be one of",
+    ),
+    ("metadata-no-env-kwargs", edit_metadata(without("env_kwargs")), [], "'env_kwargs' is missing"),
+    (
+        "metadata-no-control-mode",
+        edit_metadata(without("env_kwargs", "control_mode")),
+        [],
+        "env_kwargs.control_mode is missing",
+    ),
+    ("metadata-no-env-id", edit_metadata(without("env_id")), [], "'env_id' is missing"),
+    ("metadata-unknown-env", edit_metadata(setting("Bioscara-Juggle-v0", "env_id")), [], "Bioscara-Juggle"),
+    (
+        "reach-model-pick-place-metadata",
+        pick_place_metadata,
+        [],
+        "takes 12 values of observation 'observation', the env gives 22",
+    ),
+    (
+        "onnx-graph-disagrees-with-its-obs-keys",
+        onnx_props(obs_keys_of_pick_place),
+        [],
+        "the graph's input 'obs' takes 18 values, but its obs_keys add up to 28",
+    ),
+    (
+        "onnx-graph-disagrees-with-its-metadata",
+        onnx_props(metadata_of_pick_place),
+        [],
+        "takes 12 values of observation 'observation', the env gives 22",
+    ),
+    ("rate-inf", model, ["--rate", "inf"], "--rate inf Hz must be within 20-100 Hz"),
+    ("rate-1e9", model, ["--rate", "1e9"], "--rate 1e+09 Hz must be within 20-100 Hz"),
+    ("rate-nan", expert, ["--rate", "nan"], "--rate nan Hz must be within 20-100 Hz"),
+    ("rate-other-than-trained", model, ["--rate", "30"], "control_freq=25.0, the env has control_freq=30.0"),
+    ("seed-negative", model, ["--seed", "-1"], "--seed must be >= 0, got -1"),
+    ("episodes-zero", expert, ["--episodes", "0"], "--episodes must be >= 1, got 0"),
+    ("fault-unknown", expert, ["--faults", "lag_ms=2"], "unknown fault 'lag_ms'; expected nack"),
+    ("fault-not-a-number", expert, ["--faults", "nack=lots"], "fault 'nack': 'lots' is not a number"),
+    ("expert-without-env", lambda run: ["--expert"], [], "--expert needs --env ID"),
+    ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v0"),
+]
+
+
+@pytest.mark.parametrize(("setup", "extra", "expected"), [r[1:] for r in ROWS], ids=[r[0] for r in ROWS])
+def test_bad_input_is_one_line_and_nothing_reaches_the_arm(
+    setup: Callable[[Path], list[str]],
+    extra: list[str],
+    expected: str,
+    sac_dir: Path,
+    onnx_path: Path,
+    tmp_path: Path,
+    bus_traffic: list[tuple[int, bytes]],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "policy"
+    shutil.copytree(sac_dir, run)
+    log = tmp_path / "deploy.jsonl"
+    argv = ["deploy", *setup(run), "--backend", "emulated", "--log", str(log), *extra]
+    argv += ["--state-file", str(tmp_path / "gripper.json")]
+
+    code = main(argv)
+
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith("bioscara deploy: error: "), err
+    assert expected in err
+    assert "Traceback" not in err
+    assert bus_traffic == []
+    assert not log.exists()
+
+
+def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
+    tmp_path: Path, bus_traffic: list[tuple[int, bytes]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    code = main(["deploy", "--expert", "--env", REACH, "--log", str(blocker / "run.jsonl")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and f"cannot open the run log {blocker / 'run.jsonl'}" in err
+    assert bus_traffic == []
