@@ -253,3 +253,27 @@ def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
     assert code == 2
     assert err.count("\n") == 1 and f"cannot open the run log {blocker / 'run.jsonl'}" in err
     assert bus_traffic == []
+
+
+@pytest.mark.parametrize(
+    ("setup", "expected"),
+    [
+        (pick_place_metadata, "takes 12 values of observation 'observation', the env gives 22"),
+        (truncate_model, "truncated or not a stable-baselines3 zip"),
+        (edit_metadata(without("env_kwargs", "control_freq")), "env_kwargs.control_freq is missing"),
+    ],
+    ids=["reach-model-pick-place-metadata", "truncated-model-zip", "metadata-no-control-freq"],
+)
+def test_eval_refuses_the_same_policy_files_in_one_line(
+    setup: Callable[[Path], list[str]],
+    expected: str,
+    sac_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "policy"
+    shutil.copytree(sac_dir, run)
+    code = main(["eval", *setup(run), "--episodes", "1", "--backend", "mock"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and err.startswith("bioscara eval: error: ") and expected in err, err

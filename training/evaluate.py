@@ -17,7 +17,7 @@ import numpy as np
 
 from bioscara_gym.errors import MetadataError
 from bioscara_gym.fsutil import atomic_write_text
-from bioscara_gym.training.metadata import check_metadata, read_metadata
+from bioscara_gym.training.metadata import PolicyShapes, check_metadata, check_policy_shapes, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -118,18 +118,23 @@ def evaluate_model(
     video: Path | None = None,
     seed: int = 10_000,
     video_episodes: int = 3,
+    backend_options: dict[str, Any] | None = None,
 ) -> EvalStats:
     """Evaluate a trained policy on its env (refusing a metadata mismatch).
 
-    The video, if asked for, shows the first ``video_episodes`` episodes.
+    The video, if asked for, shows the first ``video_episodes`` episodes;
+    ``backend_options`` go to the backend (e.g. ``record``, docs/traces.md).
     """
     from bioscara_gym.training.algos import load_model, sb3_policy  # needs the [train] extra: fail early
 
     metadata = read_metadata(Path(model_path))
-    env = make_eval_env(metadata, backend, render=video is not None)
+    overrides = {} if backend_options is None else {"backend_options": backend_options}
+    env = make_eval_env(metadata, backend, render=video is not None, **overrides)
     try:
         check_metadata(metadata, env, metadata["env_id"])
         model, _ = load_model(Path(model_path))
+        shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {model_path}")
+        check_policy_shapes(shapes, env)
         with video_writer(video, fps=int(env.metadata.get("render_fps", 25))) as on_frame:
             return run_episodes(
                 env, sb3_policy(model), episodes, seed, on_frame=on_frame, video_episodes=video_episodes
@@ -161,7 +166,10 @@ def evaluate_expert(
     video_episodes: int = 3,
     **env_kwargs: Any,
 ) -> EvalStats:
-    """Evaluate the scripted expert of ``env_id`` (video: the first ``video_episodes``)."""
+    """Evaluate the scripted expert of ``env_id`` (video: the first ``video_episodes``).
+
+    ``env_kwargs`` go to ``gym.make`` (``backend_options={"record": ...}`` records the bus).
+    """
     from bioscara_gym.experts import expert_for
 
     env = gym.make(env_id, backend=backend, render_mode="rgb_array" if video else None, **env_kwargs)
