@@ -10,13 +10,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CliError, MissingExtraError
+from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
 from bioscara_gym.hardware.errors import JointError
 
 
@@ -26,23 +27,38 @@ def _console() -> Console:
 
 # ----------------------------------------------------------------- train
 def cmd_train(args: argparse.Namespace) -> int:
-    """``bioscara train``."""
-    from bioscara_gym.training.train import TrainArgs, train
+    """``bioscara train``; SIGINT and SIGTERM save a checkpoint and exit 130 and 143."""
+    from bioscara_gym.training.signals import Interrupted
+    from bioscara_gym.training.train import TrainArgs, TrainingInterrupted, train
 
-    result = train(
-        TrainArgs(
-            env=args.env,
-            algo=args.algo,
-            config=args.config,
-            timesteps=args.timesteps,
-            seed=args.seed,
-            out=args.out,
-            resume=args.resume,
-            progress=not args.no_progress,
-            threads=args.threads,
-            demos=args.demos,
-        )
-    )
+    err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", CheckpointWarning)
+            warnings.showwarning = _one_line_warnings("train", err, warnings.showwarning)
+            result = train(
+                TrainArgs(
+                    env=args.env,
+                    algo=args.algo,
+                    config=args.config,
+                    timesteps=args.timesteps,
+                    seed=args.seed,
+                    out=args.out,
+                    resume=args.resume,
+                    progress=not args.no_progress,
+                    threads=args.threads,
+                    demos=args.demos,
+                )
+            )
+    except Interrupted as e:
+        if isinstance(e, TrainingInterrupted) and e.checkpoint is not None:
+            err.print(
+                f"bioscara train: interrupted by {e}; checkpoint {e.checkpoint} "
+                f"(continue with `{_resume_command(args)}`)"
+            )
+        else:
+            err.print(f"bioscara train: interrupted by {e} before training started; nothing saved")
+        return e.exit_code
     con = _console()
     final = result.final_eval
     if result.target_reached_at is not None:
@@ -56,6 +72,28 @@ def cmd_train(args: argparse.Namespace) -> int:
     con.print(f"metadata  {result.metadata_path}")
     con.print(f"logs      {Path(args.out) / 'tb'}  (tensorboard --logdir {Path(args.out) / 'tb'})")
     return 0
+
+
+def _resume_command(args: argparse.Namespace) -> str:
+    """The command that continues this run (``--env`` and ``--algo`` must match the run's)."""
+    command = f"bioscara train --resume --out {args.out}"
+    if args.env != "Bioscara-Reach":
+        command += f" --env {args.env}"
+    if args.algo != "sac":
+        command += f" --algo {args.algo}"
+    return command
+
+
+def _one_line_warnings(command: str, err: Console, fallback: Callable[..., None]) -> Callable[..., None]:
+    """A ``warnings.showwarning`` printing the package's own warnings as one line on stderr."""
+
+    def show(message: Warning | str, category: type[Warning], *rest: object, **kwargs: object) -> None:
+        if issubclass(category, CheckpointWarning):
+            err.print(f"bioscara {command}: warning: {message}")
+        else:
+            fallback(message, category, *rest, **kwargs)
+
+    return show
 
 
 # ------------------------------------------------------------------ eval

@@ -1,26 +1,58 @@
-"""Atomic file writes: a crash leaves either the old file or the new one, never half of one.
+"""Atomic file writes and a lock file: one writer at a time, never half a file.
 
-Used for every small file the package writes in place (the gripper's width,
-the console's ``--state`` file, a policy's metadata, evaluation results).
+Atomic writes are used for every file the package writes in place (the
+gripper's width, the console's ``--state`` file, a policy's metadata,
+evaluation results, training checkpoints): a crash leaves either the old
+file or the new one. :class:`LockFile` keeps a second process off a file
+while one works on it (the console's ``--state`` file).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
+    """A binary file that replaces ``path`` atomically when the ``with`` block ends without error.
+
+    What is written goes to a temporary file in the same directory (so the
+    rename cannot cross file systems), which is flushed and ``fsync``-ed,
+    then renamed over ``path`` with :func:`os.replace`; finally the directory
+    is ``fsync``-ed so the rename itself survives a power cut (skipped where
+    directories cannot be opened). Missing parent directories are created.
+    The new file has the temporary file's mode (0600, as :func:`tempfile.mkstemp`).
+    If the block raises (Ctrl-C included), the temporary file is removed and
+    ``path`` is left as it was.
+
+    Raises:
+        OSError: The file could not be written or replaced.
+    """
+    path = Path(path)
+    directory = path.parent
+    directory.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    _fsync_directory(directory)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
-    """Replace ``path`` with ``data`` atomically.
-
-    ``data`` goes to a temporary file in the same directory (so the rename
-    cannot cross file systems), which is flushed and ``fsync``-ed, then
-    renamed over ``path`` with :func:`os.replace`; finally the directory is
-    ``fsync``-ed so the rename itself survives a power cut (skipped where
-    directories cannot be opened). Missing parent directories are created.
-    The new file has the temporary file's mode (0600, as :func:`tempfile.mkstemp`).
+    """Replace ``path`` with ``data`` atomically (see :func:`atomic_open`).
 
     Args:
         path: The file to write.
@@ -30,21 +62,8 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
         OSError: The file could not be written or replaced; the temporary
             file is removed and ``path`` is left as it was.
     """
-    path = Path(path)
-    directory = path.parent
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    _fsync_directory(directory)
+    with atomic_open(path) as f:
+        f.write(data)
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "utf-8") -> None:
@@ -72,3 +91,77 @@ def _fsync_directory(directory: Path) -> None:
             os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
+
+
+class LockFile:
+    """An exclusive, non-blocking lock held through a lock file (``fcntl.flock``, POSIX).
+
+    The lock file is created if missing and holds the holder's pid while it
+    is held; it is left in place afterwards (removing it would let two
+    processes lock two different files of the same name). The operating
+    system releases the lock when its holder exits, so a crash never leaves
+    a stale lock. Use as a context manager, or :meth:`acquire` and
+    :meth:`release`.
+
+    Args:
+        path: The lock file (by convention the guarded file's name plus ``.lock``).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        """Remember the path; nothing is locked before :meth:`acquire`."""
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        """Whether this object holds the lock."""
+        return self._fd is not None
+
+    def acquire(self) -> None:
+        """Take the lock at once, or fail.
+
+        Raises:
+            BlockingIOError: Another process (or another :class:`LockFile`
+                on the same path) holds it; :meth:`holder` names it.
+            OSError: The lock file cannot be created or opened.
+        """
+        if self._fd is not None:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+
+    def release(self) -> None:
+        """Let go of the lock (the file's pid is cleared); does nothing when not held."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+        finally:
+            os.close(fd)  # closing the descriptor releases the flock
+
+    def holder(self) -> int | None:
+        """The pid written by the lock's holder, ``None`` if unknown (none, or not written yet)."""
+        try:
+            text = self.path.read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError):
+            return None
+        return int(text) if text.isdigit() else None
+
+    def __enter__(self) -> LockFile:
+        """Acquire (see :meth:`acquire`)."""
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Release."""
+        self.release()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import re
 import subprocess
 import sys
@@ -31,8 +32,9 @@ from bioscara_gym.console.dashboard import (
 )
 from bioscara_gym.console.format import flags_text
 from bioscara_gym.console.session import Session
-from bioscara_gym.console.state import STATE_FORMAT
+from bioscara_gym.console.state import STATE_FORMAT, lock_path
 from bioscara_gym.console.targets import ConsoleOptions, resolve_target
+from bioscara_gym.fsutil import LockFile
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.registers import Flag
 
@@ -386,6 +388,64 @@ def test_sim_backend_keeps_state_too(bioscara: Run, state: Path) -> None:
     code, out, _ = bioscara("status", "--backend", "sim", "--state", str(state))
     assert code == 0
     assert enabled(rows(out), "j2") == "yes"
+
+
+# -------------------------------------------------------- state file lock
+def test_second_command_on_a_held_state_file_is_refused_in_one_line(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    with Session(ConsoleOptions(state=state)):
+        saved = state.read_text()
+        code, out, err = bioscara("move", "j1", "1.0", "--state", str(state))
+        assert state.read_text() == saved  # the refused command wrote nothing
+    assert code == 2
+    assert out == ""
+    assert err == (
+        f"bioscara move: error: {state} is in use by another bioscara command (pid {os.getpid()}); "
+        "wait for it to finish (or stop it), then run this command again"
+    )
+
+
+def test_state_file_lock_is_released_after_a_command(bioscara: Run, state: Path) -> None:
+    assert bioscara("enable", "j1", "--state", str(state))[0] == 0
+    assert bioscara("disable", "j1", "--state", str(state))[0] == 0
+    with LockFile(lock_path(state)):  # free again
+        pass
+
+
+def test_state_file_lock_is_released_after_ctrl_c(state: Path) -> None:
+    with pytest.raises(KeyboardInterrupt), Session(ConsoleOptions(state=state)):
+        raise KeyboardInterrupt
+    with Session(ConsoleOptions(state=state)) as s:
+        assert s.arm.state.value
+
+
+def test_state_file_lock_is_released_when_the_file_is_refused(bioscara: Run, state: Path) -> None:
+    state.write_text("not json")
+    assert bioscara("status", "--state", str(state))[0] == 2
+    with LockFile(lock_path(state)):
+        pass
+
+
+def test_state_file_lock_is_held_by_a_subprocess_until_it_ends(bioscara: Run, state: Path) -> None:
+    holder = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from bioscara_gym.console.state import lock_state\n"
+        "lock = lock_state(Path(sys.argv[1]))\n"
+        "print('locked', flush=True)\n"
+        "sys.stdin.readline()\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", holder, str(state)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "locked\n"
+        code, _, err = bioscara("status", "--state", str(state))
+        assert code == 2
+        assert f"in use by another bioscara command (pid {proc.pid})" in err
+    finally:
+        proc.communicate("\n", timeout=30)
+    assert bioscara("status", "--state", str(state))[0] == 0  # the lock died with its holder
 
 
 # --------------------------------------------------------------- dashboard

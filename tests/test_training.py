@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +32,7 @@ from stable_baselines3.common.save_util import load_from_pkl, load_from_zip_file
 
 from bioscara_gym.cli import EXIT_INTERRUPTED, main
 from bioscara_gym.errors import HyperparamError, MetadataError, MissingExtraError, TrainingError
+from bioscara_gym.fsutil import atomic_open
 from bioscara_gym.training.algos import ALGOS
 from bioscara_gym.training.features import GoalErrorExtractor
 from bioscara_gym.training.hyperparams import (
@@ -294,7 +297,11 @@ def resumed_run(interrupted_run: InterruptedRun, tmp_path_factory: pytest.TempPa
 
 def test_interrupted_train_exits_130_with_one_line(interrupted_run: InterruptedRun) -> None:
     assert interrupted_run.exit_code == EXIT_INTERRUPTED == 130
-    assert interrupted_run.stderr.strip() == "bioscara train: interrupted"
+    checkpoint = interrupted_run.out / "checkpoints" / f"ckpt_{INTERRUPT_AT}_steps.zip"
+    assert interrupted_run.stderr.strip() == (
+        f"bioscara train: interrupted by SIGINT; checkpoint {checkpoint} "
+        f"(continue with `bioscara train --resume --out {interrupted_run.out}`)"
+    )
 
 
 def test_interrupted_train_leaves_a_checkpoint_and_its_replay_buffer(interrupted_run: InterruptedRun) -> None:
@@ -328,6 +335,88 @@ def test_resume_keeps_the_run_config_for_a_later_resume(resumed_run: ResumedRun)
     # A second Ctrl-C then --resume must still use the run's config (its env_kwargs), not the packaged one.
     state = json.loads((resumed_run.out / STATE_NAME).read_text(encoding="utf-8"))
     assert state["config"] == str(resumed_run.config)
+
+
+def test_sigterm_saves_a_checkpoint_and_exits_143_with_one_line(tmp_path: Path) -> None:
+    """A real ``bioscara train`` process, sent SIGTERM once training has started (about 10 s)."""
+    config = write_config(tmp_path / "cfg.yaml", {REACH: {**TINY["sac"], "n_timesteps": 100_000}})
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "bioscara_gym.cli", *train_argv(out, config)]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "tb").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)  # SB3 makes the TensorBoard directory as learning starts
+        assert (out / "tb").exists(), "training did not start"
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143
+    assert "Traceback" not in stderr
+    lines = [line for line in stderr.splitlines() if line.startswith("bioscara")]
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("bioscara train: interrupted by SIGTERM; checkpoint ")
+    [checkpoint] = (out / "checkpoints").glob("ckpt_*_steps.zip")
+    assert str(checkpoint) in lines[0]
+    assert checkpoint.with_name(checkpoint.stem + "_replay.pkl").is_file()
+    env = gym.make(REACH, **REACH_KWARGS)
+    try:
+        assert SAC.load(checkpoint, env=env, device="cpu").num_timesteps < 100_000
+    finally:
+        env.close()
+    assert not (out / "model.zip").exists()
+
+
+def _truncate(path: Path) -> None:
+    """Cut ``path`` to its first half, as a crash or a full disk would."""
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def test_resume_skips_a_truncated_newest_checkpoint_with_a_one_line_warning(
+    interrupted_run: InterruptedRun, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = Path(shutil.copytree(interrupted_run.out, tmp_path / "run"))
+    good = out / "checkpoints" / f"ckpt_{INTERRUPT_AT}_steps.zip"
+    newest = out / "checkpoints" / "ckpt_250_steps.zip"
+    shutil.copy(good, newest)
+    _truncate(newest)
+    rc = main(["train", "--resume", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert err.strip().splitlines() == [
+        f"bioscara train: warning: checkpoint {newest} cannot be loaded (BadZipFile: no data, policy.pth "
+        f"in it (truncated?)); resuming from {good.name} instead"
+    ]
+    assert saved_num_timesteps(out / "model.zip") == TOTAL
+
+
+def test_resume_with_no_loadable_checkpoint_is_a_one_line_error(
+    interrupted_run: InterruptedRun, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = Path(shutil.copytree(interrupted_run.out, tmp_path / "run"))
+    checkpoint = out / "checkpoints" / f"ckpt_{INTERRUPT_AT}_steps.zip"
+    _truncate(checkpoint)
+    rc = main(["train", "--resume", "--out", str(out), "--no-progress"])
+    assert rc == 2
+    assert one_line_error(capsys, "train") == (
+        f"bioscara train: error: cannot resume: checkpoint {checkpoint} cannot be loaded "
+        "(BadZipFile: no data, policy.pth in it (truncated?))"
+    )
+    assert not (out / "model.zip").exists()
+
+
+def test_a_checkpoint_save_cut_short_leaves_the_previous_file(tmp_path: Path) -> None:
+    path = tmp_path / "ckpt_100_steps.zip"
+    path.write_bytes(b"complete")
+    with pytest.raises(KeyboardInterrupt), atomic_open(path) as f:
+        f.write(b"half")
+        raise KeyboardInterrupt
+    assert path.read_bytes() == b"complete"
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
 
 
 def test_resume_with_nothing_to_resume_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

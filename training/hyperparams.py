@@ -19,14 +19,19 @@ paths are imported, as rl-zoo3 does. Files of the older, bioscara-only form
 ``target_success`` at the top of an entry) are still read; rl-zoo3 refuses them.
 rl-zoo3 keys that change what the policy sees (``normalize``, ``frame_stack``,
 ``env_wrapper``, ``vec_env_wrapper``) are refused: a policy trained behind
-them could not be evaluated, exported or deployed on the plain env.
+them could not be evaluated, exported or deployed on the plain env. Counts
+(``n_timesteps``, ``n_envs``, ``eval_freq``, ``eval_episodes``,
+``quick_episodes``) must be whole numbers >= 1 and ``target_success`` in
+[0, 1]; :func:`check_algo_kwargs` refuses keys the algorithm does not take.
 """
 
 from __future__ import annotations
 
 import ast
+import difflib
 import importlib
 import inspect
+import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -235,6 +240,7 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
     if legacy and set(legacy) & set(eval_kwargs):
         raise HyperparamError(f"{where}: {', '.join(legacy)} given both at the top and in the callback")
     eval_kwargs.update(legacy)
+    _check_schedule(extras, eval_kwargs, legacy, where)
     try:
         return Hyperparams(
             source=str(path),
@@ -248,6 +254,76 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
         )
     except (TypeError, ValueError) as e:
         raise HyperparamError(f"config {path}: {env_id}: {e}") from e
+
+
+#: Keys that count something and must be at least 1, with what they count (for the message).
+POSITIVE_COUNTS = {
+    "n_timesteps": "env steps of the training budget",
+    "n_envs": "parallel envs",
+    "eval_freq": "env steps between success evaluations",
+    "eval_episodes": "episodes per success evaluation",
+    "quick_episodes": "episodes per quick success evaluation",
+}
+
+#: How the message names a key of the success callback given inside ``callback``.
+IN_CALLBACK = "callback.SuccessEvalCallback."
+
+
+def _check_schedule(
+    extras: dict[str, Any], eval_kwargs: dict[str, Any], legacy: dict[str, Any], where: str
+) -> None:
+    """Refuse counts below 1 and a target success rate outside [0, 1], naming the key.
+
+    ``where`` is ``config PATH: ENV_ID``; a key of the success callback is
+    named as written in the file (at the top of the entry, or in the callback).
+    """
+    for key, what in POSITIVE_COUNTS.items():
+        source = extras if key in ("n_timesteps", "n_envs") else eval_kwargs
+        if key not in source:
+            continue
+        name = key if source is extras or key in legacy else IN_CALLBACK + key
+        number = _number(source[key])
+        if number is None or not math.isfinite(number) or number != int(number) or number < 1:
+            raise HyperparamError(f"{where}.{name} is {source[key]!r}; expected a whole number >= 1 ({what})")
+    target = eval_kwargs.get("target_success")
+    if target is not None and (
+        isinstance(target, bool) or not isinstance(target, int | float) or not 0 <= target <= 1
+    ):
+        name = "target_success" if "target_success" in legacy else IN_CALLBACK + "target_success"
+        raise HyperparamError(f"{where}.{name} is {target!r}; expected a success rate in [0, 1]")
+
+
+def _number(value: Any) -> float | None:
+    """``value`` as a float: a number, or a string of one (YAML reads ``3e4`` as text); else ``None``."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int | float):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return None
+    return None
+
+
+def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
+    """Refuse keys of ``hp.algo_kwargs`` that ``algo_cls`` does not take, naming key and file.
+
+    Raises:
+        HyperparamError: An unknown key, with the closest known one if any.
+    """
+    parameters = inspect.signature(algo_cls).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    known = [name for name in parameters if name not in ("policy", "env")]
+    for key in hp.algo_kwargs:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), [*known, *EXTRA_KEYS], n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"see the {algo_cls.__name__} documentation"
+            raise HyperparamError(
+                f"config {hp.source}: {env_id}.{key} is not a hyperparameter of {algo_cls.__name__}; {hint}"
+            )
 
 
 def import_dotted(name: str, where: str) -> Any:

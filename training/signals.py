@@ -1,8 +1,10 @@
-"""SIGINT and SIGTERM during a deployment: :class:`Interrupted` at a safe point.
+"""SIGINT and SIGTERM during a deployment or a training run: :class:`Interrupted` at a safe point.
 
 :class:`SignalGuard` turns the signals into :class:`Interrupted` (exit code
-130 / 143): at once outside the control loop, at the next cycle boundary
-inside it, and never while the arm is being made safe.
+130 / 143). In a deployment: at once outside the control loop, at the next
+cycle boundary inside it, and never while the arm is being made safe. In
+training: at once, as Ctrl-C always did, and never while a checkpoint or
+the final model is being written.
 """
 
 from __future__ import annotations

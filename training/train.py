@@ -3,13 +3,26 @@
 Reads top to bottom: resolve the env and its hyperparameters, build the envs,
 build (or resume) the model, learn with periodic success evaluation, early
 stop and checkpoints, then save ``model.zip`` next to ``metadata.json``.
+
+Bad input (a key the algorithm does not take, an evaluation schedule or a
+budget below 1, a damaged ``train_state.json``, nothing to resume) is refused
+with a :class:`~bioscara_gym.errors.TrainingError` before anything is written.
+Ctrl-C and SIGTERM save a checkpoint and raise :class:`TrainingInterrupted`;
+checkpoints and the model are written atomically, and ``--resume`` skips a
+damaged newest checkpoint with a :class:`~bioscara_gym.errors.CheckpointWarning`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import pickle
 import re
+import signal
 import time
+import warnings
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,12 +31,18 @@ import gymnasium as gym
 import numpy as np
 
 import bioscara_gym  # noqa: F401 - registers the tasks
-from bioscara_gym.errors import HyperparamError, TrainingError
-from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.errors import CheckpointWarning, HyperparamError, TrainingError
+from bioscara_gym.fsutil import atomic_open, atomic_write_bytes, atomic_write_text
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.hyperparams import Hyperparams, default_config_path, load_hyperparams
+from bioscara_gym.training.hyperparams import (
+    Hyperparams,
+    check_algo_kwargs,
+    default_config_path,
+    load_hyperparams,
+)
 from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
+from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 with needs_train():
     import torch
@@ -42,7 +61,26 @@ REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
 #: Keys whose value may be one of rl-zoo3's schedule strings ``lin_<initial value>``.
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
 STATE_NAME = "train_state.json"
+#: The keys of ``train_state.json`` and their JSON types (``None``: may be null).
+STATE_KEYS: dict[str, tuple[type | None, ...]] = {
+    "env_id": (str,),
+    "algo": (str,),
+    "seed": (int,),
+    "total_timesteps": (int,),
+    "config": (str, None),
+    "demos": (str, None),
+}
 CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
+#: What loading a damaged checkpoint raises (SB3 turns a broken zip into ValueError).
+CHECKPOINT_ERRORS = (
+    OSError,
+    EOFError,
+    ValueError,
+    KeyError,
+    RuntimeError,
+    zipfile.BadZipFile,
+    pickle.UnpicklingError,
+)
 
 
 @dataclass
@@ -94,16 +132,78 @@ class TrainResult:
     target_reached_after_s: float | None
 
 
-def load_run_hyperparams(args: TrainArgs, env_id: str) -> Hyperparams:
-    """The hyperparameters of this run (config file or packaged defaults; ``bc`` reads SAC's)."""
+class TrainingInterrupted(Interrupted):
+    """Training stopped by SIGINT or SIGTERM, after saving a checkpoint.
+
+    Attributes:
+        checkpoint: The checkpoint saved, ``None`` if training had not started.
+        out: The run's output directory (what ``--resume`` continues).
+    """
+
+    def __init__(self, signum: int, checkpoint: Path | None, out: Path) -> None:
+        """Remember the signal, the checkpoint and the run."""
+        super().__init__(signum)
+        self.checkpoint = checkpoint
+        self.out = out
+
+
+def load_run_hyperparams(args: TrainArgs, env_id: str, config: Path | None = None) -> Hyperparams:
+    """The hyperparameters of this run (``config``, else ``args.config``, else the packaged ones).
+
+    ``bc`` reads SAC's. Keys the algorithm does not take are refused here,
+    before anything is built.
+    """
     if args.algo not in ALGOS and args.algo != "bc":
         raise TrainingError(f"unknown algo {args.algo!r}; choose one of {', '.join(ALGOS)}, bc")
     algo = "sac" if args.algo == "bc" else args.algo
-    path = Path(args.config) if args.config else default_config_path(algo)
+    path = Path(config or args.config or default_config_path(algo))
     try:
-        return load_hyperparams(path, env_id)
+        hp = load_hyperparams(path, env_id)
+        check_algo_kwargs(hp, ALGOS[algo], env_id)
     except HyperparamError as e:
         raise TrainingError(str(e)) from e
+    return hp
+
+
+def read_train_state(out: Path) -> dict[str, Any]:
+    """``out/train_state.json``, checked: every key of :data:`STATE_KEYS`, of its type.
+
+    Raises:
+        TrainingError: Missing, unreadable, not JSON, not an object, or a
+            key missing or of the wrong type; the message names file and key.
+    """
+    path = out / STATE_NAME
+    if not path.exists():
+        raise TrainingError(f"nothing to resume in {out}: no {STATE_NAME}")
+    try:
+        state = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise TrainingError(f"cannot resume from {path}: not readable JSON ({e})") from e
+    if not isinstance(state, dict):
+        raise TrainingError(f"cannot resume from {path}: expected a JSON object, got {type(state).__name__}")
+    for key, types in STATE_KEYS.items():
+        if key not in state:
+            raise TrainingError(f"cannot resume from {path}: key {key!r} is missing")
+        value = state[key]
+        if not any(value is None if t is None else isinstance(value, t) for t in types) or isinstance(
+            value, bool
+        ):
+            expected = " or ".join("null" if t is None else t.__name__ for t in types)
+            raise TrainingError(f"cannot resume from {path}: {key} is {value!r}; expected {expected}")
+    if state["total_timesteps"] < 1:
+        total = state["total_timesteps"]
+        raise TrainingError(f"cannot resume from {path}: total_timesteps is {total}; expected >= 1")
+    return state
+
+
+def check_timesteps(timesteps: int | None) -> None:
+    """Refuse ``--timesteps`` below 1 (``None``: the config's budget).
+
+    Raises:
+        TrainingError: ``timesteps`` is 0 or negative.
+    """
+    if timesteps is not None and timesteps < 1:
+        raise TrainingError(f"--timesteps {timesteps}: must be >= 1 (omit it for the config's n_timesteps)")
 
 
 class CheckpointEvery(BaseCallback):
@@ -127,23 +227,111 @@ class CheckpointEvery(BaseCallback):
 
 
 def save_checkpoint(model: BaseAlgorithm, directory: Path) -> Path:
-    """Save ``model`` (and its replay buffer) as ``ckpt_<steps>_steps.zip``."""
+    """Save ``model`` (and its replay buffer) as ``ckpt_<steps>_steps.zip``.
+
+    Each file is written atomically (:func:`~bioscara_gym.fsutil.atomic_open`),
+    the replay buffer first: a checkpoint exists only once complete, and an
+    interrupted save leaves the previous checkpoints as they were.
+    """
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"ckpt_{model.num_timesteps}_steps.zip"
     if isinstance(model, OffPolicyAlgorithm):
-        model.save_replay_buffer(directory / f"ckpt_{model.num_timesteps}_steps_replay.pkl")
-    model.save(path)  # written last: a checkpoint exists only once complete
+        with atomic_open(replay_path(path)) as f:
+            model.save_replay_buffer(f)
+    _save_model(model, path)
     return path
 
 
-def newest_checkpoint(directory: Path) -> Path | None:
-    """The checkpoint with the most steps in ``directory``."""
+def _save_model(model: BaseAlgorithm, path: Path) -> None:
+    """``model.save(path)``, atomically: ``path`` is either the old file or the whole new one."""
+    buffer = io.BytesIO()
+    model.save(buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def replay_path(checkpoint: Path) -> Path:
+    """The replay buffer saved with ``checkpoint``."""
+    return checkpoint.with_name(checkpoint.stem + "_replay.pkl")
+
+
+def checkpoints(directory: Path) -> list[Path]:
+    """The checkpoints in ``directory``, newest (most steps) first."""
     found = [
         (int(m.group(1)), p)
         for p in directory.glob("ckpt_*_steps.zip")
         if (m := CHECKPOINT_RE.search(p.name))
     ]
-    return max(found)[1] if found else None
+    return [p for _, p in sorted(found, reverse=True)]
+
+
+def newest_checkpoint(directory: Path) -> Path | None:
+    """The checkpoint with the most steps in ``directory``."""
+    found = checkpoints(directory)
+    return found[0] if found else None
+
+
+def load_checkpoint(algo_cls: type[BaseAlgorithm], directory: Path, env: Any) -> tuple[BaseAlgorithm, Path]:
+    """The newest checkpoint in ``directory`` that loads, with its replay buffer.
+
+    A damaged checkpoint (truncated, not a zip, its replay buffer unreadable)
+    is skipped with a :class:`~bioscara_gym.errors.CheckpointWarning` naming
+    it and the one used instead.
+
+    Raises:
+        TrainingError: No checkpoint, or none that loads.
+    """
+    found = checkpoints(directory)
+    if not found:
+        raise TrainingError(f"nothing to resume in {directory}: no checkpoint")
+    failures: list[tuple[Path, BaseException]] = []
+    for path in found:
+        try:
+            _check_checkpoint_zip(path)
+            model = algo_cls.load(path, env=env, device="cpu")
+            if isinstance(model, OffPolicyAlgorithm) and replay_path(path).exists():
+                model.load_replay_buffer(replay_path(path))
+        except CHECKPOINT_ERRORS as e:
+            failures.append((path, e))
+            continue
+        if failures:
+            newest, error = failures[0]
+            warnings.warn(
+                f"checkpoint {newest} cannot be loaded ({_reason(error)}); resuming from {path.name} instead",
+                CheckpointWarning,
+                stacklevel=2,
+            )
+        return model, path
+    newest, error = failures[0]
+    more = f" nor the {len(found) - 1} older ones" if len(found) > 1 else ""
+    raise TrainingError(f"cannot resume: checkpoint {newest} cannot be loaded ({_reason(error)}){more}")
+
+
+#: Members every stable-baselines3 model zip holds.
+MODEL_MEMBERS = frozenset({"data", "policy.pth"})
+
+
+def _check_checkpoint_zip(path: Path) -> None:
+    """Refuse a checkpoint that is not a whole model zip, before anything is unpickled.
+
+    A truncated one may still open as a zip: the torch archive stored inside
+    it has a directory of its own, which :mod:`zipfile` then finds.
+
+    Raises:
+        zipfile.BadZipFile: Not a zip, a member's CRC is wrong, or a model's members are missing.
+    """
+    with zipfile.ZipFile(path) as archive:
+        missing = MODEL_MEMBERS - set(archive.namelist())
+        if missing:
+            raise zipfile.BadZipFile(f"no {', '.join(sorted(missing))} in it (truncated?)")
+        bad = archive.testzip()
+    if bad is not None:
+        raise zipfile.BadZipFile(f"{bad} is corrupt")
+
+
+def _reason(error: BaseException) -> str:
+    """A one-line reason for a failed load."""
+    text = str(error).splitlines()[0] if str(error) else ""
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__
 
 
 def _linear_schedule(initial: float) -> Any:
@@ -232,110 +420,124 @@ def _demo_facts(callbacks: list[BaseCallback]) -> dict[str, Any]:
     return {}
 
 
-def train(args: TrainArgs) -> TrainResult:
-    """Train, evaluate and save a policy (see the module docstring)."""
-    env_id = resolve_env_id(args.env)
-    if args.algo == "bc":
+@dataclass(frozen=True)
+class RunPlan:
+    """What :func:`train` will do, settled before anything is built or written.
 
-        return train_bc(args, env_id, load_run_hyperparams(args, env_id))
-    out = Path(args.out)
-    state_path = out / STATE_NAME
-    state: dict[str, Any] = {}
+    Attributes:
+        hp: The run's hyperparameters.
+        total: Training budget in env steps (on ``--resume``: the original run's).
+        state: The ``train_state.json`` to write once the model is built.
+    """
+
+    hp: Hyperparams
+    total: int
+    state: dict[str, Any]
+
+
+def plan_run(args: TrainArgs, env_id: str, out: Path) -> RunPlan:
+    """Check every input of a (resumed) run and settle its hyperparameters and budget.
+
+    Raises:
+        TrainingError: Bad input; nothing has been written.
+    """
     if args.resume:
-        if not state_path.exists():
-            raise TrainingError(f"nothing to resume in {out}: no {STATE_NAME}")
-        state = json.loads(state_path.read_text(encoding="utf-8"))
-        if state["env_id"] != env_id or state["algo"] != args.algo:
+        saved = read_train_state(out)
+        if saved["env_id"] != env_id or saved["algo"] != args.algo:
             raise TrainingError(
-                f"{out} holds a {state['algo']} run on {state['env_id']}, not {args.algo} on {env_id}"
+                f"{out} holds a {saved['algo']} run on {saved['env_id']}, not {args.algo} on {env_id}"
             )
-        args.seed, total = state["seed"], int(state["total_timesteps"])
-        args.demos = args.demos or state.get("demos")
-        hp = (
-            load_run_hyperparams(args, env_id)
-            if not state.get("config")
-            else load_hyperparams(Path(state["config"]), env_id)
-        )
+        args.seed, total = saved["seed"], saved["total_timesteps"]
+        args.demos = args.demos or saved["demos"]
+        config = saved["config"] or (str(args.config) if args.config else None)
+        hp = load_run_hyperparams(args, env_id, Path(config) if config else None)
+        if newest_checkpoint(out / "checkpoints") is None:
+            raise TrainingError(f"nothing to resume in {out / 'checkpoints'}: no checkpoint")
+        demos = saved["demos"]
     else:
         hp = load_run_hyperparams(args, env_id)
-        total = int(args.timesteps or hp.n_timesteps)
-    if total <= 0:
-        raise TrainingError(f"timesteps must be > 0, got {total}")
+        total = args.timesteps or hp.n_timesteps
+        config = str(args.config) if args.config else None
+        demos = args.demos
     if args.demos and args.algo != "sac":
         raise TrainingError(f"demonstrations are learned with --algo sac (or bc), not {args.algo}")
-    torch.set_num_threads(args.threads or 1)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(
-        state_path,
-        json.dumps(
-            {
-                "env_id": env_id,
-                "algo": args.algo,
-                "seed": args.seed,
-                "total_timesteps": total,
-                "config": str(args.config) if args.config else (state.get("config") if args.resume else None),
-                "demos": args.demos if not args.resume else state.get("demos"),
-            },
-            indent=2,
-        ),
-    )
+    state = {
+        "env_id": env_id,
+        "algo": args.algo,
+        "seed": args.seed,
+        "total_timesteps": int(total),
+        "config": config,
+        "demos": demos,
+    }
+    return RunPlan(hp=hp, total=int(total), state=state)
 
-    env = make_vec_env(env_id, n_envs=hp.n_envs, seed=args.seed, env_kwargs=hp.env_kwargs)
-    eval_env = gym.make(env_id, **hp.env_kwargs)
-    algo_cls = ALGOS[args.algo]
-    ckpt_dir = out / "checkpoints"
-    if args.resume:
-        ckpt = newest_checkpoint(ckpt_dir)
-        if ckpt is None:
-            raise TrainingError(f"nothing to resume in {ckpt_dir}: no checkpoint")
-        model = algo_cls.load(ckpt, env=env, device="cpu")
-        replay = ckpt.with_name(ckpt.stem + "_replay.pkl")
-        if isinstance(model, OffPolicyAlgorithm) and replay.exists():
-            model.load_replay_buffer(replay)
-    else:
-        model = algo_cls(
-            hp.policy,
-            env,
-            seed=args.seed,
-            device="cpu",
-            tensorboard_log=str(out / "tb"),
-            verbose=0,
-            **_algo_kwargs(hp, env, args.algo),
-        )
-    evaluator, others = _callbacks(hp, eval_env, args)
-    callbacks = CallbackList([evaluator, *others, CheckpointEvery(ckpt_dir, args.checkpoint_freq)])
-    start = time.perf_counter()
-    try:
-        model.learn(
-            total_timesteps=max(total - model.num_timesteps, 0),
-            callback=callbacks,
-            reset_num_timesteps=not args.resume,
-            progress_bar=args.progress,
-            tb_log_name="run",
-        )
-    except KeyboardInterrupt:
-        save_checkpoint(model, ckpt_dir)  # `bioscara train --resume` continues from here
-        raise
-    finally:
-        env.close()
-    final = evaluator.last if evaluator.reached_at is not None else evaluator.evaluate(hp.eval_episodes)
-    model_path = out / "model.zip"
-    model.save(model_path)
-    metadata_path = write_metadata(
-        out,
-        build_metadata(
-            eval_env,
-            env_id,
-            hp.env_kwargs,
-            algo=args.algo,
-            seed=args.seed,
-            timesteps=model.num_timesteps,
-            config=hp.as_dict(),
-            final_eval=final.as_dict() if final else None,
-            **_demo_facts(others),
-        ),
-    )
-    eval_env.close()
+
+def train(args: TrainArgs) -> TrainResult:
+    """Train, evaluate and save a policy (see the module docstring).
+
+    Every input is checked before anything is written; the output directory
+    appears once the model is built. SIGINT and SIGTERM save a checkpoint
+    (``--resume`` continues from it) and raise :class:`TrainingInterrupted`.
+
+    Raises:
+        TrainingError: Bad input (nothing trained, nothing written).
+        TrainingInterrupted: SIGINT or SIGTERM.
+    """
+    env_id = resolve_env_id(args.env)
+    check_timesteps(args.timesteps)
+    if args.algo == "bc":
+        return train_bc(args, env_id, load_run_hyperparams(args, env_id))
+    out = Path(args.out)
+    plan = plan_run(args, env_id, out)
+    hp = plan.hp
+    torch.set_num_threads(args.threads or 1)
+    with SignalGuard() as guard, contextlib.closing(gym.make(env_id, **hp.env_kwargs)) as eval_env:
+        model: BaseAlgorithm | None = None
+        env = None
+        try:
+            algo_kwargs = _algo_kwargs(hp, eval_env, args.algo)  # the training envs' spaces are the same
+            evaluator, others = _callbacks(hp, eval_env, args)
+            env = make_vec_env(env_id, n_envs=hp.n_envs, seed=args.seed, env_kwargs=hp.env_kwargs)
+            model = _build_model(args, hp, env, env_id, out, algo_kwargs)
+            out.mkdir(parents=True, exist_ok=True)  # the first thing written
+            atomic_write_text(out / STATE_NAME, json.dumps(plan.state, indent=2))
+            start = time.perf_counter()
+            model.learn(
+                total_timesteps=max(plan.total - model.num_timesteps, 0),
+                callback=CallbackList(
+                    [evaluator, *others, CheckpointEvery(out / "checkpoints", args.checkpoint_freq)]
+                ),
+                reset_num_timesteps=not args.resume,
+                progress_bar=args.progress,
+                tb_log_name="run",
+            )
+            reached = evaluator.reached_at is not None
+            final = evaluator.last if reached else evaluator.evaluate(hp.eval_episodes)
+        except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM through the guard
+            with guard.shielded():
+                checkpoint = save_checkpoint(model, out / "checkpoints") if model is not None else None
+            signum = e.signum if isinstance(e, Interrupted) else signal.SIGINT
+            raise TrainingInterrupted(signum, checkpoint, out) from None
+        finally:
+            if env is not None:
+                env.close()
+        with guard.shielded():  # a signal now would cut the final model in half
+            model_path = out / "model.zip"
+            _save_model(model, model_path)
+            metadata_path = write_metadata(
+                out,
+                build_metadata(
+                    eval_env,
+                    env_id,
+                    hp.env_kwargs,
+                    algo=args.algo,
+                    seed=args.seed,
+                    timesteps=model.num_timesteps,
+                    config=hp.as_dict(),
+                    final_eval=final.as_dict() if final else None,
+                    **_demo_facts(others),
+                ),
+            )
     return TrainResult(
         model_path=model_path,
         metadata_path=metadata_path,
@@ -345,6 +547,27 @@ def train(args: TrainArgs) -> TrainResult:
         target_reached_at=evaluator.reached_at,
         target_reached_after_s=evaluator.reached_after_s,
     )
+
+
+def _build_model(
+    args: TrainArgs, hp: Hyperparams, env: Any, env_id: str, out: Path, algo_kwargs: dict[str, Any]
+) -> BaseAlgorithm:
+    """A new model, or (``--resume``) the newest checkpoint that loads."""
+    algo_cls = ALGOS[args.algo]
+    if args.resume:
+        return load_checkpoint(algo_cls, out / "checkpoints", env)[0]
+    try:
+        return algo_cls(
+            hp.policy,
+            env,
+            seed=args.seed,
+            device="cpu",
+            tensorboard_log=str(out / "tb"),
+            verbose=0,
+            **algo_kwargs,
+        )
+    except (TypeError, ValueError) as e:  # e.g. a key inside policy_kwargs the policy does not take
+        raise TrainingError(f"config {hp.source}: {env_id}: {_reason(e)}") from e
 
 
 #: Behaviour-cloning steps of ``bioscara train --algo bc`` without ``--timesteps``.

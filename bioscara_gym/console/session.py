@@ -10,7 +10,9 @@ running is handed back to the arm
 (:meth:`~bioscara_gym.hardware.arm.Arm.adopt_homing`). Closing after an
 error (Ctrl-C included) runs the arm layer's on-error transition, then
 writes the state file and releases the connections, leaving enabled joints
-enabled.
+enabled. The state file is locked from before it is read until after it
+is written (:func:`~bioscara_gym.console.state.lock_state`), so a second
+command on the same file is refused instead of losing an update.
 
 Homing and moving are the Arm's (:meth:`~bioscara_gym.hardware.arm.Arm.home`,
 :meth:`~bioscara_gym.hardware.arm.Arm.move_to`); the session adds the
@@ -26,8 +28,9 @@ import math
 from collections.abc import Iterable
 from types import TracebackType
 
-from bioscara_gym.console.state import HostFacts, load_state, save_state
+from bioscara_gym.console.state import HostFacts, load_state, lock_state, save_state
 from bioscara_gym.console.targets import ConsoleOptions, Target
+from bioscara_gym.fsutil import LockFile
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, load_config
@@ -68,6 +71,7 @@ class Session:
         self._opened = False
         self._attached = False
         self._save = False
+        self._lock: LockFile | None = None
 
     def __enter__(self) -> Session:
         """Open the backend, restore the state, configure and adopt the arm."""
@@ -88,12 +92,18 @@ class Session:
     def _open(self) -> None:
         """Check the options, build the backend, restore the state file, configure and adopt."""
         self.options.check()
+        self._lock_state()
         self._build_backend()
         self._restore_state()
         if self._configure:
             self._configure_arm()
             self._adopt_gripper()
             self._adopt_homings()
+
+    def _lock_state(self) -> None:
+        """Hold the state file, if any, until :meth:`_close` has written it (a second command is refused)."""
+        if self.options.state is not None:
+            self._lock = lock_state(self.options.state)
 
     def _build_backend(self) -> None:
         """Load the configuration (``--bus`` applied) and make the backend and the arm."""
@@ -146,6 +156,7 @@ class Session:
         went wrong on the arm makes it safe.
         """
         if not self._opened:
+            self._unlock()
             return
         failed = exc is not None and not isinstance(exc, InvalidArgumentError)
         try:
@@ -157,7 +168,10 @@ class Session:
             try:
                 self._save_state(failed=failed)
             finally:
-                self._release()
+                try:
+                    self._release()
+                finally:
+                    self._unlock()
 
     def _on_error(self) -> None:
         """The arm layer's on-error transition: every joint and the gripper disabled."""
@@ -212,6 +226,12 @@ class Session:
         if gripper.is_initialized and not gripper.is_enabled:
             gripper.deinit()
         self.backend.close()
+
+    def _unlock(self) -> None:
+        """Let the next command have the state file."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     # ------------------------------------------------------------- queries
     @property

@@ -27,6 +27,11 @@ missing file means a powered-up arm and is created. Simulated time does not
 advance between commands, only while a command runs (``home``, ``move``,
 ``gripper``, ``monitor``). The ``mock`` backend does not persist (``--state``
 is refused), nor does ``i2c``: the real arm keeps its own state.
+
+One command at a time: a command holds ``FILE.lock`` (:func:`lock_state`)
+from reading the file until it has written it, and a second command on the
+same file is refused at once, naming the holder's pid, rather than losing
+one of the two updates. ``monitor`` holds it until it quits.
 """
 
 from __future__ import annotations
@@ -43,8 +48,8 @@ from typing import Any
 
 import numpy as np
 
-from bioscara_gym.errors import StateFileError
-from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.errors import StateFileError, StateFileInUseError
+from bioscara_gym.fsutil import LockFile, atomic_write_text
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.stats import CommStats
@@ -120,6 +125,28 @@ def _decode(saved: object, like: object, where: str) -> object:
             raise StateFileError(f"{where}: {saved!r} is not a number")
         return saved
     return saved
+
+
+def lock_path(path: Path) -> Path:
+    """The lock file of the state file ``path``: ``path`` plus ``.lock``."""
+    return path.with_name(path.name + ".lock")
+
+
+def lock_state(path: Path) -> LockFile:
+    """Hold the state file ``path`` for one command; release the returned lock when done.
+
+    Raises:
+        StateFileInUseError: Another command holds it (the message names its pid).
+        StateFileError: The lock file cannot be created.
+    """
+    lock = LockFile(lock_path(path))
+    try:
+        lock.acquire()
+    except BlockingIOError as e:
+        raise StateFileInUseError(path, lock.holder()) from e
+    except OSError as e:
+        raise StateFileError(f"cannot lock state file {path}: {lock.path}: {e.strerror or e}") from e
+    return lock
 
 
 def save_state(path: Path, backend: Backend, facts: HostFacts) -> None:

@@ -1,0 +1,226 @@
+"""``bioscara train`` on bad input: one line on stderr, exit code 2, nothing trained or written.
+
+A table of bad inputs, as tests/test_config.py has for the arm's YAML: each
+case writes its files into a fresh directory, runs the CLI in-process and
+checks the one line (naming the file, key and expectation), the exit code,
+that no traceback was printed and that nothing was trained or written: a
+new run leaves no output directory, a ``--resume`` leaves the run as it was.
+Every case is refused before an env step is taken, so the table runs in a
+few seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from bioscara_gym.cli import main
+from bioscara_gym.errors import EXIT_ERROR
+
+REACH = "Bioscara-Reach-v0"
+
+#: A tiny SAC + HER entry (as tests/test_training.py's), valid as it stands.
+ENTRY: dict[str, Any] = {
+    "n_timesteps": 300,
+    "policy": "MultiInputPolicy",
+    "buffer_size": 1000,
+    "batch_size": 32,
+    "learning_starts": 100,
+    "replay_buffer_class": "HerReplayBuffer",
+    "policy_kwargs": "dict(net_arch=[16, 16])",
+    "env_kwargs": {"control_mode": "cartesian", "reward_type": "dense"},
+    "eval_freq": 200,
+    "eval_episodes": 2,
+}
+
+#: A valid ``train_state.json`` of a SAC run on Reach (the config is filled in per case).
+STATE: dict[str, Any] = {
+    "env_id": REACH,
+    "algo": "sac",
+    "seed": 0,
+    "total_timesteps": 300,
+    "config": None,
+    "demos": None,
+}
+
+#: Builds a case's inputs in a directory and returns the ``bioscara`` arguments.
+Setup = Callable[[Path], list[str]]
+
+
+def _config(root: Path, **changes: Any) -> Path:
+    """``root/cfg.yaml``: :data:`ENTRY` with ``changes`` (``None`` removes a key)."""
+    entry = {k: v for k, v in {**ENTRY, **changes}.items() if v is not None}
+    path = root / "cfg.yaml"
+    path.write_text(yaml.safe_dump({REACH: entry}, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def new_run(*extra: str, **changes: Any) -> Setup:
+    """A new run on a config with ``changes``, with extra arguments."""
+
+    def setup(root: Path) -> list[str]:
+        config = _config(root, **changes)
+        return ["train", "--out", str(root / "run"), "--config", str(config), "--no-progress", *extra]
+
+    return setup
+
+
+def resume(state_text: Callable[[Path], str] | None, checkpoint: bool = False) -> Setup:
+    """``--resume`` of a run whose ``train_state.json`` is ``state_text(config)`` (``None``: no file)."""
+
+    def setup(root: Path) -> list[str]:
+        config = _config(root)
+        run = root / "run"
+        run.mkdir()
+        if state_text is not None:
+            (run / "train_state.json").write_text(state_text(config), encoding="utf-8")
+        if checkpoint:
+            (run / "checkpoints").mkdir()
+        return ["train", "--resume", "--out", str(run), "--no-progress"]
+
+    return setup
+
+
+def state_json(**changes: Any) -> Callable[[Path], str]:
+    """A ``train_state.json`` text: :data:`STATE` for the case's config, with ``changes``."""
+
+    def text(config: Path) -> str:
+        return json.dumps({**STATE, "config": str(config), **changes})
+
+    return text
+
+
+def without(key: str) -> Callable[[Path], str]:
+    """A ``train_state.json`` text lacking ``key``."""
+
+    def text(config: Path) -> str:
+        state = {**STATE, "config": str(config)}
+        del state[key]
+        return json.dumps(state)
+
+    return text
+
+
+CASES = [
+    # train_state.json of --resume.
+    pytest.param(resume(None), r"nothing to resume in .*run: no train_state\.json", id="resume-no-state"),
+    pytest.param(
+        resume(without("algo")), r"run/train_state\.json: key 'algo' is missing", id="state-missing-key"
+    ),
+    pytest.param(
+        resume(without("total_timesteps")),
+        r"run/train_state\.json: key 'total_timesteps' is missing",
+        id="state-missing-total",
+    ),
+    pytest.param(
+        resume(lambda _: "{nope"),
+        r"run/train_state\.json: not readable JSON \(Expecting",
+        id="state-not-json",
+    ),
+    pytest.param(
+        resume(lambda _: "[1, 2]"),
+        r"run/train_state\.json: expected a JSON object, got list",
+        id="state-a-list",
+    ),
+    pytest.param(
+        resume(state_json(seed="0")),
+        r"run/train_state\.json: seed is '0'; expected int",
+        id="state-seed-not-int",
+    ),
+    pytest.param(
+        resume(state_json(total_timesteps=0)),
+        r"run/train_state\.json: total_timesteps is 0; expected >= 1",
+        id="state-total-zero",
+    ),
+    pytest.param(
+        resume(state_json(), checkpoint=True),
+        r"nothing to resume in .*run/checkpoints: no checkpoint",
+        id="resume-no-checkpoint",
+    ),
+    # Hyperparameter keys.
+    pytest.param(
+        new_run(batch_sise=32),
+        r"cfg\.yaml: Bioscara-Reach-v0\.batch_sise is not a hyperparameter of SAC; "
+        r"did you mean 'batch_size'\?",
+        id="hyperparameter-typo",
+    ),
+    pytest.param(
+        new_run(zzz=1),
+        r"cfg\.yaml: Bioscara-Reach-v0\.zzz is not a hyperparameter of SAC; see the SAC documentation$",
+        id="hyperparameter-unknown",
+    ),
+    pytest.param(
+        new_run(policy_kwargs="dict(net_arch=[16, 16], no_such_option=1)"),
+        r"cfg\.yaml: Bioscara-Reach-v0: TypeError: .*no_such_option",
+        id="policy-kwarg-unknown",
+    ),
+    # The evaluation schedule and the budget.
+    pytest.param(
+        new_run(eval_freq=0),
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_freq is 0; expected a whole number >= 1",
+        id="eval-freq-zero",
+    ),
+    pytest.param(
+        new_run(eval_freq=-200),
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_freq is -200; expected a whole number >= 1",
+        id="eval-freq-negative",
+    ),
+    pytest.param(
+        new_run(eval_episodes=0),
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_episodes is 0; expected a whole number >= 1",
+        id="eval-episodes-zero",
+    ),
+    pytest.param(
+        new_run(
+            eval_freq=None,
+            eval_episodes=None,
+            callback=[{"bioscara_gym.training.zoo.SuccessEvalCallback": {"eval_episodes": 0}}],
+        ),
+        r"Bioscara-Reach-v0\.callback\.SuccessEvalCallback\.eval_episodes is 0; expected a whole number",
+        id="eval-episodes-zero-in-callback",
+    ),
+    pytest.param(
+        new_run(target_success=1.5),
+        r"Bioscara-Reach-v0\.target_success is 1\.5; expected a success rate in \[0, 1\]",
+        id="target-success-above-one",
+    ),
+    pytest.param(
+        new_run(n_timesteps=0),
+        r"cfg\.yaml: Bioscara-Reach-v0\.n_timesteps is 0; expected a whole number >= 1",
+        id="n-timesteps-zero",
+    ),
+    pytest.param(new_run("--timesteps", "0"), r"--timesteps 0: must be >= 1", id="timesteps-zero"),
+    pytest.param(new_run("--timesteps", "-5"), r"--timesteps -5: must be >= 1", id="timesteps-negative"),
+    pytest.param(
+        new_run("--timesteps", "0", "--algo", "bc"), r"--timesteps 0: must be >= 1", id="bc-timesteps-zero"
+    ),
+]
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` and its contents."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize(("setup", "message"), CASES)
+def test_bad_train_input_is_one_line_exit_2_and_nothing_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], setup: Setup, message: str
+) -> None:
+    argv = setup(tmp_path)
+    before = _snapshot(tmp_path)
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, f"expected one line, got {len(lines)}:\n{err}"
+    assert lines[0].startswith("bioscara train: error: "), lines[0]
+    assert re.search(message, lines[0]), lines[0]
+    assert rc == EXIT_ERROR
+    assert _snapshot(tmp_path) == before  # nothing trained, nothing written
+    assert not (tmp_path / "run" / "tb").exists()
