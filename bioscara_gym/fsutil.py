@@ -10,7 +10,6 @@ while one works on it (the console's ``--state`` file).
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import tempfile
 from collections.abc import Iterator
@@ -125,6 +124,8 @@ class LockFile:
                 on the same path) holds it; :meth:`holder` names it.
             OSError: The lock file cannot be created or opened.
         """
+        import fcntl  # POSIX only; imported here so the rest of the module works everywhere
+
         if self._fd is not None:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
