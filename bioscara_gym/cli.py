@@ -115,19 +115,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
     """``bioscara eval``."""
     from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model, write_json
 
+    options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id
 
         env_id = resolve_env_id(args.env)
         stats = evaluate_expert(
-            env_id, args.episodes, args.backend or "sim", args.video, args.seed, args.video_episodes
+            env_id,
+            args.episodes,
+            args.backend or "sim",
+            args.video,
+            args.seed,
+            args.video_episodes,
+            backend_options=options,
         )
         title, source = f"scripted expert on {env_id} ({args.backend or 'sim'})", "expert"
     else:
         if args.model is None:
             raise CliError("eval needs --model PATH (or --expert --env ID)")
         stats = evaluate_model(
-            args.model, args.episodes, args.backend, args.video, args.seed, args.video_episodes
+            args.model, args.episodes, args.backend, args.video, args.seed, args.video_episodes, options
         )
         title, source = f"{args.model} ({args.backend or 'as trained'})", str(args.model)
     con = _console()
@@ -138,6 +145,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
         write_json(args.json, stats, source=source, backend=args.backend or "sim")
         con.print(f"json      {args.json}")
     return 0
+
+
+def eval_backend_options(args: argparse.Namespace) -> dict[str, object] | None:
+    """The backend options of ``bioscara eval``: ``--record`` (a joint backend's bus), else none."""
+    if getattr(args, "record", None) is None:
+        return None
+    from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, Recording
+
+    if args.backend not in RECORDABLE_BACKENDS:
+        backend = args.backend or "sim"
+        raise CliError(f"--record needs --backend emulated (a bus to record); {backend} has none")
+    return {"record": Recording(args.record, "eval", args)}
 
 
 # ---------------------------------------------------------------- parser
@@ -171,6 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--video-episodes", type=int, default=3, help="episodes in the video (default 3)")
     p.add_argument("--json", type=Path, help="write the results as JSON")
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
+    p.add_argument(
+        "--record", type=Path, metavar="FILE", help="record every bus transaction (docs/traces.md)"
+    )
     p.set_defaults(func=cmd_eval)
 
     for module in EXTRA_COMMAND_MODULES:
@@ -185,6 +207,7 @@ EXTRA_COMMAND_MODULES = (
     "bioscara_gym.training.export",
     "bioscara_gym.console.commands",
     "bioscara_gym.hardware.dynamixel.commands",
+    "bioscara_gym.replay",
 )
 
 

@@ -1,4 +1,10 @@
-"""Shared fixtures of the test suite."""
+"""Shared fixtures of the test suite, and the ``--hw`` / ``--i2c-bus N`` options.
+
+``pytest --hw`` runs the conformance suite (``test_conformance.py``) against
+the joints of a real arm on ``/dev/i2c-N`` in place of the emulated, mock and
+simulated rigs; docs/hardware_tests.md lists what each test moves and what
+must be clear first. Without ``--hw`` nothing here opens a real bus.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +13,7 @@ import os
 # Headless rendering; must be set before anything imports mujoco.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import contextlib
 import dataclasses
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -20,14 +27,113 @@ from rigs import J1, NEAR_END_STOPS, RIG_FACTORIES, EmulatedJoint, JointRig, Mak
 
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
-from bioscara_gym.hardware.base_joint import BUSY_POLL_S
-from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.base_joint import ABORT_SETTLE_S, BUSY_POLL_S
+from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
+from bioscara_gym.hardware.clock import ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.hardware.errors import JointError
 from bioscara_gym.hardware.firmware import JointFirmware
+from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S, Flag, Reg
 from bioscara_gym.hardware.sim import ArmSim
+
+# ------------------------------------------------------------- pytest --hw
+
+#: Rig ids of the real arm's joints under ``--hw`` (``i2c_<joint>``).
+HARDWARE_RIGS = ("i2c_j1", "i2c_j2", "i2c_j3", "i2c_j4")
+#: How long the start of a homing runs before the hardware rig aborts it, s.
+RESET_HOMING_S = 0.2
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("bioscara", "Bioscara hardware")
+    group.addoption(
+        "--hw",
+        action="store_true",
+        help="run the conformance suite against the real arm's joints (docs/hardware_tests.md)",
+    )
+    group.addoption(
+        "--i2c-bus", type=int, default=1, metavar="N", help="the arm's bus, /dev/i2c-N (default 1)"
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", "hw_moves: travels the joint on hardware beyond the rig's reset (docs/hardware_tests.md)"
+    )
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """The ``rig`` fixture's ids: the real arm's joints with ``--hw``, else every rig of ``rigs.py``."""
+    if "rig" in metafunc.fixturenames:
+        ids = HARDWARE_RIGS if metafunc.config.getoption("--hw") else sorted(RIG_FACTORIES)
+        metafunc.parametrize("rig", ids, indirect=True)
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """A test on a hardware rig starts only under ``--hw`` (nothing is asked interactively)."""
+    callspec = getattr(item, "callspec", None)
+    on_hardware = callspec is not None and callspec.params.get("rig") in HARDWARE_RIGS
+    if on_hardware and not item.config.getoption("--hw"):
+        pytest.skip("moves the real arm: run with --hw (docs/hardware_tests.md)")
+
+
+def _hardware_joint(name: str, bus: I2CBus, clock: WallClock) -> Joint:
+    """A driver for the packaged configuration's joint ``name`` on ``bus``."""
+    p = load_config().joint(name)
+    return Joint(p.name, p.address, p.reduction, p.min, p.max, bus, clock=clock)
+
+
+def _reset_to_power_up(name: str, bus: I2CBus, clock: WallClock) -> None:
+    """Leave the joint as after power-up without a power cycle: not homed, not enabled, no offset.
+
+    Starts a homing (HOMEOFFSET := NaN, NOTHOMED set), lets it run
+    :data:`RESET_HOMING_S`, stops it, waits until the aborted homing has
+    returned, then disables the joint: flags NOTHOMED | NOTENABLED, as at
+    power-up. The joint travels ``RESET_HOMING_S`` at its homing speed.
+    """
+    p = load_config().joint(name)
+    joint = _hardware_joint(name, bus, clock)
+    joint.init()
+    joint.enable(p.drive_current, p.hold_current)
+    joint.start_homing(p.homing.speed, p.homing.threshold, p.homing.current)
+    clock.sleep(max(RESET_HOMING_S, BLOCKING_PICKUP_S))
+    joint.stop()
+    clock.sleep(ABORT_SETTLE_S)
+    joint.disable()
+    joint.deinit()
+
+
+def _make_safe(name: str, bus: I2CBus, clock: WallClock) -> None:
+    """Disable the joint (stopped, no current, freewheel), best effort."""
+    joint = _hardware_joint(name, bus, clock)
+    with contextlib.suppress(JointError):
+        joint.init()
+        joint.disable()
+
+
+def hardware_rig(rig_id: str, bus: I2CBus, clock: WallClock) -> JointRig:
+    """Joint ``rig_id`` (``i2c_j1`` ...) of the real arm, reset to its power-up state.
+
+    Time is the wall clock; ``device_flags`` is a PING (the only way to look
+    into a real joint). No ``stall`` (nothing holds the joint), ``power_cycle``
+    or ``power_up_at``: those tests skip with the reason.
+    """
+    name = rig_id.removeprefix("i2c_")
+    p = load_config().joint(name)
+    _reset_to_power_up(name, bus, clock)
+    return JointRig(
+        name=rig_id,
+        joint=_hardware_joint(name, bus, clock),
+        params=p,
+        clock=clock,
+        advance=clock.sleep,
+        device_flags=lambda: Flag(bus.transfer(p.address, bytes((Reg.PING,)), 2)[-1]),
+        restart_host=lambda: _hardware_joint(name, bus, clock),
+        features=frozenset({"deadman", "host_restart", "physics"}),
+    )
 
 
 class ScriptedBus:
@@ -80,10 +186,26 @@ def scripted_bus() -> Iterator[ScriptedBus]:
 # ------------------------------------------------------- joint rigs and firmware
 
 
-@pytest.fixture(params=sorted(RIG_FACTORIES))
-def rig(request: pytest.FixtureRequest) -> JointRig:
-    """Every joint backend of ``rigs.RIG_FACTORIES``, fresh, its joint not ``init()``-ed."""
-    return RIG_FACTORIES[request.param]()
+@pytest.fixture
+def rig(request: pytest.FixtureRequest) -> Iterator[JointRig]:
+    """Every joint backend of ``rigs.RIG_FACTORIES``, fresh, its joint not ``init()``-ed.
+
+    With ``--hw``: each joint of the real arm on ``/dev/i2c-N``, reset to its
+    power-up state first and disabled afterwards, whatever the test did.
+    """
+    if request.param not in HARDWARE_RIGS:
+        yield RIG_FACTORIES[request.param]()
+        return
+    clock = WallClock()
+    bus = SMBusI2C(request.config.getoption("--i2c-bus"))
+    name = request.param.removeprefix("i2c_")
+    try:
+        yield hardware_rig(request.param, bus, clock)
+    finally:
+        try:
+            _make_safe(name, bus, clock)
+        finally:
+            bus.close()
 
 
 @pytest.fixture

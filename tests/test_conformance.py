@@ -8,15 +8,24 @@ host keeps talking (as the arm layer does at its control rate, which also
 keeps the deadman fed). On the MuJoCo rigs motion is physics: a stopped joint
 settles rather than freezing, so "at rest" and "did not move" are judged with
 :func:`rest_velocity` and :func:`tolerance`.
+
+``pytest --hw [--i2c-bus N]`` runs the same tests on the real arm's joints
+instead (conftest.py); ``hw_moves`` marks the tests that travel a joint
+there, and docs/hardware_tests.md lists what each moves
+(``pytest --hw -m "not hw_moves"`` runs the others).
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
+from conftest import hardware_rig
 from rigs import JointRig
 
+from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.errors import (
     IncorrectStateError,
     InvalidArgumentError,
@@ -192,6 +201,7 @@ def test_set_position_refused_when_not_enabled(rig: JointRig) -> None:
         rig.joint.set_position(0.0)
 
 
+@pytest.mark.hw_moves
 def test_set_velocity_refused_when_disabled_after_homing(rig: JointRig) -> None:
     ready_and_homed(rig)
     rig.joint.disable()
@@ -213,6 +223,7 @@ def test_set_position_refused_when_not_homed(rig: JointRig) -> None:
         rig.joint.set_position(0.0)
 
 
+@pytest.mark.hw_moves
 def test_move_steps_allowed_when_not_homed(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
@@ -228,6 +239,7 @@ def test_move_steps_refused_when_not_enabled(rig: JointRig) -> None:
         rig.joint.move_steps(100)
 
 
+@pytest.mark.hw_moves
 def test_position_reads_zero_while_not_homed(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
@@ -239,6 +251,7 @@ def test_position_reads_zero_while_not_homed(rig: JointRig) -> None:
 # ----------------------------------------------------------------- homing
 
 
+@pytest.mark.hw_moves
 def test_homing_with_positive_velocity_ends_at_max(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
@@ -246,6 +259,7 @@ def test_homing_with_positive_velocity_ends_at_max(rig: JointRig) -> None:
     assert rig.joint.get_position() == pytest.approx(rig.params.max, abs=tolerance(rig))
 
 
+@pytest.mark.hw_moves
 def test_homing_with_negative_velocity_ends_at_min(rig: JointRig) -> None:
     needs_homing(rig)
     start_near_end_stop(rig, -1)
@@ -254,12 +268,14 @@ def test_homing_with_negative_velocity_ends_at_min(rig: JointRig) -> None:
     assert rig.joint.get_position() == pytest.approx(rig.params.min, abs=tolerance(rig))
 
 
+@pytest.mark.hw_moves
 def test_homing_clears_not_homed(rig: JointRig) -> None:
     ready_and_homed(rig)
     assert rig.joint.is_homed()
     assert not rig.device_flags() & (Flag.NOT_HOMED | Flag.BUSY)
 
 
+@pytest.mark.hw_moves
 def test_homing_keeps_the_joint_enabled(rig: JointRig) -> None:
     ready_and_homed(rig)
     assert rig.joint.get_flags() == Flag(0)
@@ -298,6 +314,7 @@ def test_homing_refused_when_not_enabled(rig: JointRig) -> None:
         rig.joint.start_homing(h.speed, h.threshold, h.current)
 
 
+@pytest.mark.hw_moves
 def test_start_homing_sets_blocking_command_home(rig: JointRig) -> None:
     ready(rig)
     h = rig.params.homing
@@ -305,6 +322,7 @@ def test_start_homing_sets_blocking_command_home(rig: JointRig) -> None:
     assert rig.joint.current_blocking_command == Reg.HOME
 
 
+@pytest.mark.hw_moves
 def test_start_homing_reports_busy_and_not_homed_at_once(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
@@ -314,11 +332,13 @@ def test_start_homing_reports_busy_and_not_homed_at_once(rig: JointRig) -> None:
     assert not rig.joint.is_homed()
 
 
+@pytest.mark.hw_moves
 def test_home_leaves_blocking_command_none(rig: JointRig) -> None:
     ready_and_homed(rig)
     assert rig.joint.current_blocking_command == Reg.NONE
 
 
+@pytest.mark.hw_moves
 def test_start_homing_while_homing_is_incorrect_state(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
@@ -338,12 +358,14 @@ def _start_homing_then_stop(rig: JointRig) -> None:
     rig.joint.stop()
 
 
+@pytest.mark.hw_moves
 def test_homing_aborted_by_stop_fails_post_homing(rig: JointRig) -> None:
     _start_homing_then_stop(rig)
     with pytest.raises(NotHomedError):
         rig.joint.post_homing()
 
 
+@pytest.mark.hw_moves
 def test_homing_aborted_by_stop_reports_not_homed_and_not_busy(rig: JointRig) -> None:
     _start_homing_then_stop(rig)
     rig.advance(0.1)
@@ -353,6 +375,7 @@ def test_homing_aborted_by_stop_reports_not_homed_and_not_busy(rig: JointRig) ->
     assert rig.device_flags() & Flag.NOT_HOMED
 
 
+@pytest.mark.hw_moves
 def test_homing_aborted_by_stop_clears_blocking_command_in_post_homing(rig: JointRig) -> None:
     _start_homing_then_stop(rig)
     with pytest.raises(NotHomedError):
@@ -360,6 +383,7 @@ def test_homing_aborted_by_stop_clears_blocking_command_in_post_homing(rig: Join
     assert rig.joint.current_blocking_command == Reg.NONE
 
 
+@pytest.mark.hw_moves
 def test_homing_after_an_aborted_homing_succeeds(rig: JointRig) -> None:
     _start_homing_then_stop(rig)
     home(rig)
@@ -369,6 +393,7 @@ def test_homing_after_an_aborted_homing_succeeds(rig: JointRig) -> None:
 # ----------------------------------------------------------------- motion
 
 
+@pytest.mark.hw_moves
 def test_set_position_reaches_target(rig: JointRig) -> None:
     ready_and_homed(rig)
     p = rig.params
@@ -378,6 +403,7 @@ def test_set_position_reaches_target(rig: JointRig) -> None:
     assert reached, f"{rig.name}: at {rig.joint.get_position()}, target {target}"
 
 
+@pytest.mark.hw_moves
 def test_set_velocity_yields_commanded_velocity_after_ramp(rig: JointRig) -> None:
     ready_and_homed(rig)
     v = away_from_max(rig)
@@ -386,6 +412,7 @@ def test_set_velocity_yields_commanded_velocity_after_ramp(rig: JointRig) -> Non
     assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
 
 
+@pytest.mark.hw_moves
 def test_set_velocity_moves_the_joint_in_its_direction(rig: JointRig) -> None:
     ready_and_homed(rig)
     start = rig.joint.get_position()
@@ -394,6 +421,7 @@ def test_set_velocity_moves_the_joint_in_its_direction(rig: JointRig) -> None:
     assert rig.joint.get_position() < start
 
 
+@pytest.mark.hw_moves
 def test_stop_brings_velocity_to_zero(rig: JointRig) -> None:
     ready_and_homed(rig)
     rig.joint.set_velocity(away_from_max(rig))
@@ -418,12 +446,14 @@ def _stall(rig: JointRig) -> None:
     assert run_until(rig, lambda: rig.joint.get_flags() & Flag.STALL, timeout_s=1.0), "never stalled"
 
 
+@pytest.mark.hw_moves
 def test_stall_trips_when_the_joint_is_held(rig: JointRig) -> None:
     _stall(rig)
     assert rig.joint.is_stalled()
     assert rig.device_flags() & Flag.STALL
 
 
+@pytest.mark.hw_moves
 def test_set_velocity_refused_while_stalled(rig: JointRig) -> None:
     _stall(rig)
     rig.unblock()
@@ -431,6 +461,7 @@ def test_set_velocity_refused_while_stalled(rig: JointRig) -> None:
         rig.joint.set_velocity(away_from_max(rig))
 
 
+@pytest.mark.hw_moves
 def test_set_position_refused_while_stalled(rig: JointRig) -> None:
     _stall(rig)
     rig.unblock()
@@ -438,6 +469,7 @@ def test_set_position_refused_while_stalled(rig: JointRig) -> None:
         rig.joint.set_position(rig.params.min)
 
 
+@pytest.mark.hw_moves
 def test_stalled_joint_does_not_move(rig: JointRig) -> None:
     _stall(rig)
     rig.unblock()
@@ -448,6 +480,7 @@ def test_stalled_joint_does_not_move(rig: JointRig) -> None:
     assert rig.joint.get_position() == pytest.approx(before, abs=tolerance(rig))
 
 
+@pytest.mark.hw_moves
 def test_reenable_after_stall_moves_again(rig: JointRig) -> None:
     needs_reenable_clears_stall(rig)
     _stall(rig)
@@ -462,6 +495,7 @@ def test_reenable_after_stall_moves_again(rig: JointRig) -> None:
     assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
 
 
+@pytest.mark.hw_moves
 def test_reenable_clears_stall(rig: JointRig) -> None:
     needs_reenable_clears_stall(rig)
     _stall(rig)
@@ -480,18 +514,21 @@ def _moving_in_velocity_mode(rig: JointRig) -> None:
     run(rig, 0.3)
 
 
+@pytest.mark.hw_moves
 def test_deadman_tolerates_40ms_of_silence(rig: JointRig) -> None:
     _moving_in_velocity_mode(rig)
     rig.advance(0.04)
     assert not rig.device_flags() & Flag.NOT_ENABLED
 
 
+@pytest.mark.hw_moves
 def test_deadman_trips_after_60ms_of_silence_in_velocity_mode(rig: JointRig) -> None:
     _moving_in_velocity_mode(rig)
     rig.advance(0.06)
     assert rig.device_flags() & Flag.NOT_ENABLED
 
 
+@pytest.mark.hw_moves
 def test_deadman_is_reported_to_the_host(rig: JointRig) -> None:
     _moving_in_velocity_mode(rig)
     rig.advance(0.06)
@@ -501,6 +538,7 @@ def test_deadman_is_reported_to_the_host(rig: JointRig) -> None:
         rig.joint.set_velocity(away_from_max(rig))
 
 
+@pytest.mark.hw_moves
 def test_deadman_stops_the_joint(rig: JointRig) -> None:
     _moving_in_velocity_mode(rig)
     rig.advance(0.06)
@@ -511,6 +549,7 @@ def test_deadman_stops_the_joint(rig: JointRig) -> None:
     assert rig.joint.get_position() == pytest.approx(before, abs=tolerance(rig))
 
 
+@pytest.mark.hw_moves
 def test_reenable_after_deadman_moves_again(rig: JointRig) -> None:
     _moving_in_velocity_mode(rig)
     rig.advance(0.06)
@@ -521,6 +560,7 @@ def test_reenable_after_deadman_moves_again(rig: JointRig) -> None:
     assert rig.joint.get_velocity() == pytest.approx(v, rel=1e-3)
 
 
+@pytest.mark.hw_moves
 def test_deadman_does_not_trip_in_position_mode(rig: JointRig) -> None:
     needs(rig, "deadman")
     ready_and_homed(rig)
@@ -530,6 +570,7 @@ def test_deadman_does_not_trip_in_position_mode(rig: JointRig) -> None:
     assert rig.joint.get_velocity() != 0.0
 
 
+@pytest.mark.hw_moves
 def test_deadman_does_not_trip_when_standing_still(rig: JointRig) -> None:
     needs(rig, "deadman")
     ready_and_homed(rig)
@@ -540,6 +581,7 @@ def test_deadman_does_not_trip_when_standing_still(rig: JointRig) -> None:
 # ------------------------------------------------- host restart, power cycle
 
 
+@pytest.mark.hw_moves
 def test_host_restart_restores_offset_without_rehoming(rig: JointRig) -> None:
     needs(rig, "host_restart")
     ready_and_homed(rig)
@@ -553,6 +595,7 @@ def test_host_restart_restores_offset_without_rehoming(rig: JointRig) -> None:
     assert joint.get_position() == pytest.approx(before, abs=tolerance(rig))
 
 
+@pytest.mark.hw_moves
 def test_host_restart_after_negative_homing_restores_min_offset(rig: JointRig) -> None:
     needs_homing(rig)
     needs(rig, "host_restart")
@@ -574,6 +617,7 @@ def test_host_restart_before_homing_reads_zero(rig: JointRig) -> None:
     assert joint.get_position() == 0.0
 
 
+@pytest.mark.hw_moves
 def test_power_cycle_reports_not_homed_and_not_enabled(rig: JointRig) -> None:
     needs_homing(rig)
     needs(rig, "power_cycle")
@@ -582,6 +626,7 @@ def test_power_cycle_reports_not_homed_and_not_enabled(rig: JointRig) -> None:
     assert rig.joint.get_flags() == POWER_UP_FLAGS
 
 
+@pytest.mark.hw_moves
 def test_power_cycle_positions_read_zero(rig: JointRig) -> None:
     needs_homing(rig)
     needs(rig, "power_cycle")
@@ -590,6 +635,7 @@ def test_power_cycle_positions_read_zero(rig: JointRig) -> None:
     assert rig.joint.get_position() == 0.0
 
 
+@pytest.mark.hw_moves
 def test_power_cycle_then_host_restart_is_not_homed(rig: JointRig) -> None:
     needs_homing(rig)
     needs(rig, "power_cycle")
@@ -600,3 +646,30 @@ def test_power_cycle_then_host_restart_is_not_homed(rig: JointRig) -> None:
     joint.init()
     assert not joint.is_homed()
     assert joint.get_position() == 0.0
+
+
+# ------------------------------------------------------------ the --hw suite
+
+
+def test_hardware_docs_list_every_test_that_moves_the_arm() -> None:
+    doc = (Path(__file__).parent.parent / "docs" / "hardware_tests.md").read_text(encoding="utf-8")
+    listed = set(re.findall(r"^\| `(test_\w+)` \| yes", doc, flags=re.MULTILINE))
+    marked = {n for n, f in globals().items() if n.startswith("test_") and _marked(f, "hw_moves")}
+    assert listed == marked
+
+
+def test_hardware_rig_reset_leaves_the_power_up_state() -> None:
+    """A hardware rig's reset, on the emulated arm: an enabled joint ends as at power-up."""
+    with make_backend("emulated") as backend:
+        joint = backend.joints["j1"]
+        j = backend.config.joint("j1")
+        joint.init()
+        joint.enable(j.drive_current, j.hold_current)
+        rig = hardware_rig("i2c_j1", backend.bus, backend.clock)  # type: ignore[arg-type]
+        assert rig.device_flags() == POWER_UP_FLAGS
+        rig.joint.init()
+        assert rig.joint.flags == POWER_UP_FLAGS
+
+
+def _marked(function: object, name: str) -> bool:
+    return any(m.name == name for m in getattr(function, "pytestmark", []))

@@ -10,6 +10,8 @@ statistics) did, at a terminal and on every backend. Every subcommand takes
 ``--config FILE``   arm configuration YAML (default: the packaged one)
 ``--bus N``         I2C bus number for ``i2c`` (default: the config's)
 ``--state FILE``    keep the simulated arm's state in FILE between commands
+``--record FILE``   append every bus transaction to FILE (``i2c``,
+                    ``emulated``; ``bioscara replay FILE``, docs/traces.md)
 =================== ==========================================================
 
 A command opens a :class:`~bioscara_gym.console.session.Session` (backend,
@@ -415,6 +417,12 @@ def _common(parser: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="FILE",
         help="keep the simulated arm's state in FILE between commands (emulated, sim)",
+    )
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE",
+        help="append every bus transaction to FILE (i2c, emulated; docs/traces.md)",
     )
 
 

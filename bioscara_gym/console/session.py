@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import math
 from collections.abc import Iterable
 from types import TracebackType
@@ -110,9 +111,21 @@ class Session:
         config = load_config(self.options.config)
         if self.options.bus is not None:
             config = dataclasses.replace(config, bus=self.options.bus)
-        self.backend = make_backend(self.options.backend, config)
+        self.backend = make_backend(self.options.backend, config, **self._backend_options())
         self.arm = Arm(self.backend)  # sends nothing before configure()
         self._opened = True
+
+    def _backend_options(self) -> dict[str, object]:
+        """The options' backend options, and ``--record`` with the state file this command starts from."""
+        options = dict(self.options.backend_options)
+        record, path = self.options.record, self.options.state
+        if record is not None:
+            context: dict[str, object] = {}
+            if path is not None and path.exists():
+                with contextlib.suppress(OSError, UnicodeDecodeError, json.JSONDecodeError):
+                    context["state"] = json.loads(path.read_text(encoding="utf-8"))
+            options["record"] = dataclasses.replace(record, context=context)
+        return options
 
     def _restore_state(self) -> None:
         """Restore the simulated arm, host facts and bus counters from the state file, if any."""

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from bioscara_gym.errors import ConsoleUsageError
 from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import InvalidArgumentError
+from bioscara_gym.hardware.recording import Recording
 
 #: Backends whose state ``--state`` can keep.
 PERSISTENT_BACKENDS = ("emulated", "sim")
@@ -26,17 +28,29 @@ class ConsoleOptions:
         config: Arm configuration YAML, ``None`` for the packaged default.
         bus: I2C bus number overriding the configuration's.
         state: State file for the simulated backends, ``None`` for none.
+        record: ``--record``: the bus trace to append this command's session to.
+        backend_options: More options for the backend (a replay's bus and clock).
     """
 
     backend: str = "emulated"
     config: Path | None = None
     bus: int | None = None
     state: Path | None = None
+    record: Recording | None = None
+    backend_options: Mapping[str, object] = field(default_factory=dict)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ConsoleOptions:
         """Take the common options from parsed arguments."""
-        return cls(backend=args.backend, config=args.config, bus=args.bus, state=args.state)
+        record = getattr(args, "record", None)
+        return cls(
+            backend=args.backend,
+            config=args.config,
+            bus=args.bus,
+            state=args.state,
+            record=None if record is None else Recording(record, getattr(args, "command", ""), args),
+            backend_options=getattr(args, "backend_options", None) or {},
+        )
 
     def check(self) -> None:
         """Refuse an unknown backend, and ``--state`` with a backend that has no state to keep.

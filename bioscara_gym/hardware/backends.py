@@ -32,6 +32,7 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
+from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, BusWrapper, Recording, recorder
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
@@ -178,6 +179,8 @@ class EmulatedBackend(Backend):
         faults: Faults the bus injects.
         retries: Driver retries per transaction.
         state_file: Gripper state file.
+        wrap_bus: Puts the bus behind another before the joints get it
+            (``record=`` of :func:`make_backend`; a replay's bus).
         sim_kwargs: Passed to :class:`ArmSim`.
     """
 
@@ -189,6 +192,7 @@ class EmulatedBackend(Backend):
         faults: FaultPlan | None = None,
         retries: int = 2,
         state_file: str | Path | None = None,
+        wrap_bus: BusWrapper | None = None,
         **sim_kwargs: object,
     ) -> None:
         """Build the arm, one firmware per joint address, the bus and the drivers."""
@@ -199,7 +203,9 @@ class EmulatedBackend(Backend):
         self.devices = {
             j.address: JointFirmware(None, sim.clock, core=sim.cores[j.name]) for j in config.joints
         }
-        self.bus = EmulatedI2CBus(self.devices, faults, clock=sim.clock)
+        self.bus: I2CBus = EmulatedI2CBus(self.devices, faults, clock=sim.clock)
+        if wrap_bus is not None:
+            self.bus = wrap_bus(self.bus, sim.clock)
         joints = {
             j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, sim.clock)
             for j in config.joints
@@ -244,7 +250,9 @@ class I2CBackend(Backend):
     """The real arm: :class:`Joint` s over ``/dev/i2c-N``, the sysfs PWM gripper.
 
     ``step(dt)`` waits on the wall clock until ``dt`` has passed since the
-    previous step (a fixed-rate loop), not ``dt`` from now.
+    previous step (a fixed-rate loop), not ``dt`` from now. ``bus``,
+    ``clock`` and ``gripper`` replace ``/dev/i2c-N``, the wall clock and the
+    sysfs gripper (a replay's); ``wrap_bus`` as for :class:`EmulatedBackend`.
     """
 
     name = "i2c"
@@ -256,16 +264,21 @@ class I2CBackend(Backend):
         retries: int = 2,
         state_file: str | Path | None = None,
         sysfs_root: str | Path = "/sys/class/pwm",
+        clock: Clock | None = None,
+        gripper: BaseGripper | None = None,
+        wrap_bus: BusWrapper | None = None,
     ) -> None:
         """Open the bus and build the drivers (nothing is sent yet)."""
-        clock = WallClock()
+        clock = clock if clock is not None else WallClock()
         self.bus = bus if bus is not None else SMBusI2C(config.bus)
+        if wrap_bus is not None:
+            self.bus = wrap_bus(self.bus, clock)
         joints = {
             j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, clock)
             for j in config.joints
         }
         g = config.gripper
-        gripper = Gripper(
+        gripper = gripper or Gripper(
             g.reduction,
             g.offset,
             g.min,
@@ -303,10 +316,12 @@ def make_backend(
         config: An :class:`ArmConfig`, a YAML path, or ``None`` for the
             packaged default.
         **options: Backend-specific options (e.g. ``faults`` for ``emulated``,
-            ``initial_qpos`` for the simulated ones, ``state_file``).
+            ``initial_qpos`` for the simulated ones, ``state_file``), and
+            ``record``: a :class:`~.recording.Recording` (or a path) to write
+            every bus transaction to (``i2c`` and ``emulated``; docs/traces.md).
 
     Raises:
-        ValueError: Unknown backend name.
+        ValueError: Unknown backend name; ``record`` on a backend without a bus.
     """
     if not isinstance(config, ArmConfig):
         config = load_config(config)
@@ -321,4 +336,11 @@ def make_backend(
         classes[name] = getattr(importlib.import_module(module), cls)
     if name not in classes:
         raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
+    record = options.pop("record", None)
+    if record is not None:
+        if name not in RECORDABLE_BACKENDS:
+            raise ValueError(f"--record needs a backend with an I2C bus (i2c, emulated); {name} has none")
+        if not isinstance(record, Recording):
+            record = Recording(Path(record), "")  # type: ignore[arg-type]
+        options["wrap_bus"] = recorder(record, name, config)
     return classes[name](config, **options)  # type: ignore[arg-type]

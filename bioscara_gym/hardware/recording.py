@@ -1,0 +1,467 @@
+"""Bus traces: every I2C transaction of a session as one JSON line, recorded and replayed.
+
+A trace (``docs/traces.md``) is a JSON Lines file of one or more sessions.
+Each session is a ``header`` line, then one ``tx`` line per transaction, in
+the order the driver sent them::
+
+    {"type": "header", "format": "bioscara-bus-trace", "version": 1, "bioscara_gym": "0.1.0",
+     "backend": "emulated", "config": {...}, "command": "deploy", "args": {...},
+     "context": {...}, "t0": 0.0, "started": "2025-01-01T12:00:00+0000"}
+    {"type": "tx", "i": 0, "t": 0.0, "dur": 0.0, "addr": "0x11", "write": "0f", "read_len": 2,
+     "read": "4f0c"}
+    {"type": "tx", "i": 1, ..., "error": {"errno": 121, "message": "Remote I/O error (address 0x11)"}}
+
+:class:`RecordingBus` writes a session around any :class:`~.bus.I2CBus`;
+:func:`read_trace` reads a file back; :class:`ReplayBus` serves a session's
+replies to the driver and raises :class:`TraceMismatch` on the first
+transaction that differs from the recording.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from bioscara_gym.hardware.bus import I2CBus
+from bioscara_gym.hardware.clock import Clock
+from bioscara_gym.hardware.config import ArmConfig, config_to_dict
+
+#: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
+TRACE_FORMAT = "bioscara-bus-trace"
+TRACE_VERSION = 1
+#: Backends whose joints talk over an I2C bus, so they can be recorded.
+RECORDABLE_BACKENDS = ("i2c", "emulated")
+
+#: Wraps a backend's bus before its joints get it: ``(bus, clock) -> bus``.
+BusWrapper = Callable[[I2CBus, Clock], I2CBus]
+
+
+class TraceError(ValueError):
+    """A trace file that cannot be read; the message names the file and line."""
+
+
+class TraceMismatch(Exception):
+    """The driver sent a transaction other than the recorded one (or one more than recorded).
+
+    Attributes:
+        index: The transaction's index in its session, from 0.
+        line: Its line in the trace file (``None`` past the end).
+        expected: The recorded transaction, ``None`` past the end.
+        sent: ``(address, bytes written, read length)`` the driver sent.
+    """
+
+    def __init__(
+        self, index: int, line: int | None, expected: Transaction | None, sent: tuple[int, bytes, int]
+    ) -> None:
+        """Describe the first difference."""
+        self.index, self.line, self.expected, self.sent = index, line, expected, sent
+        where = f"transaction {index}" + (f" (trace line {line})" if line is not None else "")
+        expected_text = "the end of the trace" if expected is None else describe(expected.request)
+        super().__init__(f"{where}: expected {expected_text}, sent {describe(sent)}")
+
+
+def describe(request: tuple[int, bytes, int]) -> str:
+    """``0x11 write 15 00 00 20 41 read 1``: one transaction's request, bytes in hex."""
+    address, data, read_len = request
+    return f"{address:#04x} write {data.hex(' ') or '(none)'} read {read_len}"
+
+
+# ------------------------------------------------------------------ recording
+@dataclass(frozen=True)
+class Recording:
+    """Where to record a session and what to write in its header to replay it.
+
+    Attributes:
+        path: The trace file; a new session is appended if it exists.
+        command: The ``bioscara`` subcommand that runs (``deploy``, ``eval``, ``move``, ...).
+        args: Its arguments, as ``bioscara replay`` needs them to run it again.
+        context: Anything else the command starts from (the console's ``--state`` document).
+    """
+
+    path: Path
+    command: str
+    args: Mapping[str, Any] = field(default_factory=dict)
+    context: Mapping[str, Any] = field(default_factory=dict)
+
+
+def jsonable_args(args: object) -> dict[str, Any]:
+    """A command's arguments (a namespace, dataclass or mapping) as JSON data.
+
+    Paths become strings; what is not JSON data (callables, a replay's bus
+    objects) and names starting with ``_`` are left out.
+    """
+    if dataclasses.is_dataclass(args) and not isinstance(args, type):
+        items = dataclasses.asdict(args)
+    elif isinstance(args, Mapping):
+        items = dict(args)
+    else:
+        items = dict(vars(args))
+    out: dict[str, Any] = {}
+    for key, value in items.items():
+        value = os.fspath(value) if isinstance(value, os.PathLike) else value
+        if key.startswith("_"):
+            continue
+        try:
+            json.dumps(value)
+        except (TypeError, ValueError):
+            continue
+        out[key] = value
+    return out
+
+
+class RecordingBus:
+    """An :class:`~.bus.I2CBus` that writes every transaction of ``inner`` to a trace.
+
+    Each line is written and flushed as the transaction ends, so a trace is
+    complete up to a crash or Ctrl-C. Attributes it does not have are the
+    inner bus's (``bus.faults`` of an emulated bus still works).
+
+    Args:
+        inner: The bus that carries the transactions.
+        recording: Where to write, and the header's command and arguments.
+        clock: The backend's clock (the ``t`` of every line).
+        backend: The backend's name, for the header.
+        config: The arm configuration, for the header.
+    """
+
+    def __init__(
+        self, inner: I2CBus, recording: Recording, clock: Clock, backend: str, config: ArmConfig
+    ) -> None:
+        """Open (append to) the trace file and write the session's header."""
+        import bioscara_gym
+
+        self.inner = inner
+        self.clock = clock
+        self.path = Path(recording.path)
+        self.transactions = 0
+        self._file: IO[str] | None = self.path.open("a", encoding="utf-8")
+        self._write(
+            {
+                "type": "header",
+                "format": TRACE_FORMAT,
+                "version": TRACE_VERSION,
+                "bioscara_gym": bioscara_gym.__version__,
+                "backend": backend,
+                "config": config_to_dict(config),
+                "command": recording.command,
+                "args": jsonable_args(recording.args),
+                "context": dict(recording.context),
+                "t0": clock.now(),
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            }
+        )
+
+    def _write(self, record: Mapping[str, Any]) -> None:
+        if self._file is None:
+            raise OSError(f"trace {self.path} is closed")
+        self._file.write(json.dumps(record) + "\n")
+        self._file.flush()
+
+    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
+        """One transaction of the inner bus, recorded with its reply or its error."""
+        data = bytes(data)
+        t = self.clock.now()
+        record: dict[str, Any] = {
+            "type": "tx",
+            "i": self.transactions,
+            "t": t,
+            "dur": 0.0,
+            "addr": f"{address:#04x}",
+            "write": data.hex(),
+            "read_len": read_len,
+        }
+        self.transactions += 1
+        try:
+            reply = bytes(self.inner.transfer(address, data, read_len))
+        except OSError as e:
+            record["dur"] = self.clock.now() - t
+            record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
+            self._write(record)
+            raise
+        record["dur"] = self.clock.now() - t
+        record["read"] = reply.hex()
+        self._write(record)
+        return reply
+
+    def close(self) -> None:
+        """Close the inner bus and the trace file."""
+        try:
+            self.inner.close()
+        finally:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
+
+    def __getattr__(self, name: str) -> Any:
+        """The inner bus's attribute (``faults``, ``update()`` of an emulated bus)."""
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+
+def recorder(recording: Recording, backend: str, config: ArmConfig) -> BusWrapper:
+    """A :data:`BusWrapper` that records the backend's bus into ``recording``."""
+
+    def wrap(bus: I2CBus, clock: Clock) -> I2CBus:
+        return RecordingBus(bus, recording, clock, backend, config)
+
+    return wrap
+
+
+# -------------------------------------------------------------------- reading
+@dataclass(frozen=True)
+class Transaction:
+    """One recorded transaction.
+
+    Attributes:
+        line: Its line in the trace file, from 1.
+        t: Time on the backend's clock when it started, s.
+        dur: Time it took on that clock, s.
+        address: 7-bit address.
+        write: Bytes written.
+        read_len: Bytes asked for.
+        read: Bytes read, ``None`` when the transfer raised.
+        errno: The ``OSError``'s errno when the transfer raised.
+        message: The ``OSError``'s message when the transfer raised.
+    """
+
+    line: int
+    t: float
+    dur: float
+    address: int
+    write: bytes
+    read_len: int
+    read: bytes | None
+    errno: int | None = None
+    message: str = ""
+
+    @property
+    def request(self) -> tuple[int, bytes, int]:
+        """``(address, bytes written, read length)``."""
+        return (self.address, self.write, self.read_len)
+
+
+@dataclass(frozen=True)
+class TraceSession:
+    """One session of a trace: its header and its transactions.
+
+    Attributes:
+        header: The header line as read.
+        transactions: The transactions, in order.
+    """
+
+    header: Mapping[str, Any]
+    transactions: Sequence[Transaction]
+
+    @property
+    def command(self) -> str:
+        """The recorded ``bioscara`` subcommand."""
+        return str(self.header.get("command", ""))
+
+    @property
+    def backend(self) -> str:
+        """The backend it was recorded on."""
+        return str(self.header.get("backend", ""))
+
+
+def _hex(value: object, where: str, key: str) -> bytes:
+    if not isinstance(value, str):
+        raise TraceError(f"{where}: '{key}' must be a hex string")
+    try:
+        return bytes.fromhex(value)
+    except ValueError as e:
+        raise TraceError(f"{where}: '{key}' {value!r} is not hex") from e
+
+
+def _number(value: object, where: str, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TraceError(f"{where}: '{key}' must be a number")
+    return float(value)
+
+
+def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
+    address = doc.get("addr")
+    try:
+        addr = int(address, 16) if isinstance(address, str) else -1
+    except ValueError:
+        addr = -1
+    if not 0 <= addr <= 0x7F:
+        raise TraceError(f"{where}: 'addr' must be a 7-bit address such as \"0x11\", got {address!r}")
+    read_len = doc.get("read_len")
+    if isinstance(read_len, bool) or not isinstance(read_len, int) or read_len < 0:
+        raise TraceError(f"{where}: 'read_len' must be a whole number >= 0")
+    common = {
+        "line": line,
+        "t": _number(doc.get("t"), where, "t"),
+        "dur": _number(doc.get("dur", 0.0), where, "dur"),
+        "address": addr,
+        "write": _hex(doc.get("write"), where, "write"),
+        "read_len": read_len,
+    }
+    error = doc.get("error")
+    if ("read" in doc) == (error is not None):
+        raise TraceError(f"{where}: a transaction has either 'read' or 'error'")
+    if error is None:
+        return Transaction(**common, read=_hex(doc["read"], where, "read"))
+    if not isinstance(error, Mapping) or isinstance(error.get("errno"), bool):
+        raise TraceError(f"{where}: 'error' must be {{'errno': int, 'message': str}}")
+    errno_value = error.get("errno")
+    if errno_value is not None and not isinstance(errno_value, int):
+        raise TraceError(f"{where}: 'error' must be {{'errno': int, 'message': str}}")
+    return Transaction(**common, read=None, errno=errno_value, message=str(error.get("message", "")))
+
+
+def _check_header(doc: Mapping[str, Any], where: str) -> None:
+    if doc.get("format") != TRACE_FORMAT:
+        raise TraceError(
+            f"{where}: not a bioscara bus trace (format {doc.get('format')!r}, expected {TRACE_FORMAT!r})"
+        )
+    version = doc.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise TraceError(f"{where}: 'version' must be a whole number >= 1")
+    if version > TRACE_VERSION:
+        raise TraceError(
+            f"{where}: trace format version {version} is newer than this bioscara_gym reads "
+            f"({TRACE_VERSION}); upgrade bioscara_gym"
+        )
+    for key in ("backend", "command"):
+        if not isinstance(doc.get(key), str):
+            raise TraceError(f"{where}: the header has no '{key}'")
+    for key in ("config", "args"):
+        if not isinstance(doc.get(key), Mapping):
+            raise TraceError(f"{where}: the header's '{key}' must be an object")
+
+
+def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
+    """Read and check a trace file: its sessions, in order.
+
+    Raises:
+        TraceError: Missing or unreadable, a line that is not JSON or not a
+            header or transaction, a header of another format or of a newer
+            version; the message names the file and line.
+    """
+    path = Path(path)
+    name = path.name
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as e:
+        raise TraceError(f"{path}: no such trace file") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise TraceError(f"{path}: cannot be read ({e})") from e
+    sessions: list[tuple[Mapping[str, Any], list[Transaction]]] = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        if not raw.strip():
+            continue
+        where = f"{name} line {number}"
+        try:
+            doc = json.loads(raw)
+        except json.JSONDecodeError:
+            raise TraceError(f"{where}: not JSON") from None
+        if not isinstance(doc, Mapping):
+            raise TraceError(f"{where}: not a JSON object")
+        kind = doc.get("type")
+        if kind == "header":
+            _check_header(doc, where)
+            sessions.append((doc, []))
+        elif kind == "tx":
+            if not sessions:
+                raise TraceError(f"{where}: a transaction before the first header")
+            sessions[-1][1].append(_transaction(doc, number, where))
+        else:
+            raise TraceError(f"{where}: 'type' must be 'header' or 'tx', got {kind!r}")
+    if not sessions:
+        raise TraceError(f"{name}: empty; a trace starts with a header line")
+    return [TraceSession(header, tuple(txs)) for header, txs in sessions]
+
+
+# -------------------------------------------------------------------- replay
+class ReplayClock:
+    """Time during a replay: ``sleep`` advances at once; a replayed transaction sets it forward.
+
+    The :class:`ReplayBus` moves it to each transaction's recorded time, so the
+    driver's waits and timeouts see the times the recording saw.
+
+    Args:
+        start: The session's start time (the header's ``t0``), s.
+    """
+
+    def __init__(self, start: float = 0.0) -> None:
+        """Start at ``start`` seconds."""
+        self._t = float(start)
+
+    def now(self) -> float:
+        """The current replay time, s."""
+        return self._t
+
+    def sleep(self, dt: float) -> None:
+        """Advance by ``dt`` seconds at once (negative values are ignored)."""
+        if dt > 0:
+            self._t += dt
+
+
+class ReplayBus:
+    """An :class:`~.bus.I2CBus` that serves a recorded session's replies, in order.
+
+    Each transfer must ask for exactly the recorded address, bytes and read
+    length; the recorded reply is returned, or the recorded error raised as
+    the same ``OSError``. Before each transaction the clock is moved to its
+    recorded time (if behind), after it by its recorded duration. The first
+    difference raises :class:`TraceMismatch` (kept in :attr:`mismatch`, and
+    raised again by every later transfer, so a driver that catches it cannot
+    go on as if nothing happened).
+
+    Args:
+        session: The recorded session.
+        clock: The clock to keep on the recorded times (set later with :meth:`bind`).
+    """
+
+    def __init__(self, session: TraceSession, clock: Clock | None = None) -> None:
+        """Start before the session's first transaction."""
+        self.session = session
+        self.clock = clock
+        self.served = 0
+        self.errors_served = 0
+        self.mismatch: TraceMismatch | None = None
+        self.closed = False
+
+    def bind(self, bus: I2CBus, clock: Clock) -> ReplayBus:
+        """Take the backend's clock in place of its bus (a :data:`BusWrapper`)."""
+        self.clock = clock
+        return self
+
+    @property
+    def remaining(self) -> int:
+        """Recorded transactions not served yet."""
+        return len(self.session.transactions) - self.served
+
+    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
+        """Serve the next recorded transaction if the driver asks for exactly it."""
+        if self.mismatch is not None:
+            raise self.mismatch
+        sent = (address, bytes(data), read_len)
+        txs = self.session.transactions
+        if self.served >= len(txs):
+            self.mismatch = TraceMismatch(self.served, None, None, sent)
+            raise self.mismatch
+        tx = txs[self.served]
+        if tx.request != sent:
+            self.mismatch = TraceMismatch(self.served, tx.line, tx, sent)
+            raise self.mismatch
+        self.served += 1
+        if self.clock is not None:
+            self.clock.sleep(tx.t - self.clock.now())
+            self.clock.sleep(tx.dur)
+        if tx.read is None:
+            self.errors_served += 1
+            raise OSError(tx.errno, tx.message)
+        return tx.read
+
+    def close(self) -> None:
+        """Mark the bus closed (the trace stays readable)."""
+        self.closed = True
