@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -115,6 +116,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     """``bioscara eval``."""
     from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model, write_json
 
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if args.video_episodes < 1:
+        raise CliError(f"--video-episodes must be >= 1, got {args.video_episodes}")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id
@@ -213,6 +218,7 @@ EXTRA_COMMAND_MODULES = (
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``bioscara`` console script."""
+    _choose_headless_gl()
     parser = build_parser()
     args = parser.parse_args(argv)
     # One line per error whatever the width, and the text printed as is (no markup).
@@ -228,6 +234,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError, MissingExtraError, JointError) as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
+
+
+def _choose_headless_gl() -> None:
+    """On a machine without a display, have MuJoCo render with EGL, as ``make`` does.
+
+    MuJoCo reads ``MUJOCO_GL`` once, when it is imported, and a command may
+    import it (for its env) long before it renders (a video after training):
+    the command line is the one place early enough. The library itself sets
+    nothing (``bioscara_gym.envs.rendering.prepare`` only when a renderer is made).
+    """
+    from bioscara_gym.envs.rendering import has_display
+
+    if "MUJOCO_GL" not in os.environ and not has_display():
+        os.environ["MUJOCO_GL"] = "egl"
 
 
 if __name__ == "__main__":

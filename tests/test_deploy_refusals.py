@@ -277,3 +277,21 @@ def test_eval_refuses_the_same_policy_files_in_one_line(
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and err.startswith("bioscara eval: error: ") and expected in err, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--seed", "-1"], "--seed must be >= 0, got -1"),
+        (["--video-episodes", "0"], "--video-episodes must be >= 1, got 0"),
+        (["--episodes", "0"], "episodes must be >= 1, got 0"),
+    ],
+    ids=["seed-negative", "video-episodes-zero", "episodes-zero"],
+)
+def test_eval_refuses_bad_arguments_in_one_line(
+    argv: list[str], expected: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["eval", "--expert", "--env", "Bioscara-Reach", "--backend", "mock", *argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and expected in err, err
