@@ -62,7 +62,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import functools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from rich import box
@@ -75,8 +78,9 @@ from bioscara_gym.console.session import Session
 from bioscara_gym.console.targets import HOMING_DIRECTIONS, ConsoleOptions, resolve_joints, resolve_target
 from bioscara_gym.errors import ConsoleUsageError
 from bioscara_gym.hardware.backends import ALL_BACKENDS
-from bioscara_gym.hardware.config import GRIPPER_NAME
-from bioscara_gym.hardware.errors import InvalidArgumentError, JointError
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
+from bioscara_gym.hardware.errors import InvalidArgumentError, JointError, MissingExtraError
+from bioscara_gym.hardware.i2c_timing import wire_time_s
 from bioscara_gym.hardware.registers import Flag
 
 #: One ``ping`` reply: device, address (``"-"`` without a bus), ``"OK"`` or the error, flags.
@@ -173,6 +177,84 @@ def loop_table(session: Session) -> Table | None:
     return table
 
 
+#: Control rate the bus-time budget of ``bioscara status`` is given for, Hz (the envs' default).
+BUDGET_RATE_HZ = 25.0
+
+
+@dataclass(frozen=True)
+class BusBudget:
+    """The I2C bus time of one control cycle of the envs' loop.
+
+    Attributes:
+        transactions: Bus transactions one env step makes (counted on the emulated bus).
+        wire_s: Their wire time at ``clock_hz``, s (no latency, no retries).
+        clock_hz: The bus clock, Hz.
+        period_s: The control period, s.
+    """
+
+    transactions: int
+    wire_s: float
+    clock_hz: float
+    period_s: float
+
+    @property
+    def share(self) -> float:
+        """Fraction of the control period the transactions occupy the bus."""
+        return self.wire_s / self.period_s
+
+    def line(self) -> str:
+        """One line for ``bioscara status``."""
+        return (
+            f"bus time per {1.0 / self.period_s:g} Hz cycle: {self.transactions} transactions, "
+            f"{self.wire_s * 1000:.2f} ms at {self.clock_hz / 1000:g} kHz = {self.share:.1%} of "
+            f"{self.period_s * 1000:g} ms (one Reach env step on the emulated bus)"
+        )
+
+
+@functools.lru_cache(maxsize=4)
+def bus_budget(config: ArmConfig, rate_hz: float = BUDGET_RATE_HZ) -> BusBudget:
+    """Count the transactions of one Reach env step on the emulated bus and their wire time.
+
+    The env (default control mode) is brought up and stepped once with a
+    zero action (on its own emulated arm, keeping no gripper state file);
+    the bus's own record gives each transaction's length, and
+    :func:`~bioscara_gym.hardware.i2c_timing.wire_time_s` its time at the
+    configuration's ``i2c_clock_hz``.
+
+    Raises:
+        MissingExtraError: The ``sim`` extra (MuJoCo) is not installed.
+    """
+    import gymnasium as gym
+    import numpy as np
+
+    import bioscara_gym  # noqa: F401 - registers the envs
+
+    quiet = dataclasses.replace(config, gripper=dataclasses.replace(config.gripper, state_file=None))
+    env = gym.make("Bioscara-Reach-v0", backend="emulated", config=quiet, control_freq=rate_hz)
+    try:
+        env.reset(seed=0)
+        bus = env.unwrapped.backend.bus
+        bus.history = []  # record this step's transactions
+        env.step(np.zeros(env.action_space.shape, dtype=env.action_space.dtype))
+        lengths = [(len(data), read_len) for _, _, data, read_len in bus.history]
+        period_s = env.unwrapped.dt
+    finally:
+        env.close()
+    wire_s = sum(wire_time_s(w, r, config.i2c_clock_hz) for w, r in lengths)
+    return BusBudget(len(lengths), wire_s, config.i2c_clock_hz, period_s)
+
+
+def budget_line(session: Session) -> str | None:
+    """The status line with the control cycle's bus-time budget; ``None`` for an arm without I2C joints."""
+    config = session.config
+    if session.backend.loop_stats() or any(j.type != "i2c" for j in config.joints):
+        return None
+    try:
+        return bus_budget(config).line()
+    except MissingExtraError as e:
+        return f"bus time per cycle: not counted ({e})"
+
+
 def _yes_no(value: bool) -> str:
     """``yes`` or ``no``."""
     return "yes" if value else "no"
@@ -232,6 +314,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     with Session(ConsoleOptions.from_args(args)) as session:
         con.print(lifecycle_line(session))
         con.print(status_table(session))
+        budget = budget_line(session)
+        if budget is not None:
+            con.print(budget)
         loops = loop_table(session)
         if loops is not None:
             session.backend.step(0.0)  # one pass of the loops, so that they have something to show

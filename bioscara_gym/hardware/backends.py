@@ -11,12 +11,19 @@
              (``bioscara_gym.hardware.dynamixel.backend``, docs/dynamixel.md)
 =========== =================================================================
 
-``step(dt)`` advances physics by ``dt`` in simulation and waits until ``dt``
-has passed since the previous step on the wall clock on hardware.
+``step(dt)`` is one fixed-rate loop on every backend: a
+:class:`~bioscara_gym.hardware.clock.DeadlineScheduler` on the backend's clock
+returns ``dt`` after the previous step's deadline, so the cycle's own bus time
+comes out of the period; an overrun restarts the schedule from now. On
+hardware it sleeps on the wall clock; in simulation it advances physics and
+firmware to the deadline, and every bus transaction (``emulated``) or driver
+call (``sim``) has already advanced them by its wire time at the configured
+``i2c_clock_hz`` (docs/protocol.md, "Wire time").
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 from collections.abc import Mapping
@@ -24,7 +31,7 @@ from pathlib import Path
 
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
-from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
+from bioscara_gym.hardware.clock import Clock, DeadlineScheduler, ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
 from bioscara_gym.hardware.errors import require_extra
@@ -45,6 +52,15 @@ EXTRA_BACKENDS = {
 }
 #: Every backend name :func:`make_backend` accepts.
 ALL_BACKENDS = (*BACKENDS, *EXTRA_BACKENDS)
+
+
+def with_i2c_clock(config: ArmConfig, i2c_clock_hz: float | None) -> ArmConfig:
+    """``config`` with the bus clock option in place of its own (``None``: unchanged).
+
+    Raises:
+        ConfigError: The clock is not a number > 0 (a ``ValueError``, one line naming ``i2c_clock_hz``).
+    """
+    return config if i2c_clock_hz is None else dataclasses.replace(config, i2c_clock_hz=i2c_clock_hz)
 
 
 def default_state_dir() -> Path:
@@ -89,6 +105,7 @@ class Backend:
         gripper: The gripper.
         clock: The backend's time source.
         sim: The MuJoCo arm where there is one, else ``None``.
+        schedule: The control loop's deadlines on ``clock`` (:meth:`step`).
     """
 
     name = ""
@@ -100,17 +117,25 @@ class Backend:
         gripper: BaseGripper,
         clock: Clock,
         sim: object | None = None,
+        schedule: DeadlineScheduler | None = None,
     ) -> None:
-        """Bundle the parts."""
+        """Bundle the parts; the schedule starts now unless one is given."""
         self.config = config
         self.joints = dict(joints)
         self.gripper = gripper
         self.clock = clock
         self.sim = sim
+        self.schedule = schedule if schedule is not None else DeadlineScheduler(clock)
 
     def step(self, dt: float) -> None:
-        """Let ``dt`` seconds pass (simulated or waited)."""
-        self.clock.sleep(dt)
+        """Wait (on hardware) or advance (in simulation) until ``dt`` after the previous step's deadline.
+
+        The time since that deadline (bus transactions, the policy) is part
+        of the period, so the loop keeps its rate without drift. A cycle
+        that already took longer is an overrun: no wait, and the schedule
+        restarts from now (:attr:`schedule` counts them).
+        """
+        self.schedule.wait(dt)
 
     def device_flags(self, name: str) -> Flag | None:
         """The flags joint ``name``'s device holds now, read without a bus transaction.
@@ -148,27 +173,43 @@ class Backend:
 
 
 class SimBackend(Backend):
-    """:class:`SimJoint` s and :class:`SimGripper` on the MuJoCo arm."""
+    """:class:`SimJoint` s and :class:`SimGripper` on the MuJoCo arm.
+
+    There is no bus, but every driver call takes the wire time its
+    transaction would take at ``i2c_clock_hz`` (the same the emulated bus
+    charges), so readings are as old as on the arm.
+
+    Args:
+        config: Arm configuration.
+        state_file: Gripper state file.
+        i2c_clock_hz: Bus clock whose wire time each call takes, Hz;
+            default the configuration's ``i2c_clock_hz``.
+        sim_kwargs: Passed to :class:`ArmSim`.
+    """
 
     name = "sim"
 
-    def __init__(self, config: ArmConfig, state_file: str | Path | None = None, **sim_kwargs: object) -> None:
+    def __init__(
+        self,
+        config: ArmConfig,
+        state_file: str | Path | None = None,
+        i2c_clock_hz: float | None = None,
+        **sim_kwargs: object,
+    ) -> None:
         """Build the simulated arm (kwargs go to :class:`ArmSim`)."""
         require_extra("mujoco", "the sim backend", "sim")
         from bioscara_gym.hardware.sim import ArmSim, SimGripper, make_sim_joints
 
+        config = with_i2c_clock(config, i2c_clock_hz)
         sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
         super().__init__(
             config,
-            make_sim_joints(sim),
+            make_sim_joints(sim, i2c_clock_hz=config.i2c_clock_hz),
             SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False)),
             sim.clock,
             sim,
+            sim.schedule,
         )
-
-    def step(self, dt: float) -> None:
-        """Advance physics and firmware by ``dt`` seconds."""
-        self.sim.step(dt)  # type: ignore[union-attr]
 
 
 class EmulatedBackend(Backend):
@@ -176,9 +217,12 @@ class EmulatedBackend(Backend):
 
     Args:
         config: Arm configuration (addresses, reductions, limits).
-        faults: Faults the bus injects.
+        faults: Faults the bus injects; its ``drift_ppm`` scales the loop's
+            periods (:attr:`FaultPlan.period_scale`).
         retries: Driver retries per transaction.
         state_file: Gripper state file.
+        i2c_clock_hz: Bus clock, Hz, whose wire time every transaction
+            takes; default the configuration's ``i2c_clock_hz``.
         wrap_bus: Puts the bus behind another before the joints get it
             (``record=`` of :func:`make_backend`; a replay's bus).
         sim_kwargs: Passed to :class:`ArmSim`.
@@ -193,17 +237,21 @@ class EmulatedBackend(Backend):
         retries: int = 2,
         state_file: str | Path | None = None,
         wrap_bus: BusWrapper | None = None,
+        i2c_clock_hz: float | None = None,
         **sim_kwargs: object,
     ) -> None:
         """Build the arm, one firmware per joint address, the bus and the drivers."""
         require_extra("mujoco", "the emulated backend", "sim")
         from bioscara_gym.hardware.sim import ArmSim, SimGripper
 
+        config = with_i2c_clock(config, i2c_clock_hz)
+        faults = faults or FaultPlan()
         sim = ArmSim(config, **sim_kwargs)  # type: ignore[arg-type]
+        sim.schedule.scale = faults.period_scale
         self.devices = {
             j.address: JointFirmware(None, sim.clock, core=sim.cores[j.name]) for j in config.joints
         }
-        self.bus: I2CBus = EmulatedI2CBus(self.devices, faults, clock=sim.clock)
+        self.bus: I2CBus = EmulatedI2CBus(self.devices, faults, clock=sim.clock, clock_hz=config.i2c_clock_hz)
         if wrap_bus is not None:
             self.bus = wrap_bus(self.bus, sim.clock)
         joints = {
@@ -211,11 +259,7 @@ class EmulatedBackend(Backend):
             for j in config.joints
         }
         gripper = SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False))
-        super().__init__(config, joints, gripper, sim.clock, sim)
-
-    def step(self, dt: float) -> None:
-        """Advance physics and firmware by ``dt`` seconds."""
-        self.sim.step(dt)  # type: ignore[union-attr]
+        super().__init__(config, joints, gripper, sim.clock, sim, sim.schedule)
 
     def close(self) -> None:
         """Close the emulated bus."""
@@ -250,7 +294,7 @@ class I2CBackend(Backend):
     """The real arm: :class:`Joint` s over ``/dev/i2c-N``, the sysfs PWM gripper.
 
     ``step(dt)`` waits on the wall clock until ``dt`` has passed since the
-    previous step (a fixed-rate loop), not ``dt`` from now. ``bus``,
+    previous step's deadline (a fixed-rate loop), not ``dt`` from now. ``bus``,
     ``clock`` and ``gripper`` replace ``/dev/i2c-N``, the wall clock and the
     sysfs gripper (a replay's); ``wrap_bus`` as for :class:`EmulatedBackend`.
     """
@@ -290,16 +334,6 @@ class I2CBackend(Backend):
             sysfs_root=sysfs_root,
         )
         super().__init__(config, joints, gripper, clock)
-        self._next = clock.now()
-
-    def step(self, dt: float) -> None:
-        """Wait until ``dt`` after the previous step's deadline (no drift)."""
-        self._next += dt
-        now = self.clock.now()
-        if self._next < now:
-            self._next = now  # overran: restart the schedule from now
-        else:
-            self.clock.sleep(self._next - now)
 
     def close(self) -> None:
         """Close the bus."""

@@ -18,6 +18,7 @@ File format (all joint, homing and gripper fields are required; unknown
 fields are errors so that typos cannot pass silently)::
 
     bus: 1                      # optional, /dev/i2c-N, default 1
+    i2c_clock_hz: 100000        # optional, the bus clock, default 100000 (400000: fast mode)
     joints:
       - name: j1
         address: 0x11
@@ -76,6 +77,7 @@ from bioscara_gym.hardware.registers import (
     HOMING_RPM_MIN,
     I2C_ADDRESS_MAX,
     I2C_ADDRESS_MIN,
+    I2C_CLOCK_HZ,
     SENSITIVITY_MAX,
 )
 from bioscara_gym.hardware.transmission import velocity_to_rpm
@@ -489,6 +491,11 @@ class ArmConfig:
         groups: Named groups of joint names (read-only mapping); members are
             joint names or ``"gripper"``, each at most once per group.
         bus: I2C bus number (``/dev/i2c-N``), >= 0.
+        i2c_clock_hz: The I2C bus clock, Hz, > 0: 100 000 (standard mode,
+            the Raspberry Pi's default) or 400 000 (fast mode). The real
+            bus's is set on the Pi (``dtparam=i2c_arm_baudrate``); here it
+            sets the wire time the emulated bus and the sim backend charge
+            per transaction (docs/protocol.md, "Wire time").
 
     Raises:
         ConfigError: On construction, if the parts are inconsistent.
@@ -499,6 +506,7 @@ class ArmConfig:
     groups: Mapping[str, tuple[str, ...]] = field(hash=False)
     bus: int = 1
     dynamixel: DynamixelBusConfig | None = None
+    i2c_clock_hz: float = I2C_CLOCK_HZ
 
     def __post_init__(self) -> None:
         """Validate the parts; freeze ``joints`` (tuple) and ``groups`` (read-only)."""
@@ -540,6 +548,7 @@ class ArmConfig:
             raise ConfigError(f"gripper must be a GripperConfig, got {_type_name(self.gripper)}")
         _set(self, "groups", MappingProxyType(self._checked_groups()))
         _integer(self.bus, "bus")
+        _set(self, "i2c_clock_hz", _positive(self.i2c_clock_hz, "i2c_clock_hz", " Hz"))
         if self.dynamixel is not None and not isinstance(self.dynamixel, DynamixelBusConfig):
             raise ConfigError(f"dynamixel must be a DynamixelBusConfig, got {_type_name(self.dynamixel)}")
 
@@ -610,7 +619,7 @@ _GRIPPER_OPTIONAL = tuple(
     f.name for f in dataclasses.fields(GripperConfig) if f.default is not dataclasses.MISSING
 )
 _TOP_REQUIRED = ("joints", "gripper")
-_TOP_OPTIONAL = ("groups", "bus", "dynamixel")
+_TOP_OPTIONAL = ("groups", "bus", "dynamixel", "i2c_clock_hz")
 
 
 def _check_fields(
@@ -695,8 +704,8 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
     Args:
         data: A mapping in the file format of this module (see the module
             docstring), e.g. what ``yaml.safe_load`` returns. ``groups`` and
-            ``bus`` may be left out (defaults: groups ``all``, ``arm`` and
-            ``gripper``; bus 1).
+            ``bus`` and ``i2c_clock_hz`` may be left out (defaults: groups
+            ``all``, ``arm`` and ``gripper``; bus 1; 100 000 Hz).
         source: Where the data came from; starts every error message.
 
     Returns:
@@ -723,7 +732,10 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
             _check_fields(block, (), allowed, prefix="dynamixel.")
             dxl_bus = DynamixelBusConfig(**dict(block))
         bus = top.get("bus", 1)
-        return ArmConfig(joints=joints, gripper=gripper, groups=groups, bus=bus, dynamixel=dxl_bus)
+        clock_hz = top.get("i2c_clock_hz", I2C_CLOCK_HZ)
+        return ArmConfig(
+            joints=joints, gripper=gripper, groups=groups, bus=bus, dynamixel=dxl_bus, i2c_clock_hz=clock_hz
+        )
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from None
 
@@ -738,7 +750,8 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
         cfg: The configuration.
 
     Returns:
-        A new dict with the keys ``bus``, ``joints``, ``gripper`` and ``groups``.
+        A new dict with the keys ``bus``, ``i2c_clock_hz``, ``joints``,
+        ``gripper`` and ``groups`` (and ``dynamixel`` where there is one).
     """
     joints = []
     for joint in cfg.joints:
@@ -749,6 +762,7 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
         joints.append(data)
     out: dict[str, Any] = {
         "bus": cfg.bus,
+        "i2c_clock_hz": cfg.i2c_clock_hz,
         "joints": joints,
         "gripper": dataclasses.asdict(cfg.gripper),
         "groups": {group: list(members) for group, members in cfg.groups.items()},

@@ -1,7 +1,9 @@
 """An I2C bus in memory that serves emulated joint firmware, with fault injection.
 
 It plays the role of pyserial's ``loop://``: the real :class:`Joint` driver
-runs unchanged against it, byte for byte.
+runs unchanged against it, byte for byte. With a bus clock, every transaction
+takes its time on the wire (:mod:`~bioscara_gym.hardware.i2c_timing`) plus
+the plan's latency and jitter, on the bus's clock.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.firmware import JointFirmware
+from bioscara_gym.hardware.i2c_timing import check_clock_hz, nack_time_s, wire_phases_s
 from bioscara_gym.hardware.registers import I2C_ADDRESS_MAX, I2C_ADDRESS_MIN
 
 
@@ -38,6 +41,12 @@ class FaultPlan:
         short_read: Probability that a reply is cut short.
         corrupt: Probability that one bit of a reply is flipped.
         latency_s: Extra time every transaction takes, seconds.
+        jitter_s: Further extra time per transaction, drawn uniformly from
+            ``[0, jitter_s]`` by the fault generator, seconds.
+        drift_ppm: Host clock drift: the control loop's periods last
+            ``1 + drift_ppm * 1e-6`` times their nominal length on the
+            emulated backend (> 0: the host's clock runs slow). Must be above
+            -1e6.
         schedule: Transaction index (bus-wide, from 0) to the fault injected
             there, for deterministic tests.
         seed: Seed of the fault generator.
@@ -47,42 +56,62 @@ class FaultPlan:
     short_read: float = 0.0
     corrupt: float = 0.0
     latency_s: float = 0.0
+    jitter_s: float = 0.0
+    drift_ppm: float = 0.0
     schedule: Mapping[int, Fault] = field(default_factory=dict)
     seed: int | None = 0
 
     def __post_init__(self) -> None:
-        """Validate rates and latency."""
+        """Validate rates, latency, jitter and drift."""
         for name in ("nack", "short_read", "corrupt"):
             rate = getattr(self, name)
             if not 0.0 <= rate <= 1.0:
                 raise ValueError(f"fault rate {name}={rate} must be within 0-1")
-        if not self.latency_s >= 0.0:
-            raise ValueError(f"latency_s={self.latency_s} must be >= 0")
+        for name in ("latency_s", "jitter_s"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+        if not -1e6 < self.drift_ppm < math.inf:
+            raise ValueError(f"drift_ppm={self.drift_ppm} must be finite and above -1e6")
+
+    @property
+    def period_scale(self) -> float:
+        """How long a nominal second of the host's loop lasts: ``1 + drift_ppm * 1e-6``."""
+        return 1.0 + self.drift_ppm * 1e-6
 
     @classmethod
     def parse(cls, spec: str, seed: int | None = 0) -> FaultPlan:
-        """Parse ``"nack=0.01,short_read=0.001,corrupt=0,latency_ms=2"``.
+        """Parse ``"nack=0.01,short_read=0.001,corrupt=0,latency_ms=2,jitter_ms=3,drift_ppm=50"``.
 
         Raises:
-            ValueError: Unknown key or a value that is not a number.
+            ValueError: Unknown key (the message lists the known ones) or a
+                value that is not a number.
         """
-        return cls(seed=seed, **parse_fault_spec(spec, ("nack", "short_read", "corrupt"), "latency"))
+        return cls(
+            seed=seed,
+            **parse_fault_spec(
+                spec, ("nack", "short_read", "corrupt"), ("latency", "jitter"), numbers=("drift_ppm",)
+            ),
+        )
 
 
-def parse_fault_spec(spec: str, rates: tuple[str, ...], duration: str) -> dict[str, float]:
+def parse_fault_spec(
+    spec: str, rates: tuple[str, ...], duration: str | tuple[str, ...], numbers: tuple[str, ...] = ()
+) -> dict[str, float]:
     """Parse ``"KEY=VALUE,..."`` into keyword arguments of a fault plan.
 
     Args:
         spec: The specification, e.g. ``"nack=0.01,latency_ms=2"``.
         rates: The keys that are probabilities.
-        duration: The time fault's name: ``NAME_ms`` and ``NAME_s`` are
-            accepted and both give ``NAME_s`` in seconds.
+        duration: The time faults' names: for each NAME, ``NAME_ms`` and
+            ``NAME_s`` are accepted and both give ``NAME_s`` in seconds.
+        numbers: Further keys taken as they are (e.g. ``drift_ppm``).
 
     Raises:
         ValueError: Not KEY=VALUE, a value that is not a finite number, an
             unknown key (the message lists the known ones) or a key given twice.
     """
-    known = (*rates, f"{duration}_ms", f"{duration}_s")
+    durations = (duration,) if isinstance(duration, str) else duration
+    known = (*rates, *(f"{d}{unit}" for d in durations for unit in ("_ms", "_s")), *numbers)
     kwargs: dict[str, float] = {}
     for item in filter(None, (s.strip() for s in spec.split(","))):
         key, sep, value = item.partition("=")
@@ -97,8 +126,8 @@ def parse_fault_spec(spec: str, rates: tuple[str, ...], duration: str) -> dict[s
             raise ValueError(f"fault '{key}': {value} must be finite")
         if key not in known:
             raise ValueError(f"unknown fault '{key}'; expected {', '.join(known)}")
-        if key == f"{duration}_ms":
-            key, number = f"{duration}_s", number / 1000.0
+        if key.endswith("_ms") and key[: -len("_ms")] in durations:
+            key, number = f"{key[: -len('_ms')]}_s", number / 1000.0
         if key in kwargs:
             raise ValueError(f"fault '{key}' given twice")
         kwargs[key] = number
@@ -111,12 +140,20 @@ class EmulatedI2CBus:
     Args:
         devices: Address to firmware.
         faults: Faults to inject (none by default).
-        clock: Clock that latency faults advance; defaults to the first
+        clock: Clock that transactions advance; defaults to the first
             device's clock.
         record: Keep every transaction in :attr:`history`.
+        clock_hz: Bus clock, Hz: every transaction then takes its wire time
+            (:func:`~bioscara_gym.hardware.i2c_timing.wire_time_s`; the
+            ``emulated`` backend passes the configuration's ``i2c_clock_hz``).
+            ``None``: transactions take only the plan's latency and jitter.
 
-    An absent address raises ``OSError(EREMOTEIO)``, as Linux i2c-dev does
-    when no device acknowledges it.
+    A transaction advances the clock by the plan's latency and jitter and
+    the wire time up to the repeated START's address byte, lets the device
+    handle it, then advances by the reply's bits and the STOP; a NACK takes
+    START, address and STOP. An absent address raises
+    ``OSError(EREMOTEIO)``, as Linux i2c-dev does when no device
+    acknowledges it.
     """
 
     def __init__(
@@ -125,8 +162,14 @@ class EmulatedI2CBus:
         faults: FaultPlan | None = None,
         clock: Clock | None = None,
         record: bool = False,
+        clock_hz: float | None = None,
     ) -> None:
-        """Attach the devices."""
+        """Attach the devices.
+
+        Raises:
+            ValueError: A device address outside 0x03-0x77, or a bus clock
+                that is not a number > 0.
+        """
         for address in devices:
             if not I2C_ADDRESS_MIN <= address <= I2C_ADDRESS_MAX:
                 raise ValueError(
@@ -138,6 +181,8 @@ class EmulatedI2CBus:
         if clock is None and self.devices:
             clock = next(iter(self.devices.values())).clock
         self.clock = clock
+        self.clock_hz = None if clock_hz is None else check_clock_hz(clock_hz)
+        self._phases: dict[tuple[int, int], tuple[float, float]] = {}
         self.transactions = 0
         self.closed = False
         #: With ``record``: every transaction as ``(time, address, bytes
@@ -150,6 +195,16 @@ class EmulatedI2CBus:
     def _draw(self, rate: float) -> bool:
         return rate > 0.0 and self._rng.random() < rate
 
+    def _wire(self, write_len: int, read_len: int) -> tuple[float, float]:
+        """Wire time before the device's handler and after it, s (zero without a bus clock)."""
+        if self.clock_hz is None:
+            return 0.0, 0.0
+        key = (write_len, read_len)
+        phases = self._phases.get(key)
+        if phases is None:
+            phases = self._phases[key] = wire_phases_s(write_len, read_len, self.clock_hz)
+        return phases
+
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
         """One combined write-then-read transaction (see ``I2CBus``)."""
         if self.closed:
@@ -160,14 +215,23 @@ class EmulatedI2CBus:
             self.history.append((self.clock.now() if self.clock else 0.0, address, bytes(data), read_len))
         plan = self.faults
         scheduled = plan.schedule.get(index)
-        if plan.latency_s and self.clock is not None:
-            self.clock.sleep(plan.latency_s)
-        if scheduled is Fault.LATENCY and self.clock is not None:
-            self.clock.sleep(max(plan.latency_s, 0.001))
+        extra = plan.latency_s
+        if scheduled is Fault.LATENCY:
+            extra += max(plan.latency_s, 0.001)
+        if plan.jitter_s:
+            extra += plan.jitter_s * float(self._rng.random())
+        clock = self.clock
         device = self.devices.get(address)
         if device is None or scheduled is Fault.NACK or self._draw(plan.nack):
+            if clock is not None:
+                clock.sleep(extra + (nack_time_s(self.clock_hz) if self.clock_hz else 0.0))
             raise self._error(address)
+        before, after = self._wire(len(data), read_len)
+        if clock is not None:
+            clock.sleep(extra + before)
         reply = bytearray(device.transfer(bytes(data), read_len))
+        if clock is not None and after:
+            clock.sleep(after)
         if (scheduled is Fault.SHORT_READ or self._draw(plan.short_read)) and reply:
             return bytes(reply[: int(self._rng.integers(0, len(reply)))])
         if (scheduled is Fault.CORRUPT or self._draw(plan.corrupt)) and reply:

@@ -141,6 +141,27 @@ I2C_ADDRESS_MIN = 0x03
 #: Highest 7-bit address a device may use; 0x78-0x7F are reserved (I2C specification).
 I2C_ADDRESS_MAX = 0x77
 
+# ------------------------------------------------------------- bus timing
+# What a transaction costs on the wire; the count is in docs/protocol.md
+# ("Wire time") and the formula in ``i2c_timing.py``.
+#: Standard-mode bus clock, Hz: the Raspberry Pi's default (``i2c_arm_baudrate``,
+#: Raspberry Pi device-tree documentation) and ours; Standard-mode is "up to
+#: 100 kbit/s" (I2C specification, NXP UM10204).
+I2C_STANDARD_MODE_HZ = 100_000
+#: Fast-mode bus clock, Hz, the other common setting: "up to 400 kbit/s" (UM10204).
+I2C_FAST_MODE_HZ = 400_000
+#: Default bus clock of the emulated bus and the sim backend's wire time, Hz (the Pi's default).
+I2C_CLOCK_HZ = I2C_STANDARD_MODE_HZ
+#: Clock periods per byte on the wire: 8 data bits, most significant first, then
+#: the receiver's ACK (or the master's NACK after the last byte it reads); the
+#: address byte is 7 address bits and R/W (UM10204, "Byte format",
+#: "Acknowledge (ACK) and Not Acknowledge (NACK)", "The slave address and R/W bit").
+I2C_BITS_PER_BYTE = 9
+#: Clock periods counted for each START, repeated START and STOP condition
+#: (our model: UM10204's set-up and hold times of a condition, 4.0-4.7 us in
+#: Standard-mode and 0.6-1.3 us in Fast-mode, are about one clock period).
+I2C_CONDITION_BITS = 1
+
 # ------------------------------------------------------ payload ranges
 #: Currents are percent of the driver's 2.5 A output, 0-100 (C++ API; parameter file).
 CURRENT_MAX_PCT = 100

@@ -25,13 +25,15 @@ import mujoco
 import numpy as np
 
 from bioscara_gym.assets import scene_path
+from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.base_joint import BaseJoint
-from bioscara_gym.hardware.clock import Clock
+from bioscara_gym.hardware.clock import Clock, DeadlineScheduler
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
 from bioscara_gym.hardware.firmware import FirmwareCore
 from bioscara_gym.hardware.gripper import BaseGripper
+from bioscara_gym.hardware.i2c_timing import check_clock_hz, wire_phases_s
 from bioscara_gym.hardware.motor import FULL_STEP_DEG
-from bioscara_gym.hardware.registers import TICK_S, Reg
+from bioscara_gym.hardware.registers import FLAGS_SIZE, TICK_S, Reg
 
 
 class MujocoMotor:
@@ -127,15 +129,23 @@ class MujocoMotor:
 
 
 class SimClock:
-    """Simulated time: ``now`` is MuJoCo's time, ``sleep`` steps the simulation."""
+    """Simulated time: ``now`` is MuJoCo's time, ``sleep`` steps the simulation.
+
+    The simulation advances in whole 10 ms firmware ticks and carries the
+    rest of a ``sleep`` to the next one (:meth:`ArmSim.step`); ``now``
+    counts that rest, so a bus transaction's fraction of a millisecond is
+    time that passed, and the firmware sees each transaction at the instant
+    it happened (within the tick the next pass runs at).
+    """
 
     def __init__(self, sim: ArmSim) -> None:
         """Bind to ``sim``."""
         self._sim = sim
 
     def now(self) -> float:
-        """Simulated time in seconds."""
-        return float(self._sim.data.time)
+        """Simulated time in seconds: MuJoCo's time plus the part of a tick not yet run."""
+        sim = self._sim
+        return float(sim.data.time) + sim.pending_s
 
     def sleep(self, dt: float) -> None:
         """Advance the simulation by ``dt`` seconds (no-op for dt <= 0, as the other clocks)."""
@@ -178,6 +188,9 @@ class ArmSim:
         self._qadr = {j.name: int(self.model.jnt_qposadr[self.model.joint(j.name).id]) for j in config.joints}
         self.initial_qpos = dict(initial_qpos) if initial_qpos is not None else self.parked_pose(config)
         self._pending = 0.0
+        #: The host loop's deadlines on :attr:`clock` (the sim backends' ``step``);
+        #: restarted whenever the simulated time is set (reset, restore).
+        self.schedule = DeadlineScheduler(self.clock)
         self.reset()
 
     @staticmethod
@@ -200,6 +213,7 @@ class ArmSim:
         for core in self._core_list:
             core.power_cycle(0.0)
         self._pending = 0.0
+        self.schedule.restart()
 
     def snapshot(self) -> tuple[np.ndarray, dict[str, dict[str, object]]]:
         """Physics and firmware state, for :meth:`restore` (e.g. a homed arm at rest)."""
@@ -216,6 +230,7 @@ class ArmSim:
             core.restore(cores[name])
         self._pending = 0.0
         mujoco.mj_forward(self.model, self.data)
+        self.schedule.restart()
 
     def set_joint_state(self, qpos: Mapping[str, float]) -> None:
         """Teleport joints (firmware state kept; encoders see the jump)."""
@@ -226,8 +241,13 @@ class ArmSim:
 
     @property
     def time(self) -> float:
-        """Simulated time in seconds."""
-        return float(self.data.time)
+        """Simulated time in seconds (the clock's: the part of a tick not yet run included)."""
+        return float(self.data.time) + self.pending_s
+
+    @property
+    def pending_s(self) -> float:
+        """Time asked of :meth:`step` that the next whole tick has not run yet, s (0 to 10 ms)."""
+        return self._pending if self._pending > 0.0 else 0.0
 
     def step(self, dt: float) -> None:
         """Advance by ``dt`` seconds: firmware ticks interleaved with physics.
@@ -263,25 +283,57 @@ class SimJoint(BaseJoint):
 
     Behaves as :class:`~bioscara_gym.hardware.joint.Joint` does against real
     firmware (same flags, refusals, homing, stall, deadman) without the bytes.
+    With ``i2c_clock_hz``, each call takes the time its transaction would take
+    on the wire (:mod:`~bioscara_gym.hardware.i2c_timing`), the same the
+    emulated bus charges: the clock advances by the bits up to the joint's
+    handler, the core runs it, then by the reply's bits. So readings are as
+    old when the caller gets them as on the arm.
 
     Args:
         config: The joint's configuration.
         core: The joint's firmware core in the :class:`ArmSim`.
         clock: The simulation clock.
+        i2c_clock_hz: Bus clock whose wire time each call takes, Hz; ``None``:
+            calls take no time.
     """
 
-    def __init__(self, config: JointConfig, core: FirmwareCore, clock: Clock) -> None:
+    def __init__(
+        self, config: JointConfig, core: FirmwareCore, clock: Clock, i2c_clock_hz: float | None = None
+    ) -> None:
         """Bind the joint to its firmware core."""
         super().__init__(config.name, config.reduction, config.min, config.max, clock)
         self.core = core
+        self.i2c_clock_hz = None if i2c_clock_hz is None else check_clock_hz(i2c_clock_hz)
+        # register -> (s before the handler, s after): a command writes [REG][payload] and
+        # reads the flags; a query writes [REG] and reads payload and flags (as Joint does).
+        self._command_wire: dict[int, tuple[float, float]] = {}
+        self._query_wire: dict[int, tuple[float, float]] = {}
+        if self.i2c_clock_hz is not None:
+            for reg in Reg:
+                size = codec.payload_size(reg)
+                self._command_wire[reg] = wire_phases_s(1 + size, FLAGS_SIZE, self.i2c_clock_hz)
+                self._query_wire[reg] = wire_phases_s(1, size + FLAGS_SIZE, self.i2c_clock_hz)
 
     def _command(self, reg: Reg, value: float | int) -> int:
+        wire = self._command_wire.get(reg)
+        if wire is None:
+            self.core.write(reg, value, self.clock.now())
+            return self.core.flags
+        self.clock.sleep(wire[0])
         self.core.write(reg, value, self.clock.now())
-        return self.core.flags
+        flags = self.core.flags
+        self.clock.sleep(wire[1])
+        return flags
 
     def _query(self, reg: Reg) -> tuple[float | int, int]:
+        wire = self._query_wire.get(reg)
+        if wire is not None:
+            self.clock.sleep(wire[0])
         value = self.core.read(reg, self.clock.now())
-        return (0 if value is None else value), self.core.flags
+        flags = self.core.flags
+        if wire is not None:
+            self.clock.sleep(wire[1])
+        return (0 if value is None else value), flags
 
 
 class SimGripper(BaseGripper):
@@ -312,7 +364,9 @@ class SimGripper(BaseGripper):
 
 
 
-def make_sim_joints(sim: ArmSim, names: Sequence[str] | None = None) -> dict[str, SimJoint]:
-    """One :class:`SimJoint` per configured joint of ``sim``."""
+def make_sim_joints(
+    sim: ArmSim, names: Sequence[str] | None = None, i2c_clock_hz: float | None = None
+) -> dict[str, SimJoint]:
+    """One :class:`SimJoint` per configured joint of ``sim`` (calls take wire time at ``i2c_clock_hz``)."""
     names = names or [j.name for j in sim.config.joints]
-    return {n: SimJoint(sim.config.joint(n), sim.cores[n], sim.clock) for n in names}
+    return {n: SimJoint(sim.config.joint(n), sim.cores[n], sim.clock, i2c_clock_hz) for n in names}
