@@ -384,7 +384,7 @@ def homing_run(request: pytest.FixtureRequest) -> HomingRun:
     while joint.get_flags() & Flag.BUSY:
         times.append(backend.clock.now() - t0)
         qpos.append(float(sim.data.qpos[qadr]))
-        backend.clock.sleep(BUSY_POLL_S)
+        backend.step(BUSY_POLL_S)
     joint.post_homing()
     return HomingRun(
         backend=backend,

@@ -306,6 +306,7 @@ def test_position_command_moves_the_joint(homed_arm: Arm) -> None:
 
 def test_cycle_writes_lets_time_pass_and_reads(homed_arm: Arm) -> None:
     clock = homed_arm.backend.clock
+    homed_arm.cycle(DT)  # on the schedule: each cycle now starts DT after the last
     start = clock.now()
     states = homed_arm.cycle(DT)
     assert clock.now() - start == pytest.approx(DT, abs=1e-9)

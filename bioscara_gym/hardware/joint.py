@@ -23,6 +23,7 @@ from bioscara_gym.hardware.registers import (
     REPLY_FLAGS_CLEAR,
     REPLY_FLAGS_SET,
     RESERVED_FLAG_BITS,
+    STICKY_FLAGS,
     Flag,
     Reg,
 )
@@ -125,11 +126,17 @@ class Joint(BaseJoint):
             return f"GETENCODERRPM {value:g} RPM is beyond the motor's {MAX_PLAUSIBLE_RPM:g} RPM"
         return None
 
-    def _implausible_flags(self, reg: Reg, sent: float | int, flags: int) -> str | None:
-        """Why a command's reply flags cannot follow that command, or ``None``."""
+    @staticmethod
+    def _flags_set_by(reg: Reg, sent: float | int) -> int:
+        """The flags a command's handler sets in its own reply (:data:`REPLY_FLAGS_SET`)."""
         must_set = REPLY_FLAGS_SET.get(reg, 0)
         if reg in (Reg.SETCURRENT, Reg.SETHOLDCURRENT) and sent == 0:
             must_set |= FLAG_NOT_ENABLED
+        return must_set
+
+    def _implausible_flags(self, reg: Reg, sent: float | int, flags: int) -> str | None:
+        """Why a command's reply flags cannot follow that command, or ``None``."""
+        must_set = self._flags_set_by(reg, sent)
         must_clear = REPLY_FLAGS_CLEAR.get(reg, 0)
         if flags & must_set != must_set:
             return f"flags {Flag(flags)!r} lack {Flag(must_set & ~flags)!r}, which {reg.name} sets"
@@ -163,14 +170,35 @@ class Joint(BaseJoint):
             raise _BadReply("implausible", problem)
         return value
 
+    def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int) -> None:
+        """Read the flags again if ``flags`` shows a sticky flag newly set (:data:`STICKY_FLAGS`).
+
+        Raises:
+            _BadReply: ``implausible``: the second reading lacks it, so the
+                first reply's flags byte was corrupted.
+        """
+        may_set = self._flags_set_by(reg, sent) | (FLAG_NOT_ENABLED if reg == Reg.DISABLECLOSEDLOOP else 0)
+        appeared = flags & ~self._flags & STICKY_FLAGS & ~may_set
+        if not appeared:
+            return
+        _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
+        if appeared & ~confirmed:
+            raise _BadReply(
+                "implausible",
+                f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
+                f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
+            )
+
     # ------------------------------------------------------------ transfer
     def _transfer(
-        self, reg: Reg, data: bytes, read_payload: bool, sent: float | int = 0
+        self, reg: Reg, data: bytes, read_payload: bool, sent: float | int = 0, confirm: bool = True
     ) -> tuple[float | int, int]:
         """One transaction with retries; returns the decoded payload (0 if none) and flags.
 
         Reads and :data:`~.registers.IDEMPOTENT_COMMANDS` are tried
-        ``retries + 1`` times, any other command once.
+        ``retries + 1`` times, any other command once. With ``confirm``, a
+        sticky flag newly set in the reply is confirmed by a second reading
+        (:meth:`_confirm_sticky_flags`).
         """
         size = codec.payload_size(reg) if read_payload else 0
         read_len = size + FLAGS_SIZE
@@ -183,6 +211,8 @@ class Joint(BaseJoint):
                 reply = self.bus.transfer(self.address, data, read_len)
                 self._exchanged()  # delivered: the device reset its deadman timer
                 value = self._check(reg, reply, read_len, size, read_payload, sent)
+                if confirm:
+                    self._confirm_sticky_flags(reg, sent, reply[-1])
             except OSError as e:
                 self.stats.record(ok=False, kind="bus", retry=attempt > 0 or self._resending)
                 last = e

@@ -272,6 +272,15 @@ REPLY_FLAGS_SET: dict[Reg, int] = {
     Reg.HOME: int(Flag.BUSY | Flag.NOT_HOMED),
     Reg.CHECKORIENTATION: int(Flag.BUSY),
 }
+#: Flags that, once set, stay set until a command clears them: STALL (SETUP,
+#: ENABLESTALLGUARD), NOTENABLED (SETUP), NOTHOMED (the end of a homing, which
+#: only a HOME starts). The stall detector, the deadman and a power cycle set
+#: them between transactions, so one may appear in any reply; a corrupted flags
+#: byte can show one too. A reply showing one newly set, that its own command
+#: does not set, is confirmed by reading the flags again (a PING): if the
+#: second reading lacks it, the first was corrupted (docs/protocol.md).
+STICKY_FLAGS = int(Flag.STALL | Flag.NOT_ENABLED | Flag.NOT_HOMED)
+
 #: See :data:`REPLY_FLAGS_SET`: flags the reply to a command must show clear.
 REPLY_FLAGS_CLEAR: dict[Reg, int] = {
     Reg.SETUP: int(Flag.STALL),
