@@ -104,22 +104,13 @@ class DynamixelBackend(Backend):
         super().__init__(config, joints, mock_gripper(config, state_file), clock)
         if synced:
             self.bus.start_loops()
-        self._next = clock.now()
+        self.schedule.restart()  # starting the loops took time: the first period starts now
 
     def step(self, dt: float) -> None:
-        """The writer loops, ``dt`` passes, the reader loops (each runs only when due)."""
+        """The writer loops, ``dt`` after the previous deadline (``schedule``), the reader loops."""
         self.bus.write_loops()
-        self._wait(dt)
+        self.schedule.wait(dt)
         self.bus.read_loops()
-
-    def _wait(self, dt: float) -> None:
-        """Wait until ``dt`` after the previous step's deadline (no drift), as the i2c backend."""
-        self._next += dt
-        now = self.clock.now()
-        if self._next < now:
-            self._next = now
-        else:
-            self.clock.sleep(self._next - now)
 
     def comm_stats(self) -> dict[str, CommStats | LoopStats]:  # type: ignore[override]
         """Per-joint transaction counters, then the sync loops' statistics (by loop name)."""
