@@ -30,8 +30,8 @@ written and flushed per record, so it is complete after Ctrl-C:
 =============  ======================================================================
 ``type``       fields
 =============  ======================================================================
-``header``     policy, env_id, backend, rate_hz, control_mode, faults, seed, episodes,
-               realtime, started
+``header``     policy, env_id, backend, rate_hz, control_mode, faults, i2c_clock_hz, seed,
+               episodes, realtime, started
 ``phase``      phase, detail, t (backend clock, s)
 ``cycle``      cycle, episode, step, t, period_s (backend clock), wall_period_s, work_s
                (host time for policy + step), silence_s (longest joint silence), overrun,
@@ -463,6 +463,7 @@ class Deployment:
                 "rate_hz": u.control_freq,
                 "control_mode": u.control_mode,
                 "faults": args.faults,
+                "i2c_clock_hz": u.config.i2c_clock_hz,
                 "seed": args.seed,
                 "episodes": args.episodes,
                 "realtime": args.realtime,
@@ -923,7 +924,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="control rate in Hz (default: the policy's; a trained policy refuses another)",
     )
     p.add_argument("--log", type=Path, help="run log, JSON Lines (default: runs/deploy/deploy-<time>.jsonl)")
-    p.add_argument("--faults", help="emulated bus faults, e.g. nack=0.01,latency_ms=0.5 (per transaction)")
+    p.add_argument(
+        "--faults",
+        help="emulated bus faults: nack, short_read, corrupt (rates per transaction), latency_ms, "
+        "jitter_ms (extra time per transaction), drift_ppm (host clock), e.g. latency_ms=2,jitter_ms=3",
+    )
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")
     p.add_argument("--state-file", type=Path, help="gripper state file")
