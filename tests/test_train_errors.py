@@ -71,7 +71,7 @@ def new_run(*extra: str, **changes: Any) -> Setup:
     return setup
 
 
-def resume(state_text: Callable[[Path], str] | None, checkpoint: bool = False) -> Setup:
+def resume(state_text: Callable[[Path], str] | None, *extra: str, checkpoint: bool = False) -> Setup:
     """``--resume`` of a run whose ``train_state.json`` is ``state_text(config)`` (``None``: no file)."""
 
     def setup(root: Path) -> list[str]:
@@ -82,7 +82,7 @@ def resume(state_text: Callable[[Path], str] | None, checkpoint: bool = False) -
             (run / "train_state.json").write_text(state_text(config), encoding="utf-8")
         if checkpoint:
             (run / "checkpoints").mkdir()
-        return ["train", "--resume", "--out", str(run), "--no-progress"]
+        return ["train", "--resume", "--out", str(run), "--no-progress", *extra]
 
     return setup
 
@@ -127,6 +127,11 @@ CASES = [
         resume(lambda _: "[1, 2]"),
         r"run/train_state\.json: expected a JSON object, got list",
         id="state-a-list",
+    ),
+    pytest.param(
+        resume(state_json(), "--timesteps", "999", checkpoint=True),
+        r"--resume continues .*run's budget of \d+ steps; --timesteps 999 would change it",
+        id="resume-with-another-budget",
     ),
     pytest.param(
         resume(state_json(seed="0")),

@@ -448,6 +448,11 @@ def plan_run(args: TrainArgs, env_id: str, out: Path) -> RunPlan:
                 f"{out} holds a {saved['algo']} run on {saved['env_id']}, not {args.algo} on {env_id}"
             )
         args.seed, total = saved["seed"], saved["total_timesteps"]
+        if args.timesteps is not None and args.timesteps != total:
+            raise TrainingError(
+                f"--resume continues {out}'s budget of {total} steps; --timesteps {args.timesteps} "
+                "would change it (drop it, or train a new run with --out elsewhere)"
+            )
         args.demos = args.demos or saved["demos"]
         config = saved["config"] or (str(args.config) if args.config else None)
         hp = load_run_hyperparams(args, env_id, Path(config) if config else None)
