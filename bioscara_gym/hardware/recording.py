@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from bioscara_gym.hardware.bus import I2CBus
-from bioscara_gym.hardware.clock import Clock
+from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.config import ArmConfig, config_to_dict
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
@@ -381,7 +381,7 @@ def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
 
 
 # -------------------------------------------------------------------- replay
-class ReplayClock:
+class ReplayClock(ManualClock):
     """Time during a replay: ``sleep`` advances at once; a replayed transaction sets it forward.
 
     The :class:`ReplayBus` moves it to each transaction's recorded time, so the
@@ -390,19 +390,6 @@ class ReplayClock:
     Args:
         start: The session's start time (the header's ``t0``), s.
     """
-
-    def __init__(self, start: float = 0.0) -> None:
-        """Start at ``start`` seconds."""
-        self._t = float(start)
-
-    def now(self) -> float:
-        """The current replay time, s."""
-        return self._t
-
-    def sleep(self, dt: float) -> None:
-        """Advance by ``dt`` seconds at once (negative values are ignored)."""
-        if dt > 0:
-            self._t += dt
 
 
 class ReplayBus:
