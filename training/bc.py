@@ -100,17 +100,37 @@ def bc_pretrain(
     Uses its own Adam optimizer (the model's keeps its state). For TD3 the
     target actor is synced afterwards.
     """
+    return fit_actor(model, demos.obs, demos.actions, steps, batch_size, learning_rate, init_std, seed)
+
+
+def fit_actor(
+    model: Any,
+    obs: dict[str, np.ndarray],
+    actions: np.ndarray,
+    steps: int = 3000,
+    batch_size: int = 256,
+    learning_rate: float = 1e-3,
+    init_std: float = 0.1,
+    seed: int = 0,
+) -> float:
+    """Fit ``model``'s actor to ``actions`` in ``obs`` (rows of :data:`GOAL_KEYS` arrays); the final loss.
+
+    The loss is the mean squared error of the deterministic action, plus, for
+    SAC, ``log_std`` pulled to ``log(init_std)``. Uses its own Adam optimizer
+    (the model's keeps its state); for TD3 the target actor is synced afterwards.
+    """
     actor = model.actor
     actor.set_training_mode(True)
-    buffer = DemoBuffer.from_demos(demos, np.zeros(len(demos)))
+    obs_t = {k: th.as_tensor(np.asarray(obs[k]), dtype=th.float32) for k in GOAL_KEYS}
+    act_t = th.as_tensor(np.asarray(actions), dtype=th.float32)
     opt = th.optim.Adam(actor.parameters(), lr=learning_rate)
     gen = th.Generator().manual_seed(seed)
     target_log_std = math.log(init_std)
     loss = th.zeros(())
     for _ in range(int(steps)):
-        obs, actions, *_ = buffer.sample(batch_size, gen)
-        pred, log_std = _deterministic(actor, obs)
-        loss = F.mse_loss(pred, actions)
+        idx = th.randint(len(act_t), (batch_size,), generator=gen)
+        pred, log_std = _deterministic(actor, {k: v[idx] for k, v in obs_t.items()})
+        loss = F.mse_loss(pred, act_t[idx])
         if log_std is not None:
             loss = loss + 0.1 * F.mse_loss(log_std, th.full_like(log_std, target_log_std))
         opt.zero_grad()

@@ -4,10 +4,14 @@
     bioscara collect --model runs/reach/model.zip --episodes 50 --dataset reach-sac
     bioscara collect --expert --env Bioscara-Reach --backend emulated --episodes 5 --dataset reach-emu
 
-With ``--expert`` the env's keyword arguments are those of the env's entry in
-the packaged SAC config (so the demonstrations fit ``bioscara train --demos``
-out of the box; ``--control-mode`` overrides); with ``--model`` they are the
-model's (from its metadata). See :mod:`bioscara_gym.training.demos`.
+With ``--expert`` the env's keyword arguments are those of the env's default
+training config (PickPlace: the DAgger entry, else the SAC one), so the
+demonstrations fit ``bioscara train --demos`` out of the box
+(``--control-mode`` overrides); with ``--model`` they are the model's (from
+its metadata). PickPlace's expert is
+:class:`~bioscara_gym.training.dagger.ObservationExpert`, the one DAgger
+labels the learner's states with, so demonstrations and labels agree. See
+:mod:`bioscara_gym.training.demos`.
 """
 
 from __future__ import annotations
@@ -22,19 +26,28 @@ from bioscara_gym.errors import CliError, HyperparamError, TrainingError
 
 
 def default_env_kwargs(env_id: str) -> dict[str, Any]:
-    """The ``env_kwargs`` of ``env_id``'s entry in the packaged SAC config (``{}`` if none)."""
+    """The ``env_kwargs`` of ``env_id``'s default config: DAgger's entry, else SAC's (``{}``: none)."""
     from bioscara_gym.training.hyperparams import default_config_path, load_hyperparams
 
     try:
+        from bioscara_gym.training.dagger import default_dagger_config, has_dagger_default, load_dagger_config
+
+        if has_dagger_default(env_id):
+            return dict(load_dagger_config(default_dagger_config(), env_id).env_kwargs)
         return dict(load_hyperparams(default_config_path("sac"), env_id).env_kwargs)
     except HyperparamError:
         return {}
 
 
 def expert_factory(env: gym.Env) -> tuple[Any, Any]:
-    """The scripted expert of ``env``'s task and its per-episode reset."""
+    """The scripted expert of ``env``'s task and its per-episode reset (PickPlace: observation-only)."""
+    from bioscara_gym.envs.pick_place import BioscaraPickPlaceEnv
     from bioscara_gym.experts import expert_for
 
+    if isinstance(env.unwrapped, BioscaraPickPlaceEnv):
+        from bioscara_gym.training.dagger import ObservationExpert
+
+        return ObservationExpert(env.unwrapped), lambda: None
     expert = expert_for(env.unwrapped)
     return expert, expert.reset
 

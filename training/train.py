@@ -492,6 +492,10 @@ def train(args: TrainArgs) -> TrainResult:
     check_timesteps(args.timesteps)
     if args.algo == "bc":
         return train_bc(args, env_id, load_run_hyperparams(args, env_id))
+    from bioscara_gym.training import dagger  # PickPlace's default, and --algo dagger
+
+    if dagger.uses_dagger(args, env_id):
+        return dagger.train_dagger(args, env_id)
     out = Path(args.out)
     plan = plan_run(args, env_id, out)
     hp = plan.hp

@@ -1,0 +1,290 @@
+"""DAgger on Bioscara-PickPlace (training/dagger.py): the observation-only expert, the aggregation, the runs.
+
+Runs here are tiny (the ``mock`` backend, 16x16 networks, one-episode
+iterations); the default config's 90 % target is tests/test_pickplace_learning.py's (slow).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+
+import bioscara_gym  # noqa: F401 - registers the tasks
+from bioscara_gym.cli import main
+from bioscara_gym.errors import HyperparamError, TrainingError
+from bioscara_gym.experts import PickPlaceExpert
+from bioscara_gym.training import dagger
+from bioscara_gym.training.algos import load_model
+from bioscara_gym.training.dagger import (
+    DaggerConfig,
+    Labelled,
+    ObservationExpert,
+    PickPlaceExtractor,
+    label_episodes,
+    load_dagger_config,
+    train_dagger,
+    uses_dagger,
+)
+from bioscara_gym.training.evaluate import run_episodes
+from bioscara_gym.training.train import TrainArgs, TrainingInterrupted
+
+PICK = "Bioscara-PickPlace-v0"
+REACH = "Bioscara-Reach-v0"
+TINY = {
+    "n_timesteps": 1000,
+    "env_kwargs": {"control_mode": "cartesian", "backend": "mock"},
+    "net_arch": [16, 16],
+    "demo_episodes": 2,
+    "episodes_per_iteration": 1,
+    "bc_steps_first": 20,
+    "bc_steps": 10,
+    "batch_size": 32,
+    "beta": 0.5,
+    "eval_episodes": 1,
+}
+
+
+def tiny_config(tmp_path: Path, **changes: object) -> Path:
+    path = tmp_path / "dagger.yaml"
+    path.write_text(yaml.safe_dump({PICK: {**TINY, **changes}}), encoding="utf-8")
+    return path
+
+
+def tiny_args(tmp_path: Path, out: str = "run", **changes: object) -> TrainArgs:
+    fields = {"env": PICK, "algo": "dagger", "config": tiny_config(tmp_path), "out": tmp_path / out}
+    return TrainArgs(**{**fields, "progress": False, "verbose": 0, **changes})  # type: ignore[arg-type]
+
+
+def checkpoint_data(out: Path) -> list[np.lib.npyio.NpzFile]:
+    files = sorted((out / "checkpoints").glob("*_dagger.npz"), key=lambda p: int(p.name.split("_")[1]))
+    return [np.load(p) for p in files]
+
+
+@pytest.fixture(scope="module")
+def pick_env() -> gym.Env:
+    env = gym.make(PICK, control_mode="cartesian", backend="mock")
+    yield env
+    env.close()
+
+
+# ---------------------------------------------------------------- the expert
+def test_observation_expert_acts_on_the_observation_alone(pick_env: gym.Env) -> None:
+    expert = ObservationExpert(pick_env.unwrapped)
+    obs, _ = pick_env.reset(seed=3)
+    for _ in range(30):
+        obs, *_ = pick_env.step(expert(obs))
+    first = expert(obs)
+    assert np.array_equal(expert(obs), first)  # asking twice changes nothing
+    assert np.array_equal(ObservationExpert(pick_env.unwrapped)(obs), first)  # a fresh one agrees
+
+
+@pytest.mark.parametrize("mode", ["cartesian", "velocity"])
+def test_observation_expert_places_the_block_on_sim(mode: str) -> None:
+    env = gym.make(PICK, control_mode=mode)
+    try:
+        stats = run_episodes(env, ObservationExpert(env.unwrapped), 2, seed=10_000)
+    finally:
+        env.close()
+    assert stats.success_rate == 1.0
+
+
+def test_observation_expert_phases_follow_the_gripper_and_the_block(pick_env: gym.Env) -> None:
+    expert = ObservationExpert(pick_env.unwrapped)
+    obs, _ = pick_env.reset(seed=0)
+    s = pick_env.unwrapped.OBS_SLICES
+    o = obs["observation"].copy()
+    o[s["block_pos"]] = o[s["tcp"]] + np.array([0.0, 0.0, 0.004])  # block between the fingers
+    o[s["block_from_tcp"]] = o[s["block_pos"]] - o[s["tcp"]]
+    o[s["gripper"]] = -1.0  # commanded closed
+    assert expert.phase_of({**obs, "observation": o}) == "carry"
+    o[s["block_pos"]] += np.array([0.05, 0.0, 0.0])  # closed on nothing
+    o[s["block_from_tcp"]] = o[s["block_pos"]] - o[s["tcp"]]
+    assert expert.phase_of({**obs, "observation": o}) == "release"
+
+
+def test_scripted_expert_keeps_a_phase_the_observation_expert_does_not(pick_env: gym.Env) -> None:
+    """Why DAgger needs ObservationExpert: the scripted one answers from its history."""
+    scripted = PickPlaceExpert(pick_env.unwrapped)
+    obs, _ = pick_env.reset(seed=0)
+    scripted.phase = "carry"  # as if it had grasped in an earlier episode
+    observed = ObservationExpert(pick_env.unwrapped)
+    assert observed.phase_of(obs) == "approach"
+    assert not np.allclose(scripted(obs), observed(obs))
+
+
+# ---------------------------------------------------------------- aggregation
+def test_label_episodes_labels_the_learners_states_with_the_experts_actions(pick_env: gym.Env) -> None:
+    expert = ObservationExpert(pick_env.unwrapped)
+    rng = np.random.default_rng(0)
+
+    def learner(obs: dict[str, np.ndarray]) -> np.ndarray:
+        return rng.uniform(-1, 1, 5).astype(np.float32)
+
+    rollouts = label_episodes(pick_env, learner, expert, 1, seed=5, iteration=3)
+    data = rollouts.data
+    first, _ = pick_env.reset(seed=5)
+    assert np.allclose(data.obs["observation"][0], first["observation"], atol=1e-6)  # the learner's episode
+    for i in range(0, len(data), 17):
+        obs = {k: data.obs[k][i] for k in data.obs}
+        assert np.allclose(data.actions[i], expert(obs), atol=1e-4)  # labelled by the expert
+    assert set(data.iteration) == {3}
+    # The learner drove: its random actions moved the arm where the expert would not have.
+    expert_run = label_episodes(pick_env, expert, expert, 1, seed=5, iteration=0).data
+    assert not np.allclose(expert_run.obs["observation"][20], data.obs["observation"][20])
+
+
+def test_labelled_sets_add_up_in_order() -> None:
+    def part(n: int, it: int) -> Labelled:
+        keys = ("observation", "achieved_goal", "desired_goal")
+        obs = {k: np.full((n, 3), it, dtype=np.float32) for k in keys}
+        return Labelled(obs, np.full((n, 5), it, dtype=np.float32), np.full(n, it))
+
+    both = part(2, 0) + part(3, 1)
+    assert len(both) == 5
+    assert list(both.iteration) == [0, 0, 1, 1, 1]
+    assert both.actions[-1, 0] == 1
+
+
+# ---------------------------------------------------------------- runs
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("dagger")
+    result = train_dagger(tiny_args(tmp), PICK)
+    assert result.model_path.exists()
+    return tmp / "run"
+
+
+def test_the_dataset_grows_by_the_learners_episodes_each_iteration(tiny_run: Path) -> None:
+    data = checkpoint_data(tiny_run)
+    assert len(data) >= 3
+    sizes = [len(d["actions"]) for d in data]
+    assert sizes == sorted(sizes) and len(set(sizes)) == len(sizes)
+    for before, after in itertools.pairwise(data):
+        new = after["row_iteration"][len(before["actions"]) :]
+        assert set(new) == {int(after["iteration"])}  # the rows added are the new iteration's
+        assert len(new) == int(after["env_steps"]) - int(before["env_steps"])
+
+
+def test_the_model_loads_as_a_cloned_sac_model_for_eval_export_and_deploy(tiny_run: Path) -> None:
+    model, metadata = load_model(tiny_run / "model.zip")
+    assert metadata["algo"] == "bc" and metadata["method"] == "dagger"
+    assert metadata["env_kwargs"]["control_mode"] == "cartesian"
+    assert isinstance(model.actor.features_extractor, PickPlaceExtractor)
+    env = gym.make(PICK, **TINY["env_kwargs"])  # type: ignore[arg-type]
+    try:
+        obs, _ = env.reset(seed=0)
+        action, _ = model.predict(obs, deterministic=True)
+    finally:
+        env.close()
+    assert action.shape == (5,)
+
+
+def test_tensorboard_gets_the_dagger_scalars(tiny_run: Path) -> None:
+    assert list((tiny_run / "tb").rglob("events.out.tfevents.*"))
+
+
+def test_an_interrupted_run_resumes_from_its_newest_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls = {"n": 0}
+    original = dagger._Run.iteration
+
+    def interrupted_at_the_third(self: dagger._Run, i: int, *args: object) -> object:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return original(self, i, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(dagger._Run, "iteration", interrupted_at_the_third)
+    with pytest.raises(TrainingInterrupted) as caught:
+        train_dagger(tiny_args(tmp_path), PICK)
+    assert caught.value.checkpoint is not None
+    saved = checkpoint_data(tmp_path / "run")[-1]
+    assert int(saved["iteration"]) == 2
+    monkeypatch.setattr(dagger._Run, "iteration", original)
+    result = train_dagger(tiny_args(tmp_path, resume=True, config=None), PICK)
+    last = checkpoint_data(tmp_path / "run")[-1]
+    assert int(last["iteration"]) > 2
+    assert np.array_equal(last["actions"][: len(saved["actions"])], saved["actions"])  # the aggregate kept
+    assert result.timesteps >= TINY["n_timesteps"]
+
+
+# ---------------------------------------------------------------- routing and config
+def test_pickplace_trains_with_dagger_by_default_and_reach_does_not(tmp_path: Path) -> None:
+    assert uses_dagger(TrainArgs(env="Bioscara-PickPlace", out=tmp_path), PICK)
+    assert uses_dagger(TrainArgs(env="Bioscara-PickPlace", demos="pick", out=tmp_path), PICK)
+    assert not uses_dagger(TrainArgs(env="Bioscara-Reach", out=tmp_path), REACH)
+    assert not uses_dagger(TrainArgs(env="Bioscara-PickPlace", algo="td3", out=tmp_path), PICK)
+    assert not uses_dagger(TrainArgs(env="Bioscara-PickPlace", config=Path("sac.yaml"), out=tmp_path), PICK)
+
+
+def test_the_packaged_config_loads() -> None:
+    cfg = load_dagger_config(dagger.default_dagger_config(), PICK)
+    assert cfg.target_success == 0.9 and cfg.eval_episodes == 100
+    assert cfg.env_kwargs["control_mode"] == "cartesian"
+
+
+def test_a_misspelt_config_key_is_refused_with_the_closest_one(tmp_path: Path) -> None:
+    path = tmp_path / "d.yaml"
+    path.write_text(yaml.safe_dump({PICK: {"demo_episode": 3}}), encoding="utf-8")
+    with pytest.raises(HyperparamError, match="did you mean 'demo_episodes'"):
+        load_dagger_config(path, PICK)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("demo_episodes", 0), ("target_success", 1.5), ("beta", 1.0), ("net_arch", [])]
+)
+def test_a_bad_config_value_is_refused(key: str, value: object) -> None:
+    with pytest.raises(HyperparamError, match=key):
+        DaggerConfig(source="x.yaml", **{key: value})  # type: ignore[arg-type]
+
+
+def test_dagger_refuses_a_task_without_an_observation_expert(tmp_path: Path) -> None:
+    path = tmp_path / "d.yaml"
+    path.write_text(yaml.safe_dump({REACH: {"net_arch": [8]}}), encoding="utf-8")
+    args = TrainArgs(env=REACH, algo="dagger", config=path, out=tmp_path / "r", progress=False)
+    with pytest.raises(TrainingError, match="label any state"):
+        train_dagger(args, REACH)
+
+
+def test_bioscara_train_algo_dagger_runs_from_the_command_line(tmp_path: Path) -> None:
+    config = str(tiny_config(tmp_path))
+    out = str(tmp_path / "cli")
+    argv = ["train", "--env", "Bioscara-PickPlace", "--algo", "dagger", "--config", config, "--out", out]
+    code = main([*argv, "--no-progress", "--timesteps", "500"])
+    assert code == 0
+    state = json.loads((tmp_path / "cli" / "train_state.json").read_text(encoding="utf-8"))
+    assert state["algo"] == "dagger" and state["total_timesteps"] == 500
+
+
+def test_extractor_sees_millimetres_near_the_block(pick_env: gym.Env) -> None:
+    import torch as th
+
+    ext = PickPlaceExtractor(pick_env.observation_space, coarse_m=0.1, fine_m=0.005)
+    obs, _ = pick_env.reset(seed=0)
+    batch = {k: th.as_tensor(v[None], dtype=th.float32) for k, v in obs.items()}
+    features = ext(batch)
+    assert features.shape == (1, ext.features_dim)
+    assert float(features.abs().max()) < 20  # lengths in 10 cm, the fine view clipped at 3
+    with pytest.raises(ValueError, match="PickPlace"):
+        reach = gym.make(REACH)
+        PickPlaceExtractor(reach.observation_space)
+
+
+def test_demos_from_a_dataset_replace_the_experts_own_episodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytest.importorskip("minari", reason="minari is in the [train] extra")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    argv = ["collect", "--expert", "--env", "Bioscara-PickPlace", "--backend", "mock", "--episodes", "1"]
+    assert main([*argv, "--dataset", "pp", "--no-progress"]) == 0
+    result = train_dagger(tiny_args(tmp_path, demos="pp", timesteps=300), PICK)
+    first = checkpoint_data(tmp_path / "run")[0]
+    assert len(first["actions"]) == 200 and int(first["env_steps"]) == 0  # the dataset's episode, no env step
+    assert json.loads(result.metadata_path.read_text(encoding="utf-8"))["dagger"]["demos"] == "pp"
