@@ -234,6 +234,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError, MissingExtraError, JointError) as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
+    except RecursionError:  # a file nested deeper than any of ours; the loaders name the file
+        err.print(f"bioscara {args.command}: error: an input file is nested too deeply to be read")
+        return EXIT_ERROR
 
 
 def _choose_headless_gl() -> None:

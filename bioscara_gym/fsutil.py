@@ -1,20 +1,53 @@
-"""Atomic file writes and a lock file: one writer at a time, never half a file.
+"""Atomic file writes, a lock file, and bounded reads of the small files the package keeps.
 
 Atomic writes are used for every file the package writes in place (the
 gripper's width, the console's ``--state`` file, a policy's metadata,
 evaluation results, training checkpoints): a crash leaves either the old
 file or the new one. :class:`LockFile` keeps a second process off a file
-while one works on it (the console's ``--state`` file).
+while one works on it (the console's ``--state`` file). :func:`read_json`
+reads such a file back, refusing what is not one (a device, a FIFO, a huge
+or absurdly nested file) in one line instead of hanging or overflowing.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import json
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
+
+#: Largest file :func:`read_json` reads, bytes (a console state file is ~100 kB).
+MAX_JSON_BYTES = 16 * 1024 * 1024
+
+
+def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> object:
+    """Parse a JSON file the package wrote, refusing anything that cannot be one.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        OSError: It is not a regular file (a directory, a device such as
+            ``/dev/zero``, a FIFO that would block), is larger than
+            ``max_bytes``, or cannot be read.
+        ValueError: It is not UTF-8 (``UnicodeDecodeError``), not JSON
+            (``json.JSONDecodeError``) or nested too deeply to parse.
+    """
+    path = Path(path)
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
+    with open(path, "rb") as f:
+        data = f.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes", str(path))
+    try:
+        return json.loads(data.decode("utf-8"))
+    except RecursionError as e:
+        raise ValueError("nested too deeply to be one of this package's files") from e
 
 
 @contextlib.contextmanager

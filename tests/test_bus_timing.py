@@ -287,14 +287,21 @@ def test_the_dynamixel_fault_spec_still_lists_its_own_keys() -> None:
 
 
 @pytest.mark.parametrize(
-    ("spec", "message"), [("jitter_ms=-1", "jitter_s=-0.001 must be >= 0"), ("drift_ppm=-1e6", "drift_ppm")]
+    ("spec", "message"),
+    [
+        ("jitter_ms=-1", "fault 'jitter_ms': -1 must be >= 0"),
+        ("latency_ms=-0.5", "fault 'latency_ms': -0.5 must be >= 0"),
+        ("drift_ppm=-1e6", r"drift_ppm=-1e\+06 must be within ±10000"),
+        ("drift_ppm=1e7", r"drift_ppm=1e\+07 must be within ±10000"),
+        ("latency_ms=1,latency_s=0.002", "fault 'latency_s' given twice"),
+    ]
 )
 def test_bad_jitter_or_drift_is_refused(spec: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         FaultPlan.parse(spec)
 
 
-@pytest.mark.parametrize("clock_hz", [0, -100_000, math.inf])
+@pytest.mark.parametrize("clock_hz", [0, -100_000, math.inf, 1, 9_999, 1_000_001, 1e12])
 @pytest.mark.parametrize("where", ["backend", "config", "bus"])
 def test_a_bad_i2c_clock_is_refused_in_one_line(where: str, clock_hz: float) -> None:
     with pytest.raises(ValueError, match="i2c_clock_hz") as caught:

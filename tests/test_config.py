@@ -473,7 +473,7 @@ INVALID_CASES = [
     pytest.param(
         _set_homing("j1", "acceleration", "1e-3"),
         r"config\.yaml: joint j1: homing\.acceleration '1e-3' \(str\) must be a "
-        r"number \(YAML reads exponents",
+        r"number \(YAML reads an exponent without a dot and a sign",
         id="yaml-exponent-string-hint",
     ),
     pytest.param(

@@ -405,6 +405,25 @@ def test_second_command_on_a_held_state_file_is_refused_in_one_line(bioscara: Ru
     )
 
 
+def test_record_onto_the_state_file_is_refused_before_anything_is_written(bioscara: Run, state: Path) -> None:
+    assert bioscara("enable", "--state", str(state))[0] == 0
+    saved = state.read_text()
+    code, out, err = bioscara("home", "--state", str(state), "--record", str(state))
+    assert code == 2 and out == ""
+    assert err == f"bioscara home: error: --state and --record name one file, {state}; each needs its own"
+    assert state.read_text() == saved
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/full"])
+def test_a_state_file_that_is_a_device_is_refused_not_read_forever(bioscara: Run, device: str) -> None:
+    code, _, err = bioscara("status", "--state", device)
+    assert code == 2
+    assert err == (
+        f"bioscara status: error: state file {device} is not a regular file (a directory or a device); "
+        "pick another path"
+    )
+
+
 def test_state_file_lock_is_released_after_a_command(bioscara: Run, state: Path) -> None:
     assert bioscara("enable", "j1", "--state", str(state))[0] == 0
     assert bioscara("disable", "j1", "--state", str(state))[0] == 0

@@ -341,12 +341,14 @@ def test_the_gripper_width_is_called_saved_only_when_it_was(
     assert json.loads(gripper_state_file.read_text()) == {"width_m": 0.08}
     assert run.summary["gripper"]["saved_width_m"] == 0.08
 
-    blocker = tmp_path / "not-a-dir"
-    blocker.write_text("")
-    unwritable = blocker / "gripper.json"
-    run = deploy(state_file=unwritable, log=tmp_path / "second.jsonl")
+    def disk_full(path: Any, width_m: float) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("bioscara_gym.hardware.gripper.save_width", disk_full)
+        run = deploy(log=tmp_path / "second.jsonl")
     assert run.error is None, run.output
-    assert f"gripper width 0.080 m NOT saved to {unwritable}: " in run.output
+    assert f"gripper width 0.080 m NOT saved to {gripper_state_file}: No space left on device" in run.output
     assert "warning: gripper: cannot save width 0.08 m" in run.output
     assert run.summary["gripper"]["saved_width_m"] is None
 

@@ -87,6 +87,16 @@ def setting(value: Any, *path: str) -> Callable[[dict[str, Any]], None]:
     return change
 
 
+def with_training_config(mode: str) -> Callable[[dict[str, Any]], None]:
+    """Metadata as ``bioscara train`` writes it (with its config), then ``env_kwargs.control_mode`` edited."""
+
+    def change(metadata: dict[str, Any]) -> None:
+        metadata["config"] = {"env_kwargs": dict(metadata["env_kwargs"])}
+        metadata["env_kwargs"]["control_mode"] = mode
+
+    return change
+
+
 def truncate_model(run: Path) -> list[str]:
     zip_path = run / "model.zip"
     data = zip_path.read_bytes()
@@ -146,7 +156,8 @@ def metadata_of_pick_place(props: dict[str, str]) -> None:
 # ------------------------------------------------------------------- table
 ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
     # (id, setup -> policy arguments, extra arguments, expected part of the one line)
-    ("truncated-model-zip", truncate_model, [], "truncated or not a stable-baselines3 zip"),
+    ("truncated-model-zip", truncate_model, [], "truncated, not a stable-baselines3 zip, or another"),
+    ("metadata-other-algo", edit_metadata(setting("td3", "algo")), [], "as the TD3 model metadata.json says"),
     ("metadata-a-list", edit_metadata(lambda m: [m]), [], "expected a JSON object, got a list"),
     ("metadata-not-json", edit_metadata(lambda m: "{"), [], "expected a JSON object, got a string"),
     ("metadata-unknown-algo", edit_metadata(setting("a2c", "algo")), [], "has algo 'a2c'; expected one of"),
@@ -176,6 +187,13 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "control_mode 'torque' must be one of",
     ),
     ("metadata-no-env-kwargs", edit_metadata(without("env_kwargs")), [], "'env_kwargs' is missing"),
+    (
+        "metadata-mode-edited-against-its-config",
+        edit_metadata(with_training_config("velocity")),
+        [],
+        "env_kwargs.control_mode is 'velocity' but config.env_kwargs.control_mode, what training used, "
+        "is 'cartesian'",
+    ),
     (
         "metadata-no-control-mode",
         edit_metadata(without("env_kwargs", "control_mode")),
@@ -211,6 +229,28 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
     ("fault-unknown", expert, ["--faults", "lag_ms=2"], "unknown fault 'lag_ms'; expected nack"),
     ("fault-not-a-number", expert, ["--faults", "nack=lots"], "fault 'nack': 'lots' is not a number"),
     ("expert-without-env", lambda run: ["--expert"], [], "--expert needs --env ID"),
+    ("fault-negative-jitter", expert, ["--faults", "jitter_ms=-1"], "fault 'jitter_ms': -1 must be >= 0"),
+    ("fault-drift-huge", expert, ["--faults", "drift_ppm=1e7"], "drift_ppm=1e+07 must be within ±10000"),
+    (
+        "state-file-is-the-log",
+        lambda run: [*expert(run), "--state-file", str(run.parent / "deploy.jsonl")],
+        [],
+        "--log and --state-file name the same file",
+    ),
+    (
+        "record-is-the-log",
+        lambda run: [*expert(run), "--record", str(run.parent / "deploy.jsonl")],
+        [],
+        "--log and --record name the same file",
+    ),
+    ("state-file-a-device", expert, ["--state-file", "/dev/full"], "--state-file /dev/full is not a regular"),
+    ("state-file-a-directory", lambda run: [*expert(run), "--state-file", str(run)], [], "is not a regular"),
+    (
+        "log-under-a-file",
+        lambda run: [*expert(run), "--log", str(run / "model.zip" / "x.jsonl")],
+        [],
+        "model.zip is not a directory",
+    ),
     ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v0"),
 ]
 
@@ -229,8 +269,8 @@ def test_bad_input_is_one_line_and_nothing_reaches_the_arm(
     run = tmp_path / "policy"
     shutil.copytree(sac_dir, run)
     log = tmp_path / "deploy.jsonl"
-    argv = ["deploy", *setup(run), "--backend", "emulated", "--log", str(log), *extra]
-    argv += ["--state-file", str(tmp_path / "gripper.json")]
+    argv = ["deploy", "--backend", "emulated", "--log", str(log)]  # a row's own options come last and win
+    argv += ["--state-file", str(tmp_path / "gripper.json"), *setup(run), *extra]
 
     code = main(argv)
 
@@ -246,12 +286,19 @@ def test_bad_input_is_one_line_and_nothing_reaches_the_arm(
 def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
     tmp_path: Path, bus_traffic: list[tuple[int, bytes]], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    blocker = tmp_path / "not-a-dir"
-    blocker.write_text("")
-    code = main(["deploy", "--expert", "--env", REACH, "--log", str(blocker / "run.jsonl")])
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    log = locked / "run.jsonl"
+
+    def refuse(*args: Any, **kwargs: Any) -> None:
+        raise PermissionError(13, "Permission denied", str(log))
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("bioscara_gym.training.deploy.RunLog", refuse)
+        code = main(["deploy", "--expert", "--env", REACH, "--log", str(log)])
     err = capsys.readouterr().err
     assert code == 2
-    assert err.count("\n") == 1 and f"cannot open the run log {blocker / 'run.jsonl'}" in err
+    assert err.count("\n") == 1 and f"cannot open the run log {log}: Permission denied" in err
     assert bus_traffic == []
 
 
@@ -259,7 +306,7 @@ def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
     ("setup", "expected"),
     [
         (pick_place_metadata, "takes 12 values of observation 'observation', the env gives 22"),
-        (truncate_model, "truncated or not a stable-baselines3 zip"),
+        (truncate_model, "truncated, not a stable-baselines3 zip, or another"),
         (edit_metadata(without("env_kwargs", "control_freq")), "env_kwargs.control_freq is missing"),
     ],
     ids=["reach-model-pick-place-metadata", "truncated-model-zip", "metadata-no-control-freq"],

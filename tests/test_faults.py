@@ -253,7 +253,7 @@ def test_fault_plan_parse_passes_the_seed() -> None:
         ("drop=0.1", r"unknown fault 'drop'; expected nack, short_read, corrupt, latency_ms"),
         ("nack=2", r"fault rate nack=2.0 must be within 0-1"),
         ("corrupt=-0.5", r"fault rate corrupt=-0.5 must be within 0-1"),
-        ("latency_ms=-1", r"latency_s=-0.001 must be >= 0"),
+        ("latency_ms=-1", r"fault 'latency_ms': -1 must be >= 0"),
         ("latency_ms=nan", r"latency_ms.*must be finite"),
         ("latency_ms=inf", r"latency_ms.*must be finite"),
         ("nack=0.1,nack=0.2", r"given twice"),

@@ -60,8 +60,8 @@ def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
         model = MODEL_CLASSES[name].load(model_file, env=None, device="cpu", custom_objects=act_only)
     except Exception as e:  # zipfile, pickle, torch and SB3's own asserts: all mean "not loadable"
         raise PolicyFileError(
-            f"cannot load {model_file} as a {name.upper()} model (truncated or not a "
-            f"stable-baselines3 zip?): {type(e).__name__}: {_first_line(e)}"
+            f"cannot load {model_file} as the {name.upper()} model metadata.json says it is (truncated, "
+            f"not a stable-baselines3 zip, or another algorithm's?): {type(e).__name__}: {_first_line(e)}"
         ) from e
     return model, metadata
 

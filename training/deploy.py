@@ -304,6 +304,10 @@ class Deployment:
         self.log_path = (
             Path(args.log) if args.log else Path("runs/deploy") / time.strftime("deploy-%Y%m%d-%H%M%S.jsonl")
         )
+        self.state_file = args.state_file
+        if self.state_file is None and args.backend != "i2c":
+            self.state_file = self.log_path.parent / "gripper.json"
+        _check_outputs({"--log": self.log_path, "--state-file": self.state_file, "--record": args.record})
         self._t0 = time.perf_counter()
         self._gripper_width: float | None = None
         self._early_phases: list[dict[str, Any]] = []
@@ -404,11 +408,8 @@ class Deployment:
         """The backend's options: the gripper state file and the emulated bus's faults."""
         args = self.args
         options: dict[str, Any] = {}
-        state_file = args.state_file
-        if state_file is None and args.backend != "i2c":
-            state_file = self.log_path.parent / "gripper.json"
-        if state_file is not None:
-            options["state_file"] = state_file
+        if self.state_file is not None:
+            options["state_file"] = self.state_file
         if args.faults:
             options["faults"] = FaultPlan.parse(args.faults)  # checked in _check_args
         if args.record is not None:  # every bus transaction to a trace (docs/traces.md)
@@ -808,6 +809,32 @@ def _keyword_parameters(creator: Any) -> list[str]:
         if not any(p.kind is p.VAR_KEYWORD for p in params):
             break
     return [n for n in dict.fromkeys(names) if n != "self"]
+
+
+def _check_outputs(outputs: dict[str, Path | None]) -> None:
+    """Refuse output files that are one and the same, or that cannot be files.
+
+    The run log, the gripper state file (``None``: the backend's, on the arm)
+    and the bus trace are written side by side: one path for two of them
+    would leave neither readable.
+
+    Raises:
+        DeployError: Two options name one file, or one names a directory, a
+            device or a FIFO, or a path under something that is not a directory.
+    """
+    seen: dict[Path, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise DeployError(f"{seen[resolved]} and {option} name the same file {path}; each needs its own")
+        seen[resolved] = option
+        if resolved.exists() and not resolved.is_file():
+            raise DeployError(f"{option} {path} is not a regular file")
+        parent = next((p for p in resolved.parents if p.exists()), None)
+        if parent is not None and not parent.is_dir():
+            raise DeployError(f"{option} {path}: {parent} is not a directory")
 
 
 def _check_args(args: DeployArgs) -> None:

@@ -254,12 +254,18 @@ class OnnxPolicy:
         except Exception as e:  # onnxruntime raises its own exception types
             raise ExportError(f"cannot load {self.path}: {e}") from e
         props = self.session.get_modelmeta().custom_metadata_map
+        missing = [k for k in (METADATA_KEY, OBS_KEYS_KEY) if k not in props]
+        if missing:
+            raise ExportError(
+                f"{self.path} has no {'/'.join(missing)} metadata; export it with `bioscara export`"
+            )
         try:
             metadata = json.loads(props[METADATA_KEY])
             self.obs_keys: list[tuple[str, int]] = [(k, int(n)) for k, n in json.loads(props[OBS_KEYS_KEY])]
-        except (KeyError, ValueError, TypeError) as e:
+        except (ValueError, TypeError, RecursionError) as e:
             raise ExportError(
-                f"{self.path} has no {METADATA_KEY}/{OBS_KEYS_KEY} metadata; export it with `bioscara export`"
+                f"{self.path}: its {METADATA_KEY}/{OBS_KEYS_KEY} metadata is not what `bioscara export` "
+                f"writes ({type(e).__name__}: {' '.join(str(e).split())[:120]})"
             ) from e
         self.metadata: dict[str, Any] = validate_metadata(metadata, f"{self.path} (embedded metadata)")
         self.shapes = self._graph_shapes()

@@ -208,6 +208,8 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(e, "problem", None) or type(e).__name__
         raise HyperparamError(f"config {path} is not valid YAML{where}: {problem}") from e
+    except RecursionError as e:
+        raise HyperparamError(f"config {path} is nested too deeply to be a hyperparameter file") from e
     if not isinstance(data, dict):
         raise HyperparamError(f"config {path}: expected a mapping of env ids, got {type(data).__name__}")
     if env_id not in data:

@@ -21,9 +21,11 @@ import numpy as np
 
 import bioscara_gym
 from bioscara_gym.errors import MetadataError, TrainingError
-from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.fsutil import atomic_write_text, read_json
 
 METADATA_NAME = "metadata.json"
+#: Largest metadata file read, bytes (ours are a few kB).
+MAX_METADATA_BYTES = 1024 * 1024
 #: env kwargs that change what the policy's actions mean; they must match to deploy,
 #: and metadata that does not state them is refused (a guessed control mode turns
 #: a cartesian policy's actions into joint velocities).
@@ -120,6 +122,15 @@ def validate_metadata(metadata: Any, source: str) -> dict[str, Any]:
     freq = kwargs["control_freq"]
     if isinstance(freq, bool) or not isinstance(freq, numbers.Real) or not math.isfinite(freq) or freq <= 0:
         raise MetadataError(f"{source}: env_kwargs.control_freq must be a rate in Hz > 0, got {freq!r}")
+    # Training writes the hyperparameters it used too: a hand edit of one copy shows.
+    config = metadata.get("config")
+    trained = config.get("env_kwargs") if isinstance(config, dict) else None
+    for key in BEHAVIOUR_KWARGS:
+        if isinstance(trained, dict) and key in trained and trained[key] != kwargs[key]:
+            raise MetadataError(
+                f"{source}: env_kwargs.{key} is {kwargs[key]!r} but config.env_kwargs.{key}, what "
+                f"training used, is {trained[key]!r}; was the file edited by hand?"
+            )
     return metadata
 
 
@@ -141,12 +152,12 @@ def read_metadata(model_path: Path) -> dict[str, Any]:
     directory = model_path if model_path.is_dir() else model_path.parent
     path = directory / METADATA_NAME
     try:
-        metadata = json.loads(path.read_text(encoding="utf-8"))
+        metadata = read_json(path, max_bytes=MAX_METADATA_BYTES)
     except FileNotFoundError as e:
         raise MetadataError(
             f"no {METADATA_NAME} next to {model_path}: cannot tell what the policy was trained for"
         ) from e
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, ValueError) as e:
         raise MetadataError(f"cannot read {path}: {e}") from e
     return validate_metadata(metadata, str(path))
 

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from bioscara_gym.errors import StateFileError, StateFileInUseError
-from bioscara_gym.fsutil import LockFile, atomic_write_text
+from bioscara_gym.fsutil import LockFile, atomic_write_text, read_json
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.stats import CommStats
@@ -216,9 +216,11 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
             backend or with another arm configuration; nothing is changed.
     """
     where = f"state file {path}"
+    if path.exists() and not path.is_file():
+        raise StateFileError(f"{where} is not a regular file (a directory or a device); pick another path")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        doc = read_json(path)
+    except (OSError, ValueError) as e:
         raise StateFileError(f"{where} cannot be read ({e}); delete it to start from a powered-up arm") from e
     if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
         raise StateFileError(f"{where} is not a bioscara console state file; delete it or pick another")

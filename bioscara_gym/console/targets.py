@@ -68,6 +68,12 @@ class ConsoleOptions:
             raise ConsoleUsageError(
                 f"--state works with the {' and '.join(PERSISTENT_BACKENDS)} backends; {reason}"
             )
+        if self.record is not None:
+            trace = Path(self.record.path)
+            if self.state is not None and trace.resolve() == Path(self.state).resolve():
+                raise ConsoleUsageError(f"--state and --record name one file, {trace}; each needs its own")
+            if trace.exists() and not trace.is_file():
+                raise ConsoleUsageError(f"--record {trace} is not a regular file")
 
 
 @dataclass(frozen=True)

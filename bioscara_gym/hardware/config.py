@@ -71,6 +71,7 @@ from typing import Any
 import yaml
 
 from bioscara_gym.hardware.errors import ConfigError, UnknownJointError
+from bioscara_gym.hardware.i2c_timing import check_clock_hz
 from bioscara_gym.hardware.registers import (
     CURRENT_MAX_PCT,
     HOMING_RPM_MAX,
@@ -139,7 +140,10 @@ def _number(value: object, what: str) -> float:
             except ValueError:
                 pass
             else:
-                hint = " (YAML reads exponents without a dot, such as 1e-3, as strings; write 1.0e-3)"
+                hint = (
+                    " (YAML reads an exponent without a dot and a sign, such as 1e-3 or 1.0e12, "
+                    "as a string; write 1.0e-3, 1.0e+12)"
+                )
         raise ConfigError(f"{what} {value!r} ({_type_name(value)}) must be a number{hint}")
     result = float(value)
     if not math.isfinite(result):
@@ -491,7 +495,7 @@ class ArmConfig:
         groups: Named groups of joint names (read-only mapping); members are
             joint names or ``"gripper"``, each at most once per group.
         bus: I2C bus number (``/dev/i2c-N``), >= 0.
-        i2c_clock_hz: The I2C bus clock, Hz, > 0: 100 000 (standard mode,
+        i2c_clock_hz: The I2C bus clock, Hz, 10 000 to 1 000 000: 100 000 (standard mode,
             the Raspberry Pi's default) or 400 000 (fast mode). The real
             bus's is set on the Pi (``dtparam=i2c_arm_baudrate``); here it
             sets the wire time the emulated bus and the sim backend charge
@@ -548,7 +552,11 @@ class ArmConfig:
             raise ConfigError(f"gripper must be a GripperConfig, got {_type_name(self.gripper)}")
         _set(self, "groups", MappingProxyType(self._checked_groups()))
         _integer(self.bus, "bus")
-        _set(self, "i2c_clock_hz", _positive(self.i2c_clock_hz, "i2c_clock_hz", " Hz"))
+        clock_hz = _positive(self.i2c_clock_hz, "i2c_clock_hz", " Hz")
+        try:
+            _set(self, "i2c_clock_hz", check_clock_hz(clock_hz))
+        except ValueError as e:
+            raise ConfigError(str(e)) from e
         if self.dynamixel is not None and not isinstance(self.dynamixel, DynamixelBusConfig):
             raise ConfigError(f"dynamixel must be a DynamixelBusConfig, got {_type_name(self.dynamixel)}")
 
@@ -805,7 +813,9 @@ def _parse_yaml(text: str, source: str) -> Any:
         # Safe loading (no arbitrary objects), plus a duplicate-key check.
         return yaml.load(text, Loader=_StrictSafeLoader)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: not valid YAML: {e}") from e
+        raise ConfigError(f"{source}: not valid YAML: {' '.join(str(e).split())}") from e
+    except RecursionError as e:
+        raise ConfigError(f"{source}: nested too deeply to be an arm configuration") from e
 
 
 def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:

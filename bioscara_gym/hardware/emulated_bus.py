@@ -22,6 +22,10 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.i2c_timing import check_clock_hz, nack_time_s, wire_phases_s
 from bioscara_gym.hardware.registers import I2C_ADDRESS_MAX, I2C_ADDRESS_MIN
 
+#: Largest host clock drift the fault plan accepts, ppm: 1 % (a quartz is off by
+#: tens of ppm, an RC oscillator by up to about 1 %).
+MAX_DRIFT_PPM = 10_000.0
+
 
 class Fault(Enum):
     """A fault the bus can inject into one transaction."""
@@ -45,8 +49,8 @@ class FaultPlan:
             ``[0, jitter_s]`` by the fault generator, seconds.
         drift_ppm: Host clock drift: the control loop's periods last
             ``1 + drift_ppm * 1e-6`` times their nominal length on the
-            emulated backend (> 0: the host's clock runs slow). Must be above
-            -1e6.
+            emulated backend (> 0: the host's clock runs slow), within
+            ±:data:`MAX_DRIFT_PPM`.
         schedule: Transaction index (bus-wide, from 0) to the fault injected
             there, for deterministic tests.
         seed: Seed of the fault generator.
@@ -70,8 +74,11 @@ class FaultPlan:
         for name in ("latency_s", "jitter_s"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
-        if not -1e6 < self.drift_ppm < math.inf:
-            raise ValueError(f"drift_ppm={self.drift_ppm} must be finite and above -1e6")
+        if not abs(self.drift_ppm) <= MAX_DRIFT_PPM:
+            raise ValueError(
+                f"drift_ppm={self.drift_ppm:g} must be within ±{MAX_DRIFT_PPM:g} (a host clock off by "
+                "more than 1 % is not drift)"
+            )
 
     @property
     def period_scale(self) -> float:
@@ -112,6 +119,7 @@ def parse_fault_spec(
     """
     durations = (duration,) if isinstance(duration, str) else duration
     known = (*rates, *(f"{d}{unit}" for d in durations for unit in ("_ms", "_s")), *numbers)
+    durations_s = {f"{d}_s" for d in durations}
     kwargs: dict[str, float] = {}
     for item in filter(None, (s.strip() for s in spec.split(","))):
         key, sep, value = item.partition("=")
@@ -126,10 +134,14 @@ def parse_fault_spec(
             raise ValueError(f"fault '{key}': {value} must be finite")
         if key not in known:
             raise ValueError(f"unknown fault '{key}'; expected {', '.join(known)}")
+        given = key
         if key.endswith("_ms") and key[: -len("_ms")] in durations:
             key, number = f"{key[: -len('_ms')]}_s", number / 1000.0
+        if key in durations_s and number < 0:
+            raise ValueError(f"fault '{given}': {value} must be >= 0 (an extra time)")
         if key in kwargs:
-            raise ValueError(f"fault '{key}' given twice")
+            stem = key.removesuffix("_s")
+            raise ValueError(f"fault '{given}' given twice (counting {stem}_ms and {stem}_s as one)")
         kwargs[key] = number
     return kwargs
 

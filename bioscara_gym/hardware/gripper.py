@@ -38,7 +38,7 @@ import warnings
 from pathlib import Path
 from types import TracebackType
 
-from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.fsutil import atomic_write_text, read_json
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.errors import (
     CommError,
@@ -74,6 +74,8 @@ SERVO_PULSE_US_PER_90_DEG = 500.0
 
 #: Key of the width in the state file.
 _STATE_KEY = "width_m"
+#: Largest gripper state file read, bytes (it holds one number).
+STATE_FILE_MAX_BYTES = 4096
 #: Poll interval in s while waiting for the kernel to create an exported channel.
 _EXPORT_POLL_S = 0.01
 #: Hint for a missing PWM chip (the C++ driver suggests ``pwm-2chan``).
@@ -155,19 +157,17 @@ def _read_width(path: Path) -> float:
             ``{"width_m": <number>}``.
     """
     try:
-        text = path.read_text(encoding="utf-8")
+        data = read_json(path, max_bytes=STATE_FILE_MAX_BYTES)
     except FileNotFoundError as e:
         raise _UnusableStateFile(f"state file {path} does not exist (first run?)", missing=True) from e
     except (OSError, UnicodeDecodeError) as e:
         raise _UnusableStateFile(f"cannot read state file {path} ({e})") from e
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
+    except ValueError as e:
         raise _UnusableStateFile(f"state file {path} is not valid JSON ({e})") from e
     value = data.get(_STATE_KEY) if isinstance(data, dict) else None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _UnusableStateFile(
-            f'state file {path} does not hold {{"{_STATE_KEY}": <number>}} (got {text.strip()[:80]!r})'
+            f'state file {path} does not hold {{"{_STATE_KEY}": <number>}} (got {str(data)[:80]!r})'
         )
     return float(value)
 

@@ -26,19 +26,28 @@ from __future__ import annotations
 
 import math
 
-from bioscara_gym.hardware.registers import I2C_BITS_PER_BYTE, I2C_CONDITION_BITS
+from bioscara_gym.hardware.registers import (
+    I2C_BITS_PER_BYTE,
+    I2C_CONDITION_BITS,
+    I2C_MAX_CLOCK_HZ,
+    I2C_MIN_CLOCK_HZ,
+)
 
 
 def check_clock_hz(clock_hz: float) -> float:
     """Return ``clock_hz`` as a float if it is a usable bus clock.
 
     Raises:
-        ValueError: Not a finite number > 0 (one line naming ``i2c_clock_hz``).
+        ValueError: Not a number within :data:`~.registers.I2C_MIN_CLOCK_HZ`-
+            :data:`~.registers.I2C_MAX_CLOCK_HZ` (one line naming ``i2c_clock_hz``).
     """
     if isinstance(clock_hz, bool) or not isinstance(clock_hz, int | float) or not math.isfinite(clock_hz):
         raise ValueError(f"i2c_clock_hz={clock_hz!r} must be a finite number of Hz (e.g. 100000 or 400000)")
-    if clock_hz <= 0:
-        raise ValueError(f"i2c_clock_hz={clock_hz!r} must be > 0 Hz (100000 standard mode, 400000 fast mode)")
+    if not I2C_MIN_CLOCK_HZ <= clock_hz <= I2C_MAX_CLOCK_HZ:
+        raise ValueError(
+            f"i2c_clock_hz={clock_hz!r} must be within {I2C_MIN_CLOCK_HZ}-{I2C_MAX_CLOCK_HZ} Hz "
+            "(100000 standard mode, 400000 fast mode)"
+        )
     return float(clock_hz)
 
 

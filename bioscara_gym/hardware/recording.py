@@ -140,7 +140,10 @@ class RecordingBus:
         self.clock = clock
         self.path = Path(recording.path)
         self.transactions = 0
-        self._file: IO[str] | None = self.path.open("a", encoding="utf-8")
+        try:
+            self._file: IO[str] | None = self.path.open("a", encoding="utf-8")
+        except OSError as e:
+            raise OSError(e.errno, f"cannot write the bus trace {self.path} (--record): {e.strerror}") from e
         self._write(
             {
                 "type": "header",
@@ -363,6 +366,8 @@ def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
             doc = json.loads(raw)
         except json.JSONDecodeError:
             raise TraceError(f"{where}: not JSON") from None
+        except RecursionError:
+            raise TraceError(f"{where}: nested too deeply to be a trace line") from None
         if not isinstance(doc, Mapping):
             raise TraceError(f"{where}: not a JSON object")
         kind = doc.get("type")

@@ -150,6 +150,11 @@ I2C_ADDRESS_MAX = 0x77
 I2C_STANDARD_MODE_HZ = 100_000
 #: Fast-mode bus clock, Hz, the other common setting: "up to 400 kbit/s" (UM10204).
 I2C_FAST_MODE_HZ = 400_000
+#: Fast-mode Plus, "up to 1 Mbit/s" (UM10204): the highest clock accepted, Hz.
+I2C_MAX_CLOCK_HZ = 1_000_000
+#: The lowest clock accepted, Hz: SMBus's minimum (System Management Bus
+#: specification 3.1, f_SMB 10 kHz); slower is a typo, not a setting.
+I2C_MIN_CLOCK_HZ = 10_000
 #: Default bus clock of the emulated bus and the sim backend's wire time, Hz (the Pi's default).
 I2C_CLOCK_HZ = I2C_STANDARD_MODE_HZ
 #: Clock periods per byte on the wire: 8 data bits, most significant first, then
