@@ -71,7 +71,7 @@ with needs_train():
 
     from bioscara_gym.training.algos import sb3_policy
     from bioscara_gym.training.bc import fit_actor
-    from bioscara_gym.training.train import (
+    from bioscara_gym.training.run import (
         CHECKPOINT_RE,
         STATE_NAME,
         TrainArgs,

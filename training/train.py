@@ -18,7 +18,6 @@ import contextlib
 import io
 import json
 import pickle
-import re
 import signal
 import time
 import warnings
@@ -33,7 +32,7 @@ import numpy as np
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import CheckpointWarning, HyperparamError, TrainingError
 from bioscara_gym.fsutil import atomic_open, atomic_write_bytes, atomic_write_text
-from bioscara_gym.training.evaluate import EvalStats, run_episodes
+from bioscara_gym.training.evaluate import run_episodes
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.hyperparams import (
     Hyperparams,
@@ -42,6 +41,13 @@ from bioscara_gym.training.hyperparams import (
     load_hyperparams,
 )
 from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
+from bioscara_gym.training.run import (
+    CHECKPOINT_RE,
+    STATE_NAME,
+    TrainArgs,
+    TrainingInterrupted,
+    TrainResult,
+)
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 with needs_train():
@@ -60,7 +66,6 @@ with needs_train():
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
 #: Keys whose value may be one of rl-zoo3's schedule strings ``lin_<initial value>``.
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf")
-STATE_NAME = "train_state.json"
 #: The keys of ``train_state.json`` and their JSON types (``None``: may be null).
 STATE_KEYS: dict[str, tuple[type | None, ...]] = {
     "env_id": (str,),
@@ -70,7 +75,6 @@ STATE_KEYS: dict[str, tuple[type | None, ...]] = {
     "config": (str, None),
     "demos": (str, None),
 }
-CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
 #: What loading a damaged checkpoint raises (SB3 turns a broken zip into ValueError).
 CHECKPOINT_ERRORS = (
     OSError,
@@ -81,70 +85,6 @@ CHECKPOINT_ERRORS = (
     zipfile.BadZipFile,
     pickle.UnpicklingError,
 )
-
-
-@dataclass
-class TrainArgs:
-    """Arguments of ``bioscara train`` (the CLI flags map one to one).
-
-    Attributes:
-        env: Env id (``Bioscara-Reach`` or a versioned id).
-        algo: ``sac``, ``td3`` or ``ppo``.
-        config: Hyperparameter file (rl-zoo3 format); default the packaged one.
-        timesteps: Training budget; default the config's ``n_timesteps``.
-        seed: Seed of the model, the envs and the evaluation episodes.
-        out: Output directory (model, metadata, checkpoints, TensorBoard logs).
-        resume: Continue from the newest checkpoint in ``out``.
-        progress: Show a progress bar.
-        checkpoint_freq: Env steps between checkpoints.
-        threads: Torch CPU threads. Default 1: the env steps in the same
-            process, and on a 2-core machine a second torch thread only
-            contends with it (measured 20x slower matrix products).
-        verbose: Print each evaluation.
-        demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
-            2018, see :mod:`bioscara_gym.training.bc`; ``bc``: cloned alone).
-    """
-
-    env: str = "Bioscara-Reach"
-    algo: str = "sac"
-    config: Path | None = None
-    timesteps: int | None = None
-    seed: int = 0
-    out: Path = Path("runs/reach")
-    resume: bool = False
-    progress: bool = True
-    checkpoint_freq: int = 10_000
-    threads: int | None = None
-    verbose: int = 1
-    demos: str | None = None
-
-
-@dataclass(frozen=True)
-class TrainResult:
-    """What a run produced."""
-
-    model_path: Path
-    metadata_path: Path
-    timesteps: int
-    wall_time_s: float
-    final_eval: EvalStats | None
-    target_reached_at: int | None
-    target_reached_after_s: float | None
-
-
-class TrainingInterrupted(Interrupted):
-    """Training stopped by SIGINT or SIGTERM, after saving a checkpoint.
-
-    Attributes:
-        checkpoint: The checkpoint saved, ``None`` if training had not started.
-        out: The run's output directory (what ``--resume`` continues).
-    """
-
-    def __init__(self, signum: int, checkpoint: Path | None, out: Path) -> None:
-        """Remember the signal, the checkpoint and the run."""
-        super().__init__(signum)
-        self.checkpoint = checkpoint
-        self.out = out
 
 
 def load_run_hyperparams(args: TrainArgs, env_id: str, config: Path | None = None) -> Hyperparams:

@@ -1,0 +1,84 @@
+"""What a training run is: its arguments, its result, its files' names, how it ends early.
+
+Shared by :mod:`~bioscara_gym.training.train` (SB3 algorithms, ``bc``) and
+:mod:`~bioscara_gym.training.dagger` (PickPlace's default), which train.py
+hands PickPlace runs to; neither imports the other for these.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from bioscara_gym.training.evaluate import EvalStats
+from bioscara_gym.training.signals import Interrupted
+
+#: The run's state file in its output directory (what ``--resume`` reads).
+STATE_NAME = "train_state.json"
+#: A checkpoint's file name; the group is its env step count.
+CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
+
+
+@dataclass
+class TrainArgs:
+    """Arguments of ``bioscara train`` (the CLI flags map one to one).
+
+    Attributes:
+        env: Env id (``Bioscara-Reach`` or a versioned id).
+        algo: ``sac``, ``td3`` or ``ppo``.
+        config: Hyperparameter file (rl-zoo3 format); default the packaged one.
+        timesteps: Training budget; default the config's ``n_timesteps``.
+        seed: Seed of the model, the envs and the evaluation episodes.
+        out: Output directory (model, metadata, checkpoints, TensorBoard logs).
+        resume: Continue from the newest checkpoint in ``out``.
+        progress: Show a progress bar.
+        checkpoint_freq: Env steps between checkpoints.
+        threads: Torch CPU threads. Default 1: the env steps in the same
+            process, and on a 2-core machine a second torch thread only
+            contends with it (measured 20x slower matrix products).
+        verbose: Print each evaluation.
+        demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
+            2018, see :mod:`bioscara_gym.training.bc`; ``bc``: cloned alone).
+    """
+
+    env: str = "Bioscara-Reach"
+    algo: str = "sac"
+    config: Path | None = None
+    timesteps: int | None = None
+    seed: int = 0
+    out: Path = Path("runs/reach")
+    resume: bool = False
+    progress: bool = True
+    checkpoint_freq: int = 10_000
+    threads: int | None = None
+    verbose: int = 1
+    demos: str | None = None
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What a run produced."""
+
+    model_path: Path
+    metadata_path: Path
+    timesteps: int
+    wall_time_s: float
+    final_eval: EvalStats | None
+    target_reached_at: int | None
+    target_reached_after_s: float | None
+
+
+class TrainingInterrupted(Interrupted):
+    """Training stopped by SIGINT or SIGTERM, after saving a checkpoint.
+
+    Attributes:
+        checkpoint: The checkpoint saved, ``None`` if training had not started.
+        out: The run's output directory (what ``--resume`` continues).
+    """
+
+    def __init__(self, signum: int, checkpoint: Path | None, out: Path) -> None:
+        """Remember the signal, the checkpoint and the run."""
+        super().__init__(signum)
+        self.checkpoint = checkpoint
+        self.out = out
