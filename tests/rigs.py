@@ -36,7 +36,7 @@ from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.codec import pack_bytes
 from bioscara_gym.hardware.config import ArmConfig, HomingConfig, JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
-from bioscara_gym.hardware.firmware import JointFirmware
+from bioscara_gym.hardware.firmware import MICROSTEPS_PER_DEG, JointFirmware
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.motor import KinematicStepper
@@ -692,3 +692,30 @@ def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
     write_metadata(out, build_metadata(env, env_id, env_kwargs, algo="sac"))
     env.close()
     return out / "model.zip"
+
+
+# ------------------------------------------------------- a motor the test sets
+class FakeMotor:
+    """A motor whose set point, encoder and speed the test sets directly."""
+
+    def __init__(self) -> None:
+        self.setpoint_deg = 0.0
+        self.position_deg = 0.0
+        self.velocity_dps = 0.0
+
+    @property
+    def pid_error_deg(self) -> float:
+        return self.setpoint_deg - self.position_deg
+
+    def set_error(self, microsteps: float) -> None:
+        """Make the PID error (set point - encoder) ``microsteps``."""
+        self.setpoint_deg = self.position_deg + microsteps / MICROSTEPS_PER_DEG
+
+    def command(self, velocity_dps: float, torque_fraction: float) -> None:
+        pass
+
+    def hold_here(self) -> None:
+        self.setpoint_deg = self.position_deg
+
+    def advance(self, dt: float) -> None:
+        pass

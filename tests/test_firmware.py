@@ -12,11 +12,11 @@ import math
 import struct
 
 import pytest
+from rigs import FakeMotor
 
 from bioscara_gym.hardware import firmware as firmware_module
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.firmware import (
-    MICROSTEPS_PER_DEG,
     FirmwareCore,
     JointFirmware,
     stall_threshold,
@@ -133,32 +133,6 @@ def stalled(fw: JointFirmware) -> JointFirmware:
             return fw
         ticks(fw)
     raise AssertionError("never stalled")
-
-
-class FakeMotor:
-    """A motor whose set point, encoder and speed the test sets directly."""
-
-    def __init__(self) -> None:
-        self.setpoint_deg = 0.0
-        self.position_deg = 0.0
-        self.velocity_dps = 0.0
-
-    @property
-    def pid_error_deg(self) -> float:
-        return self.setpoint_deg - self.position_deg
-
-    def set_error(self, microsteps: float) -> None:
-        """Make the PID error (set point - encoder) ``microsteps``."""
-        self.setpoint_deg = self.position_deg + microsteps / MICROSTEPS_PER_DEG
-
-    def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        pass
-
-    def hold_here(self) -> None:
-        self.setpoint_deg = self.position_deg
-
-    def advance(self, dt: float) -> None:
-        pass
 
 
 @pytest.fixture

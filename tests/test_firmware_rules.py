@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 
 import pytest
+from rigs import FakeMotor
 
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
@@ -447,28 +448,6 @@ def test_cancellation_can_be_switched_off() -> None:
 
 
 # ------------------------------------------------------------ stall detector
-
-
-class FakeMotor:
-    """Set point, encoder and speed set by the test."""
-
-    def __init__(self) -> None:
-        self.setpoint_deg = 0.0
-        self.position_deg = 0.0
-        self.velocity_dps = 0.0
-
-    @property
-    def pid_error_deg(self) -> float:
-        return self.setpoint_deg - self.position_deg
-
-    def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        pass
-
-    def hold_here(self) -> None:
-        self.setpoint_deg = self.position_deg
-
-    def advance(self, dt: float) -> None:
-        pass
 
 
 def feed(core: FirmwareCore, motor: FakeMotor, microsteps: list[float]) -> list[bool]:

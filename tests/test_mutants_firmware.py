@@ -12,6 +12,7 @@ import itertools
 import struct
 
 import pytest
+from rigs import FakeMotor
 
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
@@ -174,28 +175,6 @@ def test_max_acceleration_below_1_deg_per_s2_is_taken() -> None:
 
 
 # ----------------------------------------------------------------- power-up
-class FakeMotor:
-    """Set point, encoder and speed set by the test (as in test_firmware_rules.py)."""
-
-    def __init__(self) -> None:
-        self.setpoint_deg = 0.0
-        self.position_deg = 0.0
-        self.velocity_dps = 0.0
-
-    @property
-    def pid_error_deg(self) -> float:
-        return self.setpoint_deg - self.position_deg
-
-    def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        pass
-
-    def hold_here(self) -> None:
-        self.setpoint_deg = self.position_deg
-
-    def advance(self, dt: float) -> None:
-        pass
-
-
 def test_power_up_brake_is_freewheel_and_currents_are_zero() -> None:
     # docs/firmware.md, power-up: currents 0 %, 0 %, brake freewheel (0).
     core = FirmwareCore(KinematicStepper(0.0), 0.0)
