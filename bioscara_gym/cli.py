@@ -80,7 +80,7 @@ def _resume_command(args: argparse.Namespace) -> str:
     command = f"bioscara train --resume --out {args.out}"
     if args.env != "Bioscara-Reach":
         command += f" --env {args.env}"
-    if args.algo != "sac":
+    if args.algo is not None:
         command += f" --algo {args.algo}"
     return command
 
@@ -174,7 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
     p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
-    p.add_argument("--algo", default="sac", help="sac, td3, ppo or bc (behaviour cloning) (default: sac)")
+    p.add_argument(
+        "--algo",
+        help="sac, td3, ppo, bc (behaviour cloning) or dagger (default: dagger on PickPlace without "
+        "--config, sac elsewhere; on --resume the run's)",
+    )
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
     p.add_argument("--seed", type=int, default=0)

@@ -221,6 +221,7 @@ def test_pickplace_trains_with_dagger_by_default_and_reach_does_not(tmp_path: Pa
     assert uses_dagger(TrainArgs(env="Bioscara-PickPlace", demos="pick", out=tmp_path), PICK)
     assert not uses_dagger(TrainArgs(env="Bioscara-Reach", out=tmp_path), REACH)
     assert not uses_dagger(TrainArgs(env="Bioscara-PickPlace", algo="td3", out=tmp_path), PICK)
+    assert not uses_dagger(TrainArgs(env="Bioscara-PickPlace", algo="sac", out=tmp_path), PICK)  # as asked
     assert not uses_dagger(TrainArgs(env="Bioscara-PickPlace", config=Path("sac.yaml"), out=tmp_path), PICK)
 
 

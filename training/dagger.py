@@ -446,19 +446,18 @@ def uses_dagger(args: TrainArgs, env_id: str) -> bool:
     """Whether ``bioscara train`` runs DAgger: ``--algo dagger``, or ``env_id``'s default.
 
     An env with an entry in the packaged DAgger file (PickPlace) trains with
-    DAgger unless another algorithm or a ``--config`` is given: ``--algo``
-    defaults to ``sac``, so ``sac`` without ``--config`` means the default.
-    ``--resume`` continues whatever the run in ``--out`` is.
+    DAgger unless an algorithm (``--algo sac`` included) or a ``--config`` is
+    given. ``--resume`` continues whatever the run in ``--out`` is.
     """
     if args.algo == "dagger":
         return True
-    if args.resume:
+    if args.resume and args.algo is None:
         try:
             state = json.loads((Path(args.out) / STATE_NAME).read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return False  # train.py says what is wrong with the run
         return isinstance(state, dict) and state.get("algo") == "dagger"
-    return args.algo == "sac" and args.config is None and has_dagger_default(env_id)
+    return args.algo is None and args.config is None and has_dagger_default(env_id)
 
 
 def load_dagger_config(path: Path, env_id: str) -> DaggerConfig:

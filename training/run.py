@@ -26,7 +26,9 @@ class TrainArgs:
 
     Attributes:
         env: Env id (``Bioscara-Reach`` or a versioned id).
-        algo: ``sac``, ``td3`` or ``ppo``.
+        algo: ``sac``, ``td3``, ``ppo``, ``bc`` (behaviour cloning) or ``dagger``;
+            ``None``: the env's default (DAgger on PickPlace unless a ``config``
+            is given, SAC elsewhere), or on ``resume`` the run's own.
         config: Hyperparameter file (rl-zoo3 format); default the packaged one.
         timesteps: Training budget; default the config's ``n_timesteps``.
         seed: Seed of the model, the envs and the evaluation episodes.
@@ -43,7 +45,7 @@ class TrainArgs:
     """
 
     env: str = "Bioscara-Reach"
-    algo: str = "sac"
+    algo: str | None = None
     config: Path | None = None
     timesteps: int | None = None
     seed: int = 0

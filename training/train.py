@@ -93,9 +93,10 @@ def load_run_hyperparams(args: TrainArgs, env_id: str, config: Path | None = Non
     ``bc`` reads SAC's. Keys the algorithm does not take are refused here,
     before anything is built.
     """
-    if args.algo not in ALGOS and args.algo != "bc":
-        raise TrainingError(f"unknown algo {args.algo!r}; choose one of {', '.join(ALGOS)}, bc")
-    algo = "sac" if args.algo == "bc" else args.algo
+    name = args.algo or "sac"
+    if name not in ALGOS and name != "bc":
+        raise TrainingError(f"unknown algo {name!r}; choose one of {', '.join(ALGOS)}, bc, dagger")
+    algo = "sac" if name == "bc" else name
     path = Path(config or args.config or default_config_path(algo))
     try:
         hp = load_hyperparams(path, env_id)
@@ -436,6 +437,8 @@ def train(args: TrainArgs) -> TrainResult:
 
     if dagger.uses_dagger(args, env_id):
         return dagger.train_dagger(args, env_id)
+    if args.algo is None:  # not DAgger's env (above): SAC, or what the resumed run trained
+        args.algo = read_train_state(Path(args.out))["algo"] if args.resume else "sac"
     out = Path(args.out)
     plan = plan_run(args, env_id, out)
     hp = plan.hp
