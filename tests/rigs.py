@@ -629,9 +629,9 @@ RIG_FACTORIES["dynamixel_emulated_j1"] = dynamixel_emulated_j1
 
 # ------------------------------------------------------- blocked imports
 def run_blocked(
-    code: str, blocked: tuple[str, ...] = (), env: dict[str, str] | None = None
+    code: str, blocked: tuple[str, ...] = (), env: dict[str, str] | None = None, cwd: Path | None = None
 ) -> subprocess.CompletedProcess[str]:
-    """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails."""
+    """Run ``code`` in a fresh interpreter in which importing any of ``blocked`` fails (in ``cwd``)."""
     prelude = textwrap.dedent(
         f"""
         import sys
@@ -650,7 +650,7 @@ def run_blocked(
         capture_output=True,
         text=True,
         timeout=120,
-        cwd=Path(__file__).resolve().parents[1],
+        cwd=cwd or Path(__file__).resolve().parents[1],
         env=env,
     )
 

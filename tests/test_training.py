@@ -13,7 +13,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
+from rigs import run_blocked
 from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
 from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -885,25 +885,7 @@ def test_read_metadata_refuses_a_file_that_is_not_json(tmp_path: Path) -> None:
 # ------------------------------------------------------------ missing extras
 def _cli_without(blocked: tuple[str, ...], argv: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     """``bioscara ARGV`` in a fresh interpreter in which importing ``blocked`` fails."""
-    script = textwrap.dedent(
-        f"""
-        import sys
-
-        class _Blocked:
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in {blocked!r}:
-                    raise ModuleNotFoundError(f"No module named {{name!r}} (blocked)", name=name)
-                return None
-
-        sys.meta_path.insert(0, _Blocked())
-        from bioscara_gym.cli import main
-
-        sys.exit(main({argv!r}))
-        """
-    )
-    return subprocess.run(
-        [sys.executable, "-c", script], cwd=cwd, capture_output=True, text=True, timeout=120
-    )
+    return run_blocked(f"from bioscara_gym.cli import main\nsys.exit(main({argv!r}))\n", blocked, cwd=cwd)
 
 
 TRAIN_HINT = "bioscara train needs the [train] extra: pip install 'bioscara-gym[train]'"
