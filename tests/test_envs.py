@@ -535,6 +535,28 @@ def test_reach_goals_are_reachable_within_the_episode(reach_env: gym.Env) -> Non
         np.testing.assert_allclose(obs["desired_goal"], kinematics.forward(goal))
 
 
+def test_pick_place_legs_stay_within_one_radian_of_j1(make_env: MakeEnv) -> None:
+    # j1 stops at +-3.05 rad (config), commands at +-3.02: a block a few degrees away
+    # across the back of the base can be 5 rad of j1 away. Blocks and targets are
+    # drawn within 1 rad of j1 (the arm's, then the block's), with the arm's elbow,
+    # on the table (block centre 15 mm up) 0.25-0.55 m from the j1 axis.
+    env = make_env(PICK, backend="mock")
+    for seed in range(200):
+        obs, _ = env.reset(seed=seed)
+        q = _measured_joints(env, obs)
+        elbow = 1.0 if q[2] >= 0 else -1.0
+        block, target = obs["achieved_goal"], obs["desired_goal"]
+        assert block[2] == pytest.approx(0.015)
+        assert 0.015 <= target[2] <= 0.065 + 1e-9
+        j1 = q[0]
+        for name, point in (("block", block), ("target", target)):
+            assert 0.25 - 1e-9 <= math.hypot(point[0], point[1]) <= 0.55 + 1e-9, f"seed {seed}: {name} radius"
+            sol = kinematics.inverse(point, elbow)
+            assert sol is not None and -3.02 <= sol[0] <= 3.02, f"seed {seed}: {name} past j1's end stops"
+            assert abs(sol[0] - j1) <= 1.0 + 1e-6, f"seed {seed}: {name} {sol[0] - j1:+.2f} rad of j1 away"
+            j1 = sol[0]
+
+
 def test_reach_goals_follow_goal_horizon_s(make_env: MakeEnv) -> None:
     env = make_env(REACH, backend="mock", max_episode_steps=10, goal_horizon_s=0.4)
     u = env.unwrapped

@@ -65,8 +65,10 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     ## Description
     Same arm, backends and conventions as ``Bioscara-Reach`` (see
     :class:`~bioscara_gym.envs.reach.BioscaraReachEnv`), plus the gripper. The
-    block lies on the table within reach, with a random yaw; the target is on
-    the table or up to 5 cm above it (the lift moves at 0.03 m/s). The gap
+    block lies on the table 0.25-0.55 m from the j1 axis, with a random yaw,
+    where j1 is within 1 rad of the start pose's (with the start pose's
+    elbow); the target is within 1 rad of j1 from the block, on the table or
+    up to 5 cm above it (the lift moves at 0.03 m/s). The gap
     between the finger pads is the commanded width minus 2 cm, so the block
     is touched at a width of 0.05 m and squeezed at 0.04 m.
 
@@ -106,7 +108,9 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     (``distance_threshold`` default 0.01 m).
 
     ## Version history
-    * v0: initial release.
+    * v0: initial release. Before the first release the sectors were drawn
+      in bearing (1 rad around the TCP's); a block a few degrees away across
+      the back of the base then needed j1 to turn 5 rad the long way round.
     """
 
     uses_gripper = True
@@ -142,31 +146,41 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
         q[1] = z - kinematics.TCP_Z0
         return q
 
-    def _sample_table_point(self, near: np.ndarray) -> np.ndarray:
-        """A point on the table within reach, at most ``SECTOR`` rad around ``near``'s bearing.
+    def _sample_table_point(self, j1: float, elbow: float) -> tuple[np.ndarray, float]:
+        """A point on the table within reach and j1 within ``SECTOR`` rad of ``j1``, with ``elbow``.
 
-        The sector keeps every leg of the task within what j1 (1 rad/s) can
-        swing in a couple of seconds, so the episode is long enough.
+        The sector is drawn in j1, not in bearing: j1 turns 6.1 rad, not a
+        full turn, so a point a few degrees away across the back of the base
+        can be 5 rad of j1 away. Drawn in j1 with the arm's own elbow, every
+        leg of the task is within what j1 (1 rad/s) swings in about a second,
+        in every control mode.
+
+        Returns:
+            The point (m) and j1 (rad) there with ``elbow``.
         """
-        bearing = math.atan2(near[1], near[0])
+        lo, hi = self.command_low[0], self.command_high[0]
         while True:
             r = self.np_random.uniform(0.25, 0.55)
-            phi = bearing + self.np_random.uniform(-self.SECTOR, self.SECTOR)
-            if abs(phi) < 2.8:  # j1 stops at +-3.05 rad
-                return np.array([r * math.cos(phi), r * math.sin(phi), BLOCK_SIZE / 2])
+            q1 = j1 + self.np_random.uniform(-self.SECTOR, self.SECTOR)
+            if lo <= q1 <= hi:
+                c3 = (r * r - kinematics.L1**2 - kinematics.L2**2) / (2 * kinematics.L1 * kinematics.L2)
+                q3 = math.copysign(math.acos(c3), elbow)
+                xy = kinematics.forward(np.array([q1, 0.0, q3]))[:2]
+                return np.array([xy[0], xy[1], BLOCK_SIZE / 2]), q1
 
-    #: Half-width in rad of the sectors blocks and targets are drawn from.
+    #: Half-width in rad of j1's sectors blocks and targets are drawn from.
     SECTOR = 1.0
 
     def _sample_goal(self) -> np.ndarray:
         """Place the block on the table, then draw the target: on the table or up to 5 cm above."""
         tcp = self.tcp_position()
+        q1, elbow = float(self._q[0]), 1.0 if self._q[2] >= 0 else -1.0
         while True:
-            block = self._sample_table_point(tcp)
+            block, block_j1 = self._sample_table_point(q1, elbow)
             if np.linalg.norm(block[:2] - tcp[:2]) > 0.08:
                 break
         while True:
-            target = self._sample_table_point(block)
+            target, _ = self._sample_table_point(block_j1, elbow)
             if np.linalg.norm(target[:2] - block[:2]) > 0.1:
                 break
         if self.np_random.random() < 0.5:
