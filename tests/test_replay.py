@@ -262,6 +262,23 @@ def test_a_header_of_another_format_is_refused(tmp_path: Path, capsys: pytest.Ca
     assert code == 2 and "not a bioscara bus trace" in err
 
 
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("context", [1], "line 1: the header's 'context' must be an object"),
+        ("t0", "x", "line 1: the header's 't0' must be a finite number of seconds, got 'x'"),
+        ("t0", True, "line 1: the header's 't0' must be a finite number of seconds, got True"),
+    ],
+)
+def test_a_hand_edited_header_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture, key: str, value: object, message: str
+) -> None:
+    docs = lines(TRACES / "console_session.jsonl")[:3]
+    docs[0][key] = value
+    code, err = _replay_error(write_lines(tmp_path / "edited.jsonl", docs), capsys)
+    assert (code, err) == (2, f"bioscara replay: error: edited.jsonl {message}")
+
+
 def test_a_trace_of_a_newer_format_version_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     docs = lines(TRACES / "console_session.jsonl")[:3]
     docs[0]["version"] = TRACE_VERSION + 1

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -339,6 +340,11 @@ def _check_header(doc: Mapping[str, Any], where: str) -> None:
     for key in ("config", "args"):
         if not isinstance(doc.get(key), Mapping):
             raise TraceError(f"{where}: the header's '{key}' must be an object")
+    if "context" in doc and not isinstance(doc["context"], Mapping):
+        raise TraceError(f"{where}: the header's 'context' must be an object")
+    t0 = doc.get("t0", 0.0)
+    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
+        raise TraceError(f"{where}: the header's 't0' must be a finite number of seconds, got {t0!r}")
 
 
 def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
