@@ -379,13 +379,18 @@ def test_move_steps_is_never_sent_twice(scripted_bus: Any, make_j1: Callable[...
 
 
 def test_move_steps_with_a_lost_reply_moves_the_emulated_motor_once() -> None:
-    emu = build_emulated(J1, start_q=0.0, faults=FaultPlan(schedule={2: Fault.SHORT_READ}))
+    emu = build_emulated(J1, start_q=0.0, faults=FaultPlan(schedule={4: Fault.SHORT_READ}))
     j = emu.joint
     j.init()  # 0: PING
     j.enable(J1.drive_current, J1.hold_current)  # 1: SETUP
+    # The host's limits, as the arm sets them on enable (the power-up 18 deg/s
+    # would take 10 s for the move): j1 1 rad/s, 2 rad/s^2, at the motor 2005 deg/s,
+    # 4011 deg/s^2 (docs/model.md).
+    j.set_max_velocity(1.0)  # 2: SETMAXVELOCITY
+    j.set_max_acceleration(2.0)  # 3: SETMAXACCELERATION
     start = emu.motor.position_deg
     with pytest.raises(CommError):
-        j.move_steps(100)  # 2: delivered, reply cut short
+        j.move_steps(100)  # 4: delivered, reply cut short
     emu.advance(2.0)
     assert emu.motor.position_deg - start == pytest.approx(180.0, abs=0.5)  # 100 steps once, not twice
 

@@ -99,6 +99,17 @@ def enabled(fw: JointFirmware) -> JointFirmware:
     return fw
 
 
+def host_limits(fw: JointFirmware) -> JointFirmware:
+    """SETMAXVELOCITY 1000 deg/s, SETMAXACCELERATION 2000 deg/s^2: the host sets its own before moving.
+
+    At the power-up limits (18 deg/s, 180 deg/s^2, docs/firmware.md) the
+    moves below would take seconds.
+    """
+    command(fw, Reg.SETMAXVELOCITY, 1000.0)
+    command(fw, Reg.SETMAXACCELERATION, 2000.0)
+    return fw
+
+
 def start_blocking(fw: JointFirmware, reg: Reg, value: float | int) -> int:
     """Send a blocking command and stay silent for one main-loop pass, so the loop takes it.
 
@@ -278,7 +289,7 @@ def test_bare_read_at_power_up_runs_register_0_as_a_blocking_command(firmware: J
 
 
 def test_bare_read_runs_the_last_command_again(firmware: JointFirmware) -> None:
-    enabled(firmware)
+    host_limits(enabled(firmware))
     firmware.transfer(bytes([0x13, 0x0A, 0x00, 0x00, 0x00]), 1)  # MOVESTEPS 10
     ticks(firmware, 100)
     firmware.transfer(b"", 1)  # no write phase: MOVESTEPS 10 once more
@@ -349,7 +360,7 @@ def test_setrpm_ignored_while_stalled() -> None:
 
 
 def test_setrpm_runs_at_the_commanded_speed_when_homed() -> None:
-    fw = homed(firmware_between_stops())
+    fw = host_limits(homed(firmware_between_stops()))
     command(fw, Reg.SETRPM, -10.0)
     for _ in range(50):
         ticks(fw)
@@ -358,7 +369,7 @@ def test_setrpm_runs_at_the_commanded_speed_when_homed() -> None:
 
 
 def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
-    fw = homed(firmware_between_stops())
+    fw = host_limits(homed(firmware_between_stops()))
     command(fw, Reg.MOVETOANGLE, -90.0)
     for _ in range(200):
         ticks(fw)
@@ -366,7 +377,7 @@ def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
 
 
 def test_movesteps_allowed_while_not_homed(firmware: JointFirmware) -> None:
-    enabled(firmware)
+    host_limits(enabled(firmware))
     command(firmware, Reg.MOVESTEPS, -50)
     ticks(firmware, 100)
     assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-50 * 1.8, abs=1e-3)
@@ -385,6 +396,96 @@ def test_stop_halts_velocity_mode() -> None:
     command(fw, Reg.STOP, 0)
     ticks(fw, 3)
     assert query(fw, Reg.GETENCODERRPM)[0] == 0.0
+
+
+# ------------------------------------------------------- power-up limits
+# docs/firmware.md, "Power-up": configuration.h's MAXVEL 10 steps/s = 18 deg/s and
+# MAXACCEL 100 steps/s^2 = 180 deg/s^2, until the host sends SETMAXVELOCITY /
+# SETMAXACCELERATION. Nothing below writes either. At 180 deg/s^2 each 10 ms
+# main-loop pass adds 1.8 deg/s; 18 deg/s is reached after 10 passes, having
+# moved 0.018 x (1 + 2 + ... + 10) = 0.99 deg, then it moves 0.18 deg a pass.
+
+
+def run_passes(fw: JointFirmware, n: int) -> None:
+    """``n`` main-loop passes with a PING after each (the deadman stays fed)."""
+    for _ in range(n):
+        ticks(fw)
+        ping_flags(fw)
+
+
+def test_setrpm_at_power_up_ramps_at_180_deg_per_s2(firmware: JointFirmware) -> None:
+    # SETRPM 10 asks 60 deg/s. After 5 passes: 5 x 1.8 = 9 deg/s = 1.5 RPM,
+    # 0.018 x (1 + ... + 5) = 0.27 deg.
+    enabled(firmware)
+    command(firmware, Reg.SETRPM, 10.0)
+    run_passes(firmware, 5)
+    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(1.5, abs=1e-5)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.27, abs=1e-5)
+
+
+def test_setrpm_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
+    # SETRPM 10 asks 60 deg/s; 18 deg/s = 3 RPM. After 50 passes: 0.99 + 40 x 0.18 = 8.19 deg.
+    enabled(firmware)
+    command(firmware, Reg.SETRPM, 10.0)
+    run_passes(firmware, 50)
+    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(3.0, abs=1e-5)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(8.19, abs=1e-5)
+
+
+def test_movetoangle_at_power_up_runs_at_no_more_than_18_deg_per_s() -> None:
+    # Homed at the upper stop; MOVETOANGLE -90. After 100 passes (1 s):
+    # 0.99 + 90 x 0.18 = 17.19 deg on the way, at -3 RPM; it arrives in about 5.1 s.
+    fw = homed(firmware_between_stops())
+    command(fw, Reg.MOVETOANGLE, -90.0)
+    run_passes(fw, 100)
+    assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-17.19, abs=1e-5)
+    assert query(fw, Reg.GETENCODERRPM)[0] == pytest.approx(-3.0, abs=1e-5)
+    run_passes(fw, 500)
+    assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-90.0, abs=1e-3)
+
+
+def test_movesteps_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
+    # MOVESTEPS 100 = 180 deg. After 100 passes (1 s): 0.99 + 90 x 0.18 = 17.19 deg.
+    enabled(firmware)
+    command(firmware, Reg.MOVESTEPS, 100)
+    run_passes(firmware, 100)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.19, abs=1e-5)
+
+
+def test_power_up_max_velocity_is_stored_as_10_steps_per_s(firmware: JointFirmware) -> None:
+    # The limits cannot be read (no read case in joint.ino). But ``static float
+    # maxVel = MAXVEL`` holds 10 (steps/s) and SETMAXVELOCITY memcpy's its payload
+    # over it, then multiplies by 200/360: with no payload the stored 10 is taken
+    # as deg/s, 10 deg/s = 1.6667 RPM (docs/firmware.md, payload memcpy).
+    # Reached at 180 deg/s^2 within 6 passes; measured after 50.
+    enabled(firmware)
+    firmware.transfer(bytes([0x1D]), 1)  # SETMAXVELOCITY, no payload
+    command(firmware, Reg.SETRPM, 10.0)
+    run_passes(firmware, 50)
+    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(1.6667, abs=1e-4)
+
+
+def test_power_up_max_acceleration_is_stored_as_100_steps_per_s2(firmware: JointFirmware) -> None:
+    # ``static float maxAccel = MAXACCEL`` holds 100 (steps/s^2); a SETMAXACCELERATION
+    # with no payload takes it as deg/s^2: 100 deg/s^2, 1 deg/s a pass. After
+    # 5 passes of SETRPM 10: 5 deg/s = 0.8333 RPM, 0.01 x (1 + ... + 5) = 0.15 deg.
+    enabled(firmware)
+    firmware.transfer(bytes([0x1B]), 1)  # SETMAXACCELERATION, no payload
+    command(firmware, Reg.SETRPM, 10.0)
+    run_passes(firmware, 5)
+    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(0.8333, abs=1e-4)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.15, abs=1e-5)
+
+
+def test_power_cycle_restores_the_power_up_limits(firmware: JointFirmware) -> None:
+    # The host's limits are lost with the power: 18 deg/s and 180 deg/s^2 again,
+    # 8.19 deg after 50 passes of SETRPM 10 (as above).
+    host_limits(enabled(firmware))
+    firmware.power_cycle()
+    enabled(firmware)
+    command(firmware, Reg.SETRPM, 10.0)
+    run_passes(firmware, 50)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(8.19, abs=1e-5)
 
 
 # ------------------------------------------------------------------ homing

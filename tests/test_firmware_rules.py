@@ -34,6 +34,8 @@ HOME_PLUS = bytes([0x2D, 1, 10, 30, 15])
 HOME_MINUS = bytes([0x2D, 0, 10, 30, 15])
 HOME_DIR_2 = bytes([0x2D, 2, 10, 30, 15])
 CHECKORIENTATION_2 = bytes([0x2B, 0x00, 0x00, 0x00, 0x40])  # 2.0 deg
+SETMAXVELOCITY_1000 = bytes([0x1D, 0x00, 0x00, 0x7A, 0x44])  # 1000.0 deg/s
+SETMAXACCELERATION_2000 = bytes([0x1B, 0x00, 0x00, 0xFA, 0x44])  # 2000.0 deg/s^2
 
 TICK = 0.01
 
@@ -75,6 +77,16 @@ def talk(fw: JointFirmware, n: int) -> None:
     for _ in range(n):
         ticks(fw)
         send(fw, PING)
+
+
+def host_limits(fw: JointFirmware) -> None:
+    """SETMAXVELOCITY 1000 deg/s, SETMAXACCELERATION 2000 deg/s^2: the host sets its own before moving.
+
+    At the power-up limits (18 deg/s, 180 deg/s^2, docs/firmware.md) the
+    moves below would take seconds.
+    """
+    send(fw, SETMAXVELOCITY_1000)
+    send(fw, SETMAXACCELERATION_2000)
 
 
 def home(fw: JointFirmware, payload: bytes = HOME_PLUS, timeout_ticks: int = 2000) -> None:
@@ -128,6 +140,7 @@ def test_setrpm_ignored_while_stalled() -> None:
 def test_movesteps_runs_while_stalled() -> None:
     fw = make()
     stall(fw)
+    host_limits(fw)
     before = fw.motor.position_deg
     send(fw, MOVESTEPS_MINUS_10)
     talk(fw, 50)
@@ -137,6 +150,7 @@ def test_movesteps_runs_while_stalled() -> None:
 def test_movetoangle_runs_while_not_homed() -> None:
     fw = make()
     send(fw, SETUP_20_20)
+    host_limits(fw)
     send(fw, MOVETOANGLE_MINUS_90)
     talk(fw, 100)
     assert fw.motor.position_deg == pytest.approx(-90.0, abs=1e-3)
@@ -145,6 +159,7 @@ def test_movetoangle_runs_while_not_homed() -> None:
 def test_movetoangle_moves_the_joint_after_the_deadman_tripped() -> None:
     fw = make()
     home(fw)
+    host_limits(fw)
     send(fw, SETRPM_MINUS_10)
     ticks(fw, 10)  # silence: the deadman trips, the currents stay on
     assert send(fw, PING) & NOT_ENABLED
@@ -156,6 +171,7 @@ def test_movetoangle_moves_the_joint_after_the_deadman_tripped() -> None:
 def test_setrpm_without_payload_runs_the_stored_value_again() -> None:
     fw = make()
     home(fw)
+    host_limits(fw)
     send(fw, SETRPM_MINUS_10)
     send(fw, STOP)
     talk(fw, 10)

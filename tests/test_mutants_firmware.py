@@ -56,6 +56,16 @@ def ticks(fw: JointFirmware, n: int = 1) -> None:
     fw.update()
 
 
+def host_limits(fw: JointFirmware) -> None:
+    """SETMAXVELOCITY 1000 deg/s, SETMAXACCELERATION 2000 deg/s^2: the host sets its own before moving.
+
+    At the power-up limits (18 deg/s, 180 deg/s^2, docs/firmware.md) the
+    moves below would take seconds.
+    """
+    send(fw, bytes([0x1D]) + struct.pack("<f", 1000.0))
+    send(fw, bytes([0x1B]) + struct.pack("<f", 2000.0))
+
+
 # ------------------------------------------------------- snapshot / restore
 def test_restore_brings_back_the_flags_and_set_points_of_the_snapshot() -> None:
     core = FirmwareCore(KinematicStepper(0.0), 0.0)
@@ -154,10 +164,16 @@ def run_at_10_rpm_for_1_s(limit_reg: int, limit: float) -> float:
     return motor.position_deg
 
 
+# The power-up limits stay: 18 deg/s, 180 deg/s^2 (configuration.h's MAXVEL 10
+# steps/s, MAXACCEL 100 steps/s^2, docs/firmware.md "Power-up"). SETRPM 10 asks
+# for 60 deg/s, so the joint runs at 18 deg/s, reached in 10 passes of +1.8 deg/s:
+# 0.018 x (1 + 2 + ... + 10) = 0.99 deg, then 90 passes x 0.18 deg = 16.2 deg.
+POWER_UP_LIMITS_1_S_DEG = 17.19
+
+
 @pytest.mark.parametrize("limit", [0.0, -30.0])
 def test_max_velocity_not_positive_is_ignored(limit: float) -> None:
-    # Default limits (1000 deg/s, 2000 deg/s^2): 60 deg/s within 0.03 s, ~59 deg in 1 s.
-    assert run_at_10_rpm_for_1_s(0x1D, limit) == pytest.approx(59.4, abs=0.5)
+    assert run_at_10_rpm_for_1_s(0x1D, limit) == pytest.approx(POWER_UP_LIMITS_1_S_DEG, abs=0.01)
 
 
 def test_max_velocity_below_1_deg_per_s_is_taken() -> None:
@@ -166,7 +182,7 @@ def test_max_velocity_below_1_deg_per_s_is_taken() -> None:
 
 @pytest.mark.parametrize("limit", [0.0, -30.0])
 def test_max_acceleration_not_positive_is_ignored(limit: float) -> None:
-    assert run_at_10_rpm_for_1_s(0x1B, limit) == pytest.approx(59.4, abs=0.5)
+    assert run_at_10_rpm_for_1_s(0x1B, limit) == pytest.approx(POWER_UP_LIMITS_1_S_DEG, abs=0.01)
 
 
 def test_max_acceleration_below_1_deg_per_s2_is_taken() -> None:
@@ -313,8 +329,10 @@ def test_check_orientation_by_nan_degrees_runs_as_zero() -> None:
 
 def test_homing_towards_the_lower_stop_runs_at_minus_the_speed() -> None:
     # docs/firmware.md: dir ? +speed : -speed; HOME 10 RPM with direction 0 runs at -10 RPM.
+    # The homing ramps at the acceleration the host set last (as the arm does).
     fw = make()
     send(fw, SETUP_20_20)
+    send(fw, bytes([0x1B]) + struct.pack("<f", 2000.0))  # SETMAXACCELERATION 2000
     send(fw, bytes([0x2D, 0, 10, 30, 15]))
     ticks(fw, 60)  # the pass that takes it, the 500 ms wait, 0.09 s of running
     reply = fw.transfer(bytes([0x2C]), 5)  # GETENCODERRPM
@@ -365,6 +383,7 @@ def test_position_move_ends_idle_at_the_hold_current() -> None:
     # current and, arrived, the motor idles at the hold current.
     fw = make()
     send(fw, bytes([0x10, 30, 10, 0, 0]))
+    host_limits(fw)
     send(fw, bytes([0x13, 10, 0, 0, 0]))  # MOVESTEPS 10
     ticks(fw)
     assert fw.motor.torque_fraction == 0.3
@@ -408,6 +427,7 @@ def test_position_move_keeps_to_the_max_velocity() -> None:
 def test_unloaded_motor_turns_at_1_percent_drive_current() -> None:
     fw = make()
     send(fw, bytes([0x10, 1, 1, 0, 0]))  # SETUP drive 1 %, hold 1 %
+    host_limits(fw)
     send(fw, SETRPM_10)
     for _ in range(100):
         ticks(fw)

@@ -73,9 +73,10 @@ __all__ = [
 MICROSTEPS_PER_FULL_STEP = 16
 #: PID-error units (1/16 microsteps) per motor degree: 200 full steps x 16 per turn.
 MICROSTEPS_PER_DEG = MICROSTEPS_PER_FULL_STEP / FULL_STEP_DEG
-#: Defaults before the host sets limits (not documented; our choice).
-DEFAULT_MAX_VELOCITY_DPS = 1000.0
-DEFAULT_MAX_ACCELERATION_DPS2 = 2000.0
+#: Limits before the host sets any: ``configuration.h``'s MAXVEL 10 steps/s and
+#: MAXACCEL 100 steps/s^2, which ``setup()`` gives the stepper (docs/firmware.md, "Power-up").
+DEFAULT_MAX_VELOCITY_DPS = 18.0
+DEFAULT_MAX_ACCELERATION_DPS2 = 180.0
 DEFAULT_CURRENT_PCT = 0
 #: The firmware stores its limits in steps: deg x 200/360 (SETMAXVELOCITY, SETMAXACCELERATION).
 _STEPS_PER_DEG = 200 / 360.0
