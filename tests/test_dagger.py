@@ -86,9 +86,11 @@ def test_observation_expert_acts_on_the_observation_alone(pick_env: gym.Env) -> 
 
 @pytest.mark.parametrize("mode", ["cartesian", "velocity"])
 def test_observation_expert_places_the_block_on_sim(mode: str) -> None:
+    # 20 of 20: with blocks drawn within 1 rad of bearing (not of j1) the cartesian
+    # expert placed 84 % (20 of 20 at that rate: 3 %), the learner's ceiling.
     env = gym.make(PICK, control_mode=mode)
     try:
-        stats = run_episodes(env, ObservationExpert(env.unwrapped), 2, seed=10_000)
+        stats = run_episodes(env, ObservationExpert(env.unwrapped), 20, seed=10_000)
     finally:
         env.close()
     assert stats.success_rate == 1.0
