@@ -395,3 +395,9 @@ def test_home_command_refused_while_an_unknown_blocking_command_runs(homed_mock_
     with pytest.raises(IncorrectStateError) as err:
         arm.write()
     assert str(err.value) == "j2: a blocking command is running; cannot start homing"
+
+
+def test_a_new_arm_commands_0_and_the_gripper_backup_width(mock_arm: Arm) -> None:
+    # docs/arm.md: the gripper's backup initial width is 0.08 m; nothing is claimed yet.
+    assert mock_arm.commands == {"j1": 0.0, "j2": 0.0, "j3": 0.0, "j4": 0.0}
+    assert mock_arm.gripper_command == 0.08
