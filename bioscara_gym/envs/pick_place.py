@@ -152,7 +152,7 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
         The sector is drawn in j1, not in bearing: j1 turns 6.1 rad, not a
         full turn, so a point a few degrees away across the back of the base
         can be 5 rad of j1 away. Drawn in j1 with the arm's own elbow, every
-        leg of the task is within what j1 (1 rad/s) swings in about a second,
+        leg of the task is within what j1 (1 rad/s) swings in a second or two,
         in every control mode.
 
         Returns:
