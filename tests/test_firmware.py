@@ -129,16 +129,24 @@ def homed(fw: JointFirmware, payload: int = HOME_POSITIVE) -> JointFirmware:
     return fw
 
 
+#: SETRPM of the stall helper: -100 RPM = 600 deg/s, so a blocked rotor shows a
+#: PID error of 600 deg/s x 1 ms x 51,200/360 = 85 microsteps a pass (the
+#: library's closed loop rewrites the counter each 1 ms pass): above the
+#: threshold of sensitivity 6 (60) and within the firmware's spike limit
+#: (a jump of 100 is dropped), below the 12 rad/s band (+90).
+STALL_RPM = -100.0
+
+
 def stalled(fw: JointFirmware) -> JointFirmware:
-    """Home, arm stall detection (sensitivity 6), run, block the rotor until STALL."""
-    homed(fw)
+    """Home, arm stall detection (sensitivity 6), run at -100 RPM, block the rotor until STALL."""
+    host_limits(homed(fw))
     command(fw, Reg.ENABLESTALLGUARD, 6)
-    command(fw, Reg.SETRPM, -10.0)
-    for _ in range(20):
+    command(fw, Reg.SETRPM, STALL_RPM)
+    for _ in range(40):
         ticks(fw)
         ping_flags(fw)
     fw.motor.blocked = True
-    for _ in range(50):
+    for _ in range(60):
         if ping_flags(fw) & Flag.STALL:
             fw.motor.blocked = False
             return fw
@@ -360,12 +368,14 @@ def test_setrpm_ignored_while_stalled() -> None:
 
 
 def test_setrpm_runs_at_the_commanded_speed_when_homed() -> None:
+    # VMAX = int(60 deg/s x 238.507) = 14310, 59.998 deg/s (the library's conversion);
+    # the encoder's estimate has settled after 1 s at that speed.
     fw = host_limits(homed(firmware_between_stops()))
     command(fw, Reg.SETRPM, -10.0)
-    for _ in range(50):
+    for _ in range(100):
         ticks(fw)
         ping_flags(fw)
-    assert query(fw, Reg.GETENCODERRPM)[0] == pytest.approx(-10.0)
+    assert query(fw, Reg.GETENCODERRPM)[0] == pytest.approx(-59.998 / 6.0, abs=1e-4)
 
 
 def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
@@ -390,12 +400,15 @@ def test_movesteps_does_not_turn_an_unpowered_motor(firmware: JointFirmware) -> 
 
 
 def test_stop_halts_velocity_mode() -> None:
+    # STOP is setRPM(0): the chip ramps the 5.4 deg/s of three passes down within one.
     fw = homed(firmware_between_stops())
     command(fw, Reg.SETRPM, -10.0)
     ticks(fw, 3)
     command(fw, Reg.STOP, 0)
     ticks(fw, 3)
-    assert query(fw, Reg.GETENCODERRPM)[0] == 0.0
+    before = fw.motor.position_deg
+    ticks(fw, 10)
+    assert fw.motor.position_deg == before
 
 
 # ------------------------------------------------------- power-up limits
@@ -414,78 +427,86 @@ def run_passes(fw: JointFirmware, n: int) -> None:
 
 
 def test_setrpm_at_power_up_ramps_at_180_deg_per_s2(firmware: JointFirmware) -> None:
-    # SETRPM 10 asks 60 deg/s. After 5 passes: 5 x 1.8 = 9 deg/s = 1.5 RPM,
-    # 0.018 x (1 + ... + 5) = 0.27 deg.
+    # AMAX at power-up: (uint16)(100 steps x 256 x 0.022) = 563, 179.94 deg/s^2
+    # (SETUP's moveSteps(0) cuts it to 16 bits; 563 fits). After 5 passes:
+    # 5 x 1.7994 = 8.997 deg/s, 0.017994 x (1 + ... + 5) = 0.26991 deg.
     enabled(firmware)
     command(firmware, Reg.SETRPM, 10.0)
     run_passes(firmware, 5)
-    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(1.5, abs=1e-5)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.27, abs=1e-5)
+    assert firmware.motor.rotor_velocity_dps == pytest.approx(8.997, abs=1e-3)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.26991, abs=1e-4)
 
 
-def test_setrpm_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
-    # SETRPM 10 asks 60 deg/s; 18 deg/s = 3 RPM. After 50 passes: 0.99 + 40 x 0.18 = 8.19 deg.
+def test_setrpm_at_power_up_is_not_held_to_the_power_up_max_velocity(firmware: JointFirmware) -> None:
+    # setRPM writes the chip's VMAX itself (uStepper S32 library), so SETRPM 10
+    # runs at 60 deg/s (VMAX int(60 x 238.507) = 14310: 59.998 deg/s) although
+    # the power-up max velocity is 18 deg/s. At 1.7994 deg/s a pass it gets
+    # there in pass 34: 0.017994 x (1 + ... + 33) + 17 x 0.59998 = 20.294 deg after 50.
     enabled(firmware)
     command(firmware, Reg.SETRPM, 10.0)
     run_passes(firmware, 50)
-    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(3.0, abs=1e-5)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(8.19, abs=1e-5)
+    assert firmware.motor.rotor_velocity_dps == pytest.approx(59.998, abs=1e-3)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(20.294, abs=1e-3)
 
 
 def test_movetoangle_at_power_up_runs_at_no_more_than_18_deg_per_s() -> None:
-    # Homed at the upper stop; MOVETOANGLE -90. After 100 passes (1 s):
-    # 0.99 + 90 x 0.18 = 17.19 deg on the way, at -3 RPM; it arrives in about 5.1 s.
+    # Homed at the upper stop; MOVETOANGLE -90. moveSteps sets VMAX from the
+    # power-up max velocity: (uint32)(10 steps x 256 x 1.677) = 4293, 17.999
+    # deg/s; AMAX 563, 179.94 deg/s^2, reached in 10 passes having moved
+    # 0.017994 x (1 + ... + 10) = 0.98967 deg (the 10th pass is capped at
+    # 17.999). After 100 passes: 0.98965 + 90 x 0.17999 = 17.188 deg.
     fw = homed(firmware_between_stops())
     command(fw, Reg.MOVETOANGLE, -90.0)
     run_passes(fw, 100)
-    assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-17.19, abs=1e-5)
-    assert query(fw, Reg.GETENCODERRPM)[0] == pytest.approx(-3.0, abs=1e-5)
+    assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-17.188, abs=2e-3)
+    assert fw.motor.rotor_velocity_dps == pytest.approx(-17.999, abs=1e-3)
     run_passes(fw, 500)
     assert query(fw, Reg.ANGLEMOVED)[0] == pytest.approx(-90.0, abs=1e-3)
 
 
 def test_movesteps_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
-    # MOVESTEPS 100 = 180 deg. After 100 passes (1 s): 0.99 + 90 x 0.18 = 17.19 deg.
+    # MOVESTEPS 100 = 180 deg, at VMAX 17.999 deg/s as above: 17.188 deg after 100 passes.
     enabled(firmware)
     command(firmware, Reg.MOVESTEPS, 100)
     run_passes(firmware, 100)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.19, abs=1e-5)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.188, abs=2e-3)
 
 
 def test_power_up_max_velocity_is_stored_as_10_steps_per_s(firmware: JointFirmware) -> None:
     # The limits cannot be read (no read case in joint.ino). But ``static float
     # maxVel = MAXVEL`` holds 10 (steps/s) and SETMAXVELOCITY memcpy's its payload
     # over it, then multiplies by 200/360: with no payload the stored 10 is taken
-    # as deg/s, 10 deg/s = 1.6667 RPM (docs/firmware.md, payload memcpy).
-    # Reached at 180 deg/s^2 within 6 passes; measured after 50.
+    # as deg/s (docs/firmware.md, payload memcpy). A move then runs at VMAX
+    # (uint32)(10 deg/s x 200/360 x 256 x 1.677) = 2385: 9.9997 deg/s.
     enabled(firmware)
     firmware.transfer(bytes([0x1D]), 1)  # SETMAXVELOCITY, no payload
-    command(firmware, Reg.SETRPM, 10.0)
+    command(firmware, Reg.MOVESTEPS, 100)
     run_passes(firmware, 50)
-    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(1.6667, abs=1e-4)
+    assert firmware.motor.rotor_velocity_dps == pytest.approx(9.9997, abs=1e-3)
 
 
 def test_power_up_max_acceleration_is_stored_as_100_steps_per_s2(firmware: JointFirmware) -> None:
     # ``static float maxAccel = MAXACCEL`` holds 100 (steps/s^2); a SETMAXACCELERATION
-    # with no payload takes it as deg/s^2: 100 deg/s^2, 1 deg/s a pass. After
-    # 5 passes of SETRPM 10: 5 deg/s = 0.8333 RPM, 0.01 x (1 + ... + 5) = 0.15 deg.
+    # with no payload takes it as deg/s^2: AMAX (uint32)(100 x 200/360 x 256 x
+    # 0.022) = 312, 99.716 deg/s^2, 0.99716 deg/s a pass. After 5 passes of
+    # SETRPM 10: 4.9858 deg/s, 0.0099716 x (1 + ... + 5) = 0.14957 deg.
     enabled(firmware)
     firmware.transfer(bytes([0x1B]), 1)  # SETMAXACCELERATION, no payload
     command(firmware, Reg.SETRPM, 10.0)
     run_passes(firmware, 5)
-    assert query(firmware, Reg.GETENCODERRPM)[0] == pytest.approx(0.8333, abs=1e-4)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.15, abs=1e-5)
+    assert firmware.motor.rotor_velocity_dps == pytest.approx(4.9858, abs=1e-3)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(0.14957, abs=1e-4)
 
 
 def test_power_cycle_restores_the_power_up_limits(firmware: JointFirmware) -> None:
-    # The host's limits are lost with the power: 18 deg/s and 180 deg/s^2 again,
-    # 8.19 deg after 50 passes of SETRPM 10 (as above).
+    # The host's limits are lost with the power: a move at 17.999 deg/s and
+    # 179.94 deg/s^2 again, 17.188 deg after 100 passes of MOVESTEPS 100 (as above).
     host_limits(enabled(firmware))
     firmware.power_cycle()
     enabled(firmware)
-    command(firmware, Reg.SETRPM, 10.0)
-    run_passes(firmware, 50)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(8.19, abs=1e-5)
+    command(firmware, Reg.MOVESTEPS, 100)
+    run_passes(firmware, 100)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.188, abs=2e-3)
 
 
 # ------------------------------------------------------------------ homing
@@ -499,10 +520,11 @@ def test_homing_waits_half_a_second_before_moving() -> None:
 
 
 def test_homing_runs_at_the_homing_speed() -> None:
+    # 10 RPM through setRPM: VMAX int(60 x 238.507) = 14310, 59.998 deg/s.
     fw = enabled(firmware_between_stops())
     command(fw, Reg.HOME, HOME_POSITIVE)
     ticks(fw, 100)
-    assert fw.motor.velocity_dps == pytest.approx(10 * 6.0)
+    assert fw.motor.rotor_velocity_dps == pytest.approx(59.998, abs=1e-3)
 
 
 @pytest.mark.parametrize(
@@ -608,7 +630,7 @@ def test_setup_clears_stall_and_not_enabled() -> None:
 def test_setup_disables_stall_detection() -> None:
     fw = stalled(firmware_between_stops())
     command(fw, Reg.SETUP, SETUP_20_20)
-    command(fw, Reg.SETRPM, -10.0)
+    command(fw, Reg.SETRPM, STALL_RPM)
     fw.motor.blocked = True
     for _ in range(50):
         ticks(fw)
@@ -621,7 +643,7 @@ def test_stall_stops_the_motor() -> None:
     before = fw.motor.position_deg
     ticks(fw, 20)
     assert fw.motor.position_deg == before
-    assert query(fw, Reg.GETENCODERRPM)[0] == 0.0
+    assert fw.motor.rotor_velocity_dps == 0.0
 
 
 @pytest.mark.parametrize("reg", [Reg.SETCURRENT, Reg.SETHOLDCURRENT])
@@ -667,7 +689,7 @@ def test_deadman_is_fed_by_any_transaction() -> None:
 def test_deadman_stops_the_motor() -> None:
     fw = velocity_mode(firmware_between_stops())
     ticks(fw, 100)
-    assert fw.motor.velocity_dps == 0.0
+    assert fw.motor.rotor_velocity_dps == 0.0
 
 
 def test_deadman_ignores_zero_velocity_set_point() -> None:
@@ -727,12 +749,13 @@ def test_live_stall_detector_uses_stall_threshold(
 ) -> None:
     """The rule tested above is the one the main loop applies, with the motor's speed in rad/s."""
     seen: list[tuple[float, int]] = []
+    rule_threshold = firmware_module.StallRule.threshold
 
-    def spy(omega_rad_s: float, sensitivity: int) -> float:
+    def spy(rule: firmware_module.StallRule, omega_rad_s: float, sensitivity: int) -> float:
         seen.append((omega_rad_s, sensitivity))
-        return stall_threshold(omega_rad_s, sensitivity)
+        return rule_threshold(rule, omega_rad_s, sensitivity)
 
-    monkeypatch.setattr(firmware_module, "stall_threshold", spy)
+    monkeypatch.setattr(firmware_module.StallRule, "threshold", spy)
     fake_motor.velocity_dps = math.degrees(20.0)
     feed(guarded_core, fake_motor, [0.0])
     assert seen == [(pytest.approx(20.0), 6)]

@@ -7,13 +7,14 @@ one-line change could break has a test that fails on that change.
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 
 import pytest
 from rigs import FakeMotor
 
 from bioscara_gym.hardware.clock import ManualClock
-from bioscara_gym.hardware.firmware import FirmwareCore, JointFirmware
+from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, FirmwareCore, JointFirmware, StallRule
 from bioscara_gym.hardware.motor import KinematicStepper
 
 STALL, BUSY, NOT_HOMED, NOT_ENABLED = 0x01, 0x02, 0x04, 0x08
@@ -23,6 +24,7 @@ GETENCODERRPM = bytes([0x2C])
 SETUP_20_20 = bytes([0x10, 20, 20, 0, 0])
 SETRPM_10 = bytes([0x11, 0x00, 0x00, 0x20, 0x41])  # 10.0 RPM
 SETRPM_MINUS_10 = bytes([0x11, 0x00, 0x00, 0x20, 0xC1])  # -10.0 RPM
+SETRPM_MINUS_100 = bytes([0x11, 0x00, 0x00, 0xC8, 0xC2])  # -100.0 RPM
 SETRPM_0 = bytes([0x11, 0x00, 0x00, 0x00, 0x00])
 MOVETOANGLE_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0x42])  # 90.0 deg
 MOVETOANGLE_MINUS_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0xC2])  # -90.0 deg
@@ -102,11 +104,17 @@ def home(fw: JointFirmware, payload: bytes = HOME_PLUS, timeout_ticks: int = 200
 
 
 def stall(fw: JointFirmware) -> None:
-    """Homed, stall detection at 6, running at -10 RPM, rotor blocked until STALL."""
+    """Homed, stall detection at 6, running at -100 RPM, rotor blocked until STALL.
+
+    -100 RPM (600 deg/s): a blocked rotor shows 85 microsteps a pass (the
+    library's closed loop rewrites its counter each 1 ms), above the
+    threshold 60 and within the spike filter's 100.
+    """
     home(fw)
+    host_limits(fw)
     send(fw, ENABLESTALLGUARD_6)
-    send(fw, SETRPM_MINUS_10)
-    talk(fw, 20)
+    send(fw, SETRPM_MINUS_100)
+    talk(fw, 40)
     fw.motor.blocked = True
     for _ in range(100):
         ticks(fw)
@@ -176,8 +184,9 @@ def test_setrpm_without_payload_runs_the_stored_value_again() -> None:
     send(fw, STOP)
     talk(fw, 10)
     send(fw, bytes([0x11]))  # memcpy of 0 bytes: qd_set is still -10 RPM
-    talk(fw, 20)
-    assert _f32(fw.transfer(GETENCODERRPM, 5)[:4]) == pytest.approx(-10.0)
+    talk(fw, 100)
+    # VMAX int(60 x 238.507) = 14310: 59.998 deg/s; the encoder's estimate settled after 1 s.
+    assert _f32(fw.transfer(GETENCODERRPM, 5)[:4]) == pytest.approx(-59.998 / 6.0, abs=1e-4)
 
 
 # ---------------------------------------------------------------- deadman
@@ -319,31 +328,51 @@ def test_homing_direction_byte_nonzero_is_positive(payload: bytes, stop: float) 
     assert fw.motor.position_deg == stop
 
 
-class SoftStopMotor(KinematicStepper):
-    """A rotor that gives way past ``stop`` at half the set point's speed and stays (a soft end stop)."""
+class SoftStopMotor:
+    """A motor whose PID error grows at 30 deg/s once the rotor passes ``stop`` (a soft end stop).
+
+    A test double at the Motor boundary: the rotor follows the set point up to
+    the stop and then gives way at half its speed; the error the firmware
+    reads is set point minus rotor, without the library's closed loop.
+    """
 
     def __init__(self, stop: float) -> None:
-        super().__init__(0.0)
         self.stop = stop
+        self.setpoint_deg = 0.0
+        self.position_deg = 0.0
+        self.velocity_dps = 0.0
+        self._command = 0.0
+        self._torque = 0.0
+
+    @property
+    def pid_error_deg(self) -> float:
+        return self.setpoint_deg - self.position_deg
+
+    def command(self, velocity_dps: float, torque_fraction: float) -> None:
+        self._command, self._torque = velocity_dps, torque_fraction
+
+    def hold_here(self) -> None:
+        self.setpoint_deg = self.position_deg
 
     def advance(self, dt: float) -> None:
-        if self._torque_fraction <= 0.0:
+        if self._torque <= 0.0:
             return
-        self._setpoint += self._command_velocity * dt
-        sp = self._setpoint
-        new = sp if sp <= self.stop else max(self._position, self.stop + (sp - self.stop) / 2)
-        self._velocity = (new - self._position) / dt
-        self._position = new
+        self.setpoint_deg += self._command * dt
+        sp = self.setpoint_deg
+        new = sp if sp <= self.stop else max(self.position_deg, self.stop + (sp - self.stop) / 2)
+        self.velocity_dps = (new - self.position_deg) / dt
+        self.position_deg = new
 
 
 def test_homing_polls_the_pid_error_every_millisecond() -> None:
-    # Past the soft stop the error grows at 30 deg/s. Sensitivity 30 (1/16 microsteps,
-    # 3.375 deg) is passed 3.375 deg past the stop; at 1 ms polls the encoder is zeroed
-    # within 0.03 deg (1 ms of rotor travel) of that, at 10 ms within 0.3 deg.
+    # Past the soft stop the error grows at 30 deg/s. Sensitivity 30 (1/256 microsteps,
+    # 30 x 360/51200 = 0.2109 deg) is passed 0.2109 deg past the stop; at 1 ms polls
+    # the encoder is zeroed within 0.03 deg (1 ms of rotor travel) of that, at 10 ms
+    # within 0.3 deg.
     motor = SoftStopMotor(90.0)
     fw = JointFirmware(motor, ManualClock())
     home(fw)
-    assert 90.0 + 3.375 < motor.position_deg <= 90.0 + 3.375 + 0.031
+    assert 90.0 + 0.2109 < motor.position_deg <= 90.0 + 0.2109 + 0.031
 
 
 class NoZeroStepMotor(KinematicStepper):
@@ -381,7 +410,8 @@ def test_setup_during_homing_stops_the_motor_but_leaves_busy() -> None:
     send(fw, SETUP_20_20)
     before = fw.motor.position_deg
     talk(fw, 300)
-    assert fw.motor.position_deg == before
+    # moveSteps(0): the chip brakes and comes back to where the counter stood.
+    assert fw.motor.position_deg == pytest.approx(before, abs=1e-9)
     assert send(fw, PING) == BUSY | NOT_HOMED
 
 
@@ -467,10 +497,10 @@ def test_cancellation_can_be_switched_off() -> None:
 
 
 def feed(core: FirmwareCore, motor: FakeMotor, microsteps: list[float]) -> list[bool]:
-    """One pass per PID error (1/16 microsteps = 1.8/16 deg); STALL after each."""
+    """One pass per PID error (the library's 1/256 microsteps, 51,200 a turn); STALL after each."""
     out = []
     for e in microsteps:
-        motor.setpoint_deg = motor.position_deg + e * 1.8 / 16
+        motor.setpoint_deg = motor.position_deg + e * 360.0 / 51_200
         core.tick()
         out.append(bool(core.flags & STALL))
     return out
@@ -521,3 +551,42 @@ def test_sustained_jump_above_100_stays_filtered_after_it_settles(
     core, motor = guarded
     # 50 for a while (x -> 50), then a jump to 400 held: 400 - 50 > 100, filtered every pass.
     assert not any(feed(core, motor, [50.0] * 100 + [400.0] * 300))
+
+
+# ------------------------------------------ the spike filter's blind spot
+def _blocked_at(rpm: float, rule: StallRule) -> float | None:
+    """Seconds from blocking the rotor at ``rpm`` until STALL (None: not within 3 s)."""
+    fw = JointFirmware(KinematicStepper(0.0, -1e9, 360.0), ManualClock(), stall_rule=rule)
+    home(fw)
+    host_limits(fw)
+    send(fw, ENABLESTALLGUARD_6)
+    send(fw, bytes([0x11]) + struct.pack("<f", rpm))
+    talk(fw, 60)
+    fw.motor.blocked = True
+    for i in range(300):
+        ticks(fw)
+        if send(fw, PING) & STALL:
+            return (i + 1) * 0.01
+    return None
+
+
+def test_a_rotor_blocked_at_more_than_100_microsteps_a_pass_is_not_detected() -> None:
+    # -150 RPM is 900 deg/s: the blocked rotor shows 900 x 0.001 x 51,200/360 = 128
+    # microsteps a pass (the library's closed loop), a jump of more than the spike
+    # limit of 100 from the following rotor's error: dropped, and so every pass after.
+    assert _blocked_at(-150.0, FIRMWARE_STALL_RULE) is None
+
+
+def test_the_recorded_builds_spike_limit_detects_the_same_block_within_50_ms() -> None:
+    # The real arm's stall recordings came from builds that let jumps of up to 404
+    # through (high_speed_stall_test/j4_STALL_adaptive_stall_threshold.csv); with a
+    # limit of 1000 the same block trips within 50 ms, as the real j4 did at 26 rad/s.
+    old_build = dataclasses.replace(FIRMWARE_STALL_RULE, spike_limit=1000.0)
+    tripped = _blocked_at(-150.0, old_build)
+    assert tripped is not None and tripped <= 0.05
+
+
+def test_a_rotor_blocked_at_85_microsteps_a_pass_is_detected() -> None:
+    # -100 RPM (600 deg/s): 85 microsteps a pass, above the threshold 60, below the limit.
+    tripped = _blocked_at(-100.0, FIRMWARE_STALL_RULE)
+    assert tripped is not None and tripped <= 0.2

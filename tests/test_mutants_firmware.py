@@ -151,43 +151,73 @@ def test_joint_firmware_powers_up_at_the_clock_time() -> None:
 # SETMAXVELOCITY / SETMAXACCELERATION in deg/s, deg/s^2 (docs/protocol.md). The
 # firmware does not check them; the emulator ignores a value that is not
 # finite and positive (our guard, firmware.py) and keeps the previous limit.
-def run_at_10_rpm_for_1_s(limit_reg: int, limit: float) -> float:
-    """SETUP, the limit, SETRPM 10 (60 deg/s), 1 s of ticks fed by a GETDRIVERRPM each; degrees moved."""
+def move_for_1_s(limit_reg: int, limit: float) -> float:
+    """SETUP, the limit, MOVESTEPS 1000 (1800 deg), 1 s of ticks fed by a GETDRIVERRPM each; degrees moved."""
     motor = KinematicStepper(0.0)
     core = FirmwareCore(motor, 0.0)
     core.write(0x10, 0x1414, 0.0)  # SETUP 20 %, 20 %
     core.write(limit_reg, limit, 0.0)
-    core.write(0x11, 10.0, 0.0)  # SETRPM 10
+    core.write(0x13, 1000, 0.0)  # MOVESTEPS 1000
     for _ in range(100):
         core.tick()
         core.touch(core.time)  # the deadman stays fed
     return motor.position_deg
 
 
-# The power-up limits stay: 18 deg/s, 180 deg/s^2 (configuration.h's MAXVEL 10
-# steps/s, MAXACCEL 100 steps/s^2, docs/firmware.md "Power-up"). SETRPM 10 asks
-# for 60 deg/s, so the joint runs at 18 deg/s, reached in 10 passes of +1.8 deg/s:
-# 0.018 x (1 + 2 + ... + 10) = 0.99 deg, then 90 passes x 0.18 deg = 16.2 deg.
-POWER_UP_LIMITS_1_S_DEG = 17.19
+# The library takes a limit's magnitude (uStepper S32 ``setMaxVelocity``,
+# ``setMaxAcceleration``: ``abs()``), and moveSteps gives the chip
+# VMAX = (uint32)(v x 200/360 x 256 x 1.677) and AMAX = (uint16)(a x 200/360 x 256 x 0.022).
+# At the power-up acceleration, AMAX 563 (179.94 deg/s^2, 1.7994 deg/s a pass):
+# -30 deg/s is VMAX 7155, 29.999 deg/s, reached in pass 17 having moved
+# 0.017994 x (1 + ... + 16) + 0.29999 = 2.7466 deg; 83 passes more: 27.646 deg.
+MINUS_30_DEG_PER_S_1_S_DEG = 27.646
 
 
-@pytest.mark.parametrize("limit", [0.0, -30.0])
-def test_max_velocity_not_positive_is_ignored(limit: float) -> None:
-    assert run_at_10_rpm_for_1_s(0x1D, limit) == pytest.approx(POWER_UP_LIMITS_1_S_DEG, abs=0.01)
+def test_max_velocity_is_taken_by_its_magnitude() -> None:
+    # The arm's C++ driver sends j2's limits signed (reduction < 0): -30 must run as 30.
+    assert move_for_1_s(0x1D, -30.0) == pytest.approx(MINUS_30_DEG_PER_S_1_S_DEG, abs=0.01)
+
+
+def test_max_velocity_of_zero_stops_moves() -> None:
+    # VMAX 0: the chip's positioning ramp has no speed to move with.
+    assert move_for_1_s(0x1D, 0.0) == 0.0
 
 
 def test_max_velocity_below_1_deg_per_s_is_taken() -> None:
-    assert run_at_10_rpm_for_1_s(0x1D, 0.5) == pytest.approx(0.5, abs=0.02)
+    # VMAX (uint32)(0.5 x 238.507) = 119: 0.49894 deg/s, reached in the first pass.
+    assert move_for_1_s(0x1D, 0.5) == pytest.approx(0.49894, abs=0.002)
 
 
-@pytest.mark.parametrize("limit", [0.0, -30.0])
-def test_max_acceleration_not_positive_is_ignored(limit: float) -> None:
-    assert run_at_10_rpm_for_1_s(0x1B, limit) == pytest.approx(POWER_UP_LIMITS_1_S_DEG, abs=0.01)
+def test_max_acceleration_is_taken_by_its_magnitude() -> None:
+    # AMAX (uint16)(30 x 3.12889) = 93: 29.723 deg/s^2, 0.29723 deg/s a pass; the
+    # power-up VMAX 17.999 deg/s is reached in pass 61 (61 x 0.29723 = 18.13), so
+    # 100 passes move 0.0029723 x (1 + ... + 60) + 40 x 0.17999 = 5.4393 + 7.1996 = 12.639 deg.
+    assert move_for_1_s(0x1B, -30.0) == pytest.approx(12.639, abs=0.01)
+
+
+def test_max_acceleration_of_zero_stops_moves() -> None:
+    # AMAX 0: the ramp never starts.
+    assert move_for_1_s(0x1B, 0.0) == 0.0
 
 
 def test_max_acceleration_below_1_deg_per_s2_is_taken() -> None:
-    # 0.5 deg/s^2 from rest: 0.5 t^2 / 2 = 0.25 deg after 1 s.
-    assert run_at_10_rpm_for_1_s(0x1B, 0.5) == pytest.approx(0.25, abs=0.01)
+    # AMAX (uint16)(0.5 x 3.12889) = 1: 0.31960 deg/s^2 (the 16-bit register's
+    # step): 0.0031960 x (1 + ... + 100) x 0.01 = 0.16140 deg.
+    assert move_for_1_s(0x1B, 0.5) == pytest.approx(0.16140, abs=0.001)
+
+
+def test_max_acceleration_above_the_16_bit_register_wraps_in_a_move() -> None:
+    # settingMaxVal/accel_test_10000000_200000.csv: the real motor accelerated at
+    # 9,021 deg/s^2 when asked 10,000,000: the library's float arithmetic gives
+    # 31,288,892, cut to 16 bits 28220: 9019.2 deg/s^2, 90.19 deg/s after the first pass.
+    motor = KinematicStepper(0.0)
+    core = FirmwareCore(motor, 0.0)
+    core.write(0x10, 0x1414, 0.0)
+    core.write(0x1D, 200_000.0, 0.0)
+    core.write(0x1B, 10_000_000.0, 0.0)
+    core.write(0x15, 36_000.0, 0.0)  # MOVETOANGLE
+    core.tick()
+    assert motor.rotor_velocity_dps == pytest.approx(90.19, abs=0.01)
 
 
 # ----------------------------------------------------------------- power-up
@@ -273,7 +303,7 @@ def homing_core() -> tuple[FirmwareCore, FakeMotor]:
 def test_homing_error_equal_to_the_sensitivity_does_not_end_it() -> None:
     # docs/firmware.md: stop waiting when |error| > sensitivity (strictly).
     core, motor = homing_core()
-    motor.setpoint_deg = motor.position_deg + 1.8  # 16 microsteps
+    motor.setpoint_deg = motor.position_deg + 16 * 360.0 / 51_200  # 16 microsteps
     for _ in range(5):
         core.tick()
     assert core.flags & (BUSY | NOT_HOMED) == BUSY | NOT_HOMED
@@ -334,9 +364,10 @@ def test_homing_towards_the_lower_stop_runs_at_minus_the_speed() -> None:
     send(fw, SETUP_20_20)
     send(fw, bytes([0x1B]) + struct.pack("<f", 2000.0))  # SETMAXACCELERATION 2000
     send(fw, bytes([0x2D, 0, 10, 30, 15]))
-    ticks(fw, 60)  # the pass that takes it, the 500 ms wait, 0.09 s of running
+    ticks(fw, 160)  # the pass that takes it, the 500 ms wait, 1.09 s of running
     reply = fw.transfer(bytes([0x2C]), 5)  # GETENCODERRPM
-    assert struct.unpack("<f", reply[:4])[0] == pytest.approx(-10.0)
+    # VMAX int(60 x 238.507) = 14310: 59.998 deg/s; the encoder's estimate has settled.
+    assert struct.unpack("<f", reply[:4])[0] == pytest.approx(-59.998 / 6.0, abs=1e-4)
 
 
 @pytest.mark.parametrize("payload", [bytes([0x00, 0x00, 0x80, 0x7F]), bytes([0x00, 0x00, 0xC0, 0x7F])])
@@ -448,7 +479,8 @@ def test_setup_currents_above_100_percent_run_at_full_current() -> None:
 def test_unpowered_motor_ramps_up_from_rest_when_current_comes_on() -> None:
     # SETRPM runs on a joint never enabled (only STALL blocks it), but with no
     # current the rotor stays and the ramp stays at 0. Powered, it starts from
-    # rest: one 10 ms pass at 180 deg/s^2 is 1.8 deg/s, 0.018 deg.
+    # rest: one 10 ms pass at AMAX (uint16)(180 x 3.12889) = 563, 179.94 deg/s^2,
+    # is 1.7994 deg/s, 0.017994 deg.
     fw = make()
     send(fw, bytes([0x1B]) + struct.pack("<f", 180.0))  # SETMAXACCELERATION 180
     send(fw, SETRPM_10)
@@ -458,7 +490,7 @@ def test_unpowered_motor_ramps_up_from_rest_when_current_comes_on() -> None:
     assert fw.motor.position_deg == 0.0
     send(fw, bytes([0x19, 20]))  # SETCURRENT 20
     ticks(fw)
-    assert fw.motor.position_deg == pytest.approx(0.018)
+    assert fw.motor.position_deg == pytest.approx(0.017994, abs=1e-6)
 
 
 def test_every_transfer_counts_as_a_transaction() -> None:

@@ -70,8 +70,23 @@ from typing import Any
 
 import yaml
 
+from bioscara_gym.hardware.drive import (
+    IDEAL_DRIVE,
+    DriveParams,
+    PidNoiseProfile,
+    drive_from_dict,
+    drive_to_dict,
+    noise_from_dict,
+    noise_to_dict,
+)
 from bioscara_gym.hardware.errors import ConfigError, UnknownJointError
-from bioscara_gym.hardware.i2c_timing import check_clock_hz
+from bioscara_gym.hardware.i2c_timing import (
+    WIRE_ONLY,
+    TransactionTiming,
+    check_clock_hz,
+    timing_from_dict,
+    timing_to_dict,
+)
 from bioscara_gym.hardware.registers import (
     CURRENT_MAX_PCT,
     HOMING_RPM_MAX,
@@ -334,6 +349,9 @@ class JointConfig:
             the default) or ``"dynamixel"`` (a servo; ``address`` is then
             ``None`` and ``dynamixel`` names the servo).
         dynamixel: The servo of a ``dynamixel`` joint, else ``None``.
+        drive: The motor and its drive as the real arm's recordings identify
+            them (pull-out, friction, PID-error jitter; ``drive.DriveParams``);
+            default: an ideal motor that never loses a step.
 
     Raises:
         ConfigError: On construction, if a field has the wrong type or range;
@@ -354,6 +372,7 @@ class JointConfig:
     homing: HomingConfig
     type: str = "i2c"
     dynamixel: DynamixelJointConfig | None = None
+    drive: DriveParams = IDEAL_DRIVE
 
     def __post_init__(self) -> None:
         """Validate and normalise the fields (ints given for floats become floats)."""
@@ -500,6 +519,8 @@ class ArmConfig:
             bus's is set on the Pi (``dtparam=i2c_arm_baudrate``); here it
             sets the wire time the emulated bus and the sim backend charge
             per transaction (docs/protocol.md, "Wire time").
+        bus_timing: What a transaction takes beyond its bits (the host's call,
+            the joint's handler), as the real bus measured it (``RW_test/``).
 
     Raises:
         ConfigError: On construction, if the parts are inconsistent.
@@ -511,6 +532,7 @@ class ArmConfig:
     bus: int = 1
     dynamixel: DynamixelBusConfig | None = None
     i2c_clock_hz: float = I2C_CLOCK_HZ
+    bus_timing: TransactionTiming = WIRE_ONLY
 
     def __post_init__(self) -> None:
         """Validate the parts; freeze ``joints`` (tuple) and ``groups`` (read-only)."""
@@ -619,7 +641,7 @@ class ArmConfig:
 
 _HOMING_FIELDS = tuple(f.name for f in dataclasses.fields(HomingConfig))
 _JOINT_FIELDS = tuple(f.name for f in dataclasses.fields(JointConfig) if f.default is dataclasses.MISSING)
-_JOINT_OPTIONAL = ("type", "dynamixel")
+_JOINT_OPTIONAL = ("type", "dynamixel", "drive")
 _GRIPPER_REQUIRED = tuple(
     f.name for f in dataclasses.fields(GripperConfig) if f.default is dataclasses.MISSING
 )
@@ -627,7 +649,7 @@ _GRIPPER_OPTIONAL = tuple(
     f.name for f in dataclasses.fields(GripperConfig) if f.default is not dataclasses.MISSING
 )
 _TOP_REQUIRED = ("joints", "gripper")
-_TOP_OPTIONAL = ("groups", "bus", "dynamixel", "i2c_clock_hz")
+_TOP_OPTIONAL = ("groups", "bus", "dynamixel", "i2c_clock_hz", "bus_timing", "pid_noise")
 
 
 def _check_fields(
@@ -665,7 +687,7 @@ def _homing_from_dict(data: object) -> HomingConfig:
     return HomingConfig(**{name: homing[name] for name in _HOMING_FIELDS})
 
 
-def _joint_from_dict(data: object, index: int) -> JointConfig:
+def _joint_from_dict(data: object, index: int, noise: PidNoiseProfile | None = None) -> JointConfig:
     joint = _mapping(data, f"joints[{index}]")
     name = joint.get("name")
     where = f"joint {name}" if isinstance(name, str) and name else f"joints[{index}]"
@@ -682,6 +704,11 @@ def _joint_from_dict(data: object, index: int) -> JointConfig:
             block = _mapping(joint["dynamixel"], "dynamixel")
             _check_fields(block, ("id",), ("offset",), prefix="dynamixel.")
             values["dynamixel"] = DynamixelJointConfig(**dict(block))
+        if joint.get("drive") is not None:
+            try:
+                values["drive"] = drive_from_dict(dict(_mapping(joint["drive"], "drive")), noise)
+            except ValueError as e:
+                raise ConfigError(str(e)) from None
     except ConfigError as e:
         raise ConfigError(f"{where}: {e}") from None
     # JointConfig names itself ("joint <name>: ...") in its own errors.
@@ -730,7 +757,16 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
         joints_data = top["joints"]
         if not _is_list(joints_data):
             raise ConfigError(f"joints must be a list of joint mappings, got {_type_name(joints_data)}")
-        joints = tuple(_joint_from_dict(item, i) for i, item in enumerate(joints_data))
+        noise = None
+        try:
+            if top.get("pid_noise") is not None:
+                noise = noise_from_dict(dict(_mapping(top["pid_noise"], "pid_noise")))
+            timing = timing_from_dict(dict(_mapping(top["bus_timing"], "bus_timing"))) if top.get(
+                "bus_timing"
+            ) is not None else WIRE_ONLY
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        joints = tuple(_joint_from_dict(item, i, noise) for i, item in enumerate(joints_data))
         gripper = _gripper_from_dict(top["gripper"])
         groups = top["groups"] if "groups" in top else _default_groups([joint.name for joint in joints])
         dxl_bus = None
@@ -742,7 +778,13 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
         bus = top.get("bus", 1)
         clock_hz = top.get("i2c_clock_hz", I2C_CLOCK_HZ)
         return ArmConfig(
-            joints=joints, gripper=gripper, groups=groups, bus=bus, dynamixel=dxl_bus, i2c_clock_hz=clock_hz
+            joints=joints,
+            gripper=gripper,
+            groups=groups,
+            bus=bus,
+            dynamixel=dxl_bus,
+            i2c_clock_hz=clock_hz,
+            bus_timing=timing,
         )
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from None
@@ -762,11 +804,16 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
         ``gripper`` and ``groups`` (and ``dynamixel`` where there is one).
     """
     joints = []
+    noise = None
     for joint in cfg.joints:
         data = dataclasses.asdict(joint)
+        del data["drive"]
         for key, unset in (("type", "i2c"), ("dynamixel", None), ("address", None)):
             if data[key] == unset:
                 del data[key]  # an I2C joint's file has neither; a Dynamixel joint's has no address
+        if joint.drive != IDEAL_DRIVE:
+            data["drive"] = drive_to_dict(joint.drive)
+            noise = noise or joint.drive.noise
         joints.append(data)
     out: dict[str, Any] = {
         "bus": cfg.bus,
@@ -778,6 +825,10 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
     if cfg.dynamixel is not None:
         d = cfg.dynamixel
         out["dynamixel"] = {"port": d.port, "baudrate": d.baudrate, "rs485": d.rs485, "rates": dict(d.rates)}
+    if noise is not None:
+        out["pid_noise"] = noise_to_dict(noise)
+    if cfg.bus_timing != WIRE_ONLY:
+        out["bus_timing"] = timing_to_dict(cfg.bus_timing)
     return out
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.firmware import JointFirmware
-from bioscara_gym.hardware.i2c_timing import check_clock_hz, nack_time_s, wire_phases_s
+from bioscara_gym.hardware.i2c_timing import WIRE_ONLY, TransactionTiming, check_clock_hz, nack_time_s
 from bioscara_gym.hardware.registers import I2C_ADDRESS_MAX, I2C_ADDRESS_MIN
 
 #: Largest host clock drift the fault plan accepts, ppm: 1 % (a quartz is off by
@@ -159,6 +159,9 @@ class EmulatedI2CBus:
             (:func:`~bioscara_gym.hardware.i2c_timing.wire_time_s`; the
             ``emulated`` backend passes the configuration's ``i2c_clock_hz``).
             ``None``: transactions take only the plan's latency and jitter.
+        timing: What a transaction costs beyond its bits: the host's call and
+            the joint's handler (the configuration's ``bus_timing``); default
+            none.
 
     A transaction advances the clock by the plan's latency and jitter and
     the wire time up to the repeated START's address byte, lets the device
@@ -175,6 +178,7 @@ class EmulatedI2CBus:
         clock: Clock | None = None,
         record: bool = False,
         clock_hz: float | None = None,
+        timing: TransactionTiming = WIRE_ONLY,
     ) -> None:
         """Attach the devices.
 
@@ -194,7 +198,8 @@ class EmulatedI2CBus:
             clock = next(iter(self.devices.values())).clock
         self.clock = clock
         self.clock_hz = None if clock_hz is None else check_clock_hz(clock_hz)
-        self._phases: dict[tuple[int, int], tuple[float, float]] = {}
+        self.timing = timing
+        self._phases: dict[tuple[int, int, int], tuple[float, float]] = {}
         self.transactions = 0
         self.closed = False
         #: With ``record``: every transaction as ``(time, address, bytes
@@ -207,14 +212,12 @@ class EmulatedI2CBus:
     def _draw(self, rate: float) -> bool:
         return rate > 0.0 and self._rng.random() < rate
 
-    def _wire(self, write_len: int, read_len: int) -> tuple[float, float]:
-        """Wire time before the device's handler and after it, s (zero without a bus clock)."""
-        if self.clock_hz is None:
-            return 0.0, 0.0
-        key = (write_len, read_len)
+    def _wire(self, write_len: int, read_len: int, reg: int) -> tuple[float, float]:
+        """Time before the device's handler and after it, s: wire, host call and handler."""
+        key = (write_len, read_len, reg)
         phases = self._phases.get(key)
         if phases is None:
-            phases = self._phases[key] = wire_phases_s(write_len, read_len, self.clock_hz)
+            phases = self._phases[key] = self.timing.phases_s(write_len, read_len, self.clock_hz, reg)
         return phases
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
@@ -238,7 +241,8 @@ class EmulatedI2CBus:
             if clock is not None:
                 clock.sleep(extra + (nack_time_s(self.clock_hz) if self.clock_hz else 0.0))
             raise self._error(address)
-        before, after = self._wire(len(data), read_len)
+        reg = data[0] if data else getattr(device, "last_register", 0)
+        before, after = self._wire(len(data), read_len, reg)
         if clock is not None:
             clock.sleep(extra + before)
         reply = bytearray(device.transfer(bytes(data), read_len))

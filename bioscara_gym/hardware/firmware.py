@@ -15,26 +15,36 @@ The protocol's numbers (timings, stall-detector constants) are in
 :mod:`~bioscara_gym.hardware.registers` with their sources; what is only an
 emulation choice stays here.
 
-Units inside the firmware are the motor's: degrees, deg/s, RPM. The firmware
-and its documentation do not name the PID error's unit; we read it as 1/16
-microsteps (3200 per revolution). That is the reading under which the arm's own parameters are
-coherent: homing thresholds of 25-50 are 1.6-3 full steps, just past the
-stepper's pull-out lag of one full step, so homing trips when the motor slips
-against the end stop, and stall thresholds of 60-150 (3.75-9.4 full steps)
-trip on lost steps, never on the lag of normal motion. In 1/256 microsteps
-the same numbers would trip during ordinary acceleration.
+Units inside the firmware are the motor's: degrees, deg/s, RPM. The PID
+error is the uStepper S32 library's (``getPidError()``): the driver's
+position counter minus the encoder, in 1/256 microsteps (51,200 per turn),
+computed by the library's 1 kHz closed loop, which rewrites the counter to
+the encoder whenever the two differ by 15 microsteps or more
+(:mod:`~bioscara_gym.hardware.drive`). So the firmware reads the change of
+the rotor's lag since the last rewrite, not the lag: about the step rate
+times 1 ms while the rotor slips or is blocked, plus the spike of a pole
+slip; a following rotor shows only jitter. The limits the firmware passes
+on are what the library and the driver chip make of them: the magnitude,
+saturated or cut to the chip's registers (:func:`~.drive.position_move_limits`).
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from dataclasses import dataclass
 from enum import Enum
 
 from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.codec import unpack_bytes
-from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
+from bioscara_gym.hardware.drive import (
+    USTEPS_PER_DEG,
+    position_move_limits,
+    velocity_mode_acceleration,
+    velocity_mode_speed,
+)
+from bioscara_gym.hardware.motor import Motor
 from bioscara_gym.hardware.registers import (
     ACK,
     DEADMAN_MS,
@@ -61,18 +71,20 @@ from bioscara_gym.hardware.registers import (
 from bioscara_gym.hardware.transmission import steps_to_degrees
 
 __all__ = [
+    "FIRMWARE_STALL_RULE",
     "MICROSTEPS_PER_DEG",
     "MICROSTEPS_PER_FULL_STEP",
     "FirmwareCore",
     "JointFirmware",
     "Mode",
+    "StallRule",
     "stall_threshold",
 ]
 
-#: PID-error units per full step: 1/16 microsteps (our reading, see the module docstring).
-MICROSTEPS_PER_FULL_STEP = 16
-#: PID-error units (1/16 microsteps) per motor degree: 200 full steps x 16 per turn.
-MICROSTEPS_PER_DEG = MICROSTEPS_PER_FULL_STEP / FULL_STEP_DEG
+#: PID-error units per full step: the library's 1/256 microsteps (``closedLoopCallback``).
+MICROSTEPS_PER_FULL_STEP = 256
+#: PID-error units per motor degree: 51,200 a turn.
+MICROSTEPS_PER_DEG = USTEPS_PER_DEG
 #: Limits before the host sets any: ``configuration.h``'s MAXVEL 10 steps/s and
 #: MAXACCEL 100 steps/s^2, which ``setup()`` gives the stepper (docs/firmware.md, "Power-up").
 DEFAULT_MAX_VELOCITY_DPS = 18.0
@@ -81,8 +93,6 @@ DEFAULT_CURRENT_PCT = 0
 #: The firmware stores its limits in steps: deg x 200/360 (SETMAXVELOCITY, SETMAXACCELERATION).
 _STEPS_PER_DEG = 200 / 360.0
 
-_LOWPASS_GAIN = TICK_S / STALL_TAU_S
-_LOWPASS_KEEP = 1.0 - _LOWPASS_GAIN
 _HOMING_POLLS_PER_TICK = round(TICK_S / HOMING_POLL_S)
 
 
@@ -128,6 +138,45 @@ NON_BLOCKING_REGISTERS = frozenset(
 )
 
 
+@dataclass(frozen=True)
+class StallRule:
+    """The stall detector's constants: the firmware's, or an older build's.
+
+    The packaged firmware's are :data:`FIRMWARE_STALL_RULE` (``joint.ino``,
+    ``stall.h``, ``configuration.h``). Some of the real arm's recordings come
+    from earlier builds with other values (a linear slope, another band, a
+    much larger spike limit); the validation replays each with its own.
+
+    Attributes:
+        spike_limit: An upward jump of |PID error| above this per pass keeps the last value.
+        tau_s: Low-pass time constant, s (sample time: the 10 ms pass).
+        per_sensitivity: Threshold per unit of ENABLESTALLGUARD sensitivity.
+        slope: Threshold per motor rad/s of measured speed.
+        band: Motor speeds (rad/s, inclusive) that get ``band_offset`` more.
+        band_offset: Extra threshold inside ``band``.
+    """
+
+    spike_limit: float = STALL_SPIKE_LIMIT
+    tau_s: float = STALL_TAU_S
+    per_sensitivity: float = STALL_THRESHOLD_PER_SENSITIVITY
+    slope: float = STALL_SLOPE
+    band: tuple[float, float] = STALL_MID_SPEED_BAND
+    band_offset: float = STALL_MID_SPEED_OFFSET
+
+    def threshold(self, omega_rad_s: float, sensitivity: int) -> float:
+        """Speed-adaptive threshold at measured motor speed ``omega_rad_s`` (``stall.h``)."""
+        offset = self.per_sensitivity * sensitivity
+        lo, hi = self.band
+        w = abs(omega_rad_s)
+        if w >= lo and w <= hi:  # the firmware's two comparisons, both inclusive
+            offset += self.band_offset
+        return self.slope * omega_rad_s + offset
+
+
+#: The stall detector of the firmware source this package follows.
+FIRMWARE_STALL_RULE = StallRule()
+
+
 def stall_threshold(omega_rad_s: float, sensitivity: int) -> float:
     """Speed-adaptive stall threshold in microsteps, as ``stall.h`` computes it.
 
@@ -139,12 +188,7 @@ def stall_threshold(omega_rad_s: float, sensitivity: int) -> float:
         ``slope*omega + 10*sensitivity``, plus 90 when 12 <= |omega| <= 450
         (the constants of :mod:`~bioscara_gym.hardware.registers`).
     """
-    offset = STALL_THRESHOLD_PER_SENSITIVITY * sensitivity
-    lo, hi = STALL_MID_SPEED_BAND
-    w = abs(omega_rad_s)
-    if w >= lo and w <= hi:  # the firmware's two comparisons, both inclusive
-        offset += STALL_MID_SPEED_OFFSET
-    return STALL_SLOPE * omega_rad_s + offset
+    return FIRMWARE_STALL_RULE.threshold(omega_rad_s, sensitivity)
 
 
 def _millis(t: float) -> int:
@@ -166,12 +210,28 @@ class FirmwareCore:
             for HOME NOTHOMED, then stay set until a STOP). On by default;
             off only to run host code that does not yet wait
             :data:`~bioscara_gym.hardware.registers.BLOCKING_PICKUP_S`.
+        stall_rule: The stall detector's constants (default: the firmware's).
+
+    Attributes:
+        stall_log: None, or a list that each stall-detection pass appends
+            what the firmware prints over serial in that pass (``loop()``:
+            raw |PID error|, spikes removed, low-pass filtered, measured and
+            set speed in motor rad/s, threshold, stall 0/1) with the time.
     """
 
-    def __init__(self, motor: Motor, start_time: float = 0.0, *, cancel_pending: bool = True) -> None:
+    def __init__(
+        self,
+        motor: Motor,
+        start_time: float = 0.0,
+        *,
+        cancel_pending: bool = True,
+        stall_rule: StallRule = FIRMWARE_STALL_RULE,
+    ) -> None:
         """Power the firmware up in front of ``motor``."""
         self.motor = motor
         self.cancel_pending = cancel_pending
+        self.stall_rule = stall_rule
+        self.stall_log: list[tuple[float, ...]] | None = None
         self.power_cycle(start_time)
 
     # ------------------------------------------------------------------ state
@@ -187,8 +247,13 @@ class FirmwareCore:
         self.hold_current = DEFAULT_CURRENT_PCT
         self.motor_current = DEFAULT_CURRENT_PCT  # what the stepper runs at (homing changes it)
         self.brake_mode = 0
-        self.max_velocity = DEFAULT_MAX_VELOCITY_DPS
-        self.max_acceleration = DEFAULT_MAX_ACCELERATION_DPS2
+        self.max_velocity = DEFAULT_MAX_VELOCITY_DPS  # the firmware's maxVel, deg/s as sent
+        self.max_acceleration = DEFAULT_MAX_ACCELERATION_DPS2  # maxAccel, deg/s² as sent
+        # The driver chip's ramp registers, deg/s and deg/s²: setup()'s
+        # checkOrientation and stop() leave AMAX at the power-up limit and VMAX
+        # at 0 (the next SETRPM or move writes it).
+        self.vmax = 0.0
+        self.amax = velocity_mode_acceleration(self.max_acceleration)
         self.qd_set = 0.0  # last SETRPM value (the deadman watches it)
         self.q_set = 0.0  # last MOVETOANGLE value
         self.mode = Mode.IDLE
@@ -213,8 +278,8 @@ class FirmwareCore:
         self.motor.hold_here()
 
     def snapshot(self) -> dict[str, object]:
-        """The firmware's state (everything but the motor), for :meth:`restore`."""
-        return {k: v for k, v in vars(self).items() if k != "motor"}
+        """The firmware's state, for :meth:`restore` (not the motor, the stall rule, the serial log)."""
+        return {k: v for k, v in vars(self).items() if k not in ("motor", "stall_rule", "stall_log")}
 
     def restore(self, snapshot: dict[str, object]) -> None:
         """Return to a :meth:`snapshot` and re-send the motor its set point and torque."""
@@ -302,16 +367,26 @@ class FirmwareCore:
         self._begin(now)
 
     def _hard_stop(self) -> None:
+        """``stepper.stop(HARD)``: stopped at once, AMAX restored, VMAX left at 0."""
         self.mode = Mode.IDLE
         self.target_rpm = 0.0
         self.sp_velocity = 0.0
+        self.vmax = 0.0
+        self.amax = velocity_mode_acceleration(self.max_acceleration)
         self.motor.hold_here()
         self._apply()
 
     def _set_rpm(self, rpm: float) -> None:
-        """``stepper.setRPM``: velocity mode; a non-finite value runs as 0 (our choice)."""
+        """``stepper.setRPM``: velocity mode at VMAX := |rpm| (never clamped to the max velocity)."""
         self.mode = Mode.VELOCITY
         self.target_rpm = float(rpm) if math.isfinite(rpm) else 0.0
+        self.vmax = abs(velocity_mode_speed(self.target_rpm))
+
+    def _start_move(self, target_deg: float) -> None:
+        """``moveSteps``: a positioning move with AMAX/DMAX cut to 16 bits and VMAX := max velocity."""
+        self.mode = Mode.POSITION
+        self.target_deg = target_deg
+        self.vmax, self.amax = position_move_limits(self.max_velocity, self.max_acceleration)
 
     def _apply(self) -> None:
         """Send the current set-point velocity and torque to the motor."""
@@ -331,7 +406,13 @@ class FirmwareCore:
         self.stallguard = False
         self._set(FLAG_STALL | FLAG_NOT_ENABLED, False)
         self.qd_set = 0.0
-        self._hard_stop()  # moveSteps(0): the set point stays where the motor is
+        # moveSteps(0): a positioning move to where the driver's counter is, with
+        # AMAX/DMAX cut to 16 bits (so a later SETRPM ramps at the cut value).
+        # A motor at rest is there already: idle, at its hold current.
+        self._start_move(self.motor.setpoint_deg)
+        if self.sp_velocity == 0.0:
+            self.mode = Mode.IDLE
+        self._apply()
 
     def _cmd_set_rpm(self, value: float | int) -> None:
         self.qd_set = float(value)
@@ -339,14 +420,12 @@ class FirmwareCore:
             self._set_rpm(self.qd_set)
 
     def _cmd_move_steps(self, value: float | int) -> None:
-        self.mode = Mode.POSITION
-        self.target_deg = self.motor.setpoint_deg + steps_to_degrees(int(value))
+        self._start_move(self.motor.setpoint_deg + steps_to_degrees(int(value)))
 
     def _cmd_move_to_angle(self, value: float | int) -> None:
         self.q_set = float(value)
         if not self.flags & FLAG_STALL and math.isfinite(self.q_set):
-            self.mode = Mode.POSITION
-            self.target_deg = self.encoder_zero + self.q_set
+            self._start_move(self.encoder_zero + self.q_set)
 
     def _cmd_set_current(self, value: float | int) -> None:
         self.drive_current = self.motor_current = min(int(value), 100)
@@ -361,12 +440,16 @@ class FirmwareCore:
         self._apply()
 
     def _cmd_set_max_acceleration(self, value: float | int) -> None:
-        if math.isfinite(value) and value > 0:  # the firmware does not check (our guard)
-            self.max_acceleration = float(value)
+        # setMaxAcceleration and setMaxDeceleration take the magnitude and write
+        # AMAX/DMAX at once, saturated (a running ramp changes its rate).
+        self.max_acceleration = float(value)
+        self.amax = velocity_mode_acceleration(self.max_acceleration)
 
     def _cmd_set_max_velocity(self, value: float | int) -> None:
-        if math.isfinite(value) and value > 0:  # the firmware does not check (our guard)
-            self.max_velocity = float(value)
+        # setMaxVelocity takes the magnitude and writes VMAX at once: a running
+        # move changes its top speed, and so does a SETRPM run (VMAX is its speed).
+        self.max_velocity = float(value)
+        self.vmax = position_move_limits(self.max_velocity, self.max_acceleration)[0]
 
     def _cmd_enable_stallguard(self, value: float | int) -> None:
         # Threshold 10 x sensitivity, enabled, STALL cleared; the filter state is kept.
@@ -440,8 +523,7 @@ class FirmwareCore:
         elif reg == Reg.CHECKORIENTATION:
             self._blocking_arg = float(value) if math.isfinite(value) else 0.0
             self._blocking = _Blocking.ORIENTATION_OUT
-            self.mode = Mode.POSITION
-            self.target_deg = self.motor.setpoint_deg + self._blocking_arg
+            self._start_move(self.motor.setpoint_deg + self._blocking_arg)
         else:
             self._end_blocking()  # "UNKOWN REGISTER": returns at once
 
@@ -462,8 +544,7 @@ class FirmwareCore:
         elif state is _Blocking.ORIENTATION_OUT:
             if self.mode is not Mode.POSITION or self._arrived():
                 self._blocking = _Blocking.ORIENTATION_BACK
-                self.mode = Mode.POSITION
-                self.target_deg = self.motor.setpoint_deg - self._blocking_arg
+                self._start_move(self.motor.setpoint_deg - self._blocking_arg)
         elif state is _Blocking.ORIENTATION_BACK and (self.mode is not Mode.POSITION or self._arrived()):
             self.mode = Mode.IDLE
             self._end_blocking()
@@ -530,12 +611,19 @@ class FirmwareCore:
             self._set(FLAG_NOT_ENABLED)
 
     def _detect_stall(self) -> None:
-        u = abs(self.pid_error)
-        if u - self._filter_last > STALL_SPIKE_LIMIT:
+        rule = self.stall_rule
+        raw = u = abs(self.pid_error)
+        if u - self._filter_last > rule.spike_limit:
             u = self._filter_last  # one-sided spike filter: keep the last (filtered) value
-        x = self._filter_x = _LOWPASS_KEEP * self._filter_x + _LOWPASS_GAIN * u
+        gain = TICK_S / rule.tau_s
+        x = self._filter_x = (1.0 - gain) * self._filter_x + gain * u
         omega = self.encoder_rpm / STALL_RPM_PER_RAD_S
-        if x > stall_threshold(omega, self.stall_sensitivity):
+        threshold = rule.threshold(omega, self.stall_sensitivity)
+        stalled = x > threshold
+        if self.stall_log is not None:
+            set_speed = self.qd_set / STALL_RPM_PER_RAD_S
+            self.stall_log.append((self.time, raw, u, x, omega, set_speed, threshold, float(stalled)))
+        if stalled:
             self._set(FLAG_STALL)
             self._hard_stop()
             self._filter_x = self._filter_last = 0.0
@@ -544,12 +632,11 @@ class FirmwareCore:
 
     def _ramp(self) -> None:
         """Advance the ramped set-point velocity (trapezoidal profile)."""
-        acc_step = self.max_acceleration * TICK_S
+        acc_step = self.amax * TICK_S
         v = self.sp_velocity
         if self.mode is Mode.VELOCITY:
-            target = self.target_rpm * 6.0
-            if self._blocking is not _Blocking.HOME_RUN:
-                target = max(-self.max_velocity, min(self.max_velocity, target))
+            # The chip runs at VMAX in the direction setRPM chose (SETMAXVELOCITY rewrites VMAX too).
+            target = math.copysign(self.vmax, self.target_rpm) if self.target_rpm else 0.0
         elif self.mode is Mode.POSITION:
             remaining = self.target_deg - self.motor.setpoint_deg
             if abs(remaining) < 1e-9 and abs(v) <= acc_step:
@@ -557,8 +644,8 @@ class FirmwareCore:
                 self.mode = Mode.IDLE if self._blocking is _Blocking.NONE else self.mode
                 self._apply()
                 return
-            brake = math.sqrt(2.0 * self.max_acceleration * abs(remaining))
-            target = math.copysign(min(self.max_velocity, brake, abs(remaining) / TICK_S), remaining)
+            brake = math.sqrt(2.0 * self.amax * abs(remaining))
+            target = math.copysign(min(self.vmax, brake, abs(remaining) / TICK_S), remaining)
         else:
             target = 0.0
         if target > v + acc_step:
@@ -616,6 +703,7 @@ class JointFirmware:
             ``clock.now()`` before every transaction and on :meth:`update`.
         core: An existing core instead of ``motor`` (the simulated arm's).
         cancel_pending: Passed to a new :class:`FirmwareCore`.
+        stall_rule: Passed to a new :class:`FirmwareCore`.
     """
 
     def __init__(
@@ -625,6 +713,7 @@ class JointFirmware:
         core: FirmwareCore | None = None,
         *,
         cancel_pending: bool = True,
+        stall_rule: StallRule = FIRMWARE_STALL_RULE,
     ) -> None:
         """Power up a joint in front of ``motor``, or wrap an existing ``core``.
 
@@ -636,7 +725,12 @@ class JointFirmware:
         self.clock = clock
         self._owns_ticks = core is None
         if core is None:
-            core = FirmwareCore(motor, clock.now(), cancel_pending=cancel_pending)  # type: ignore[arg-type]
+            core = FirmwareCore(
+                motor,  # type: ignore[arg-type]
+                clock.now(),
+                cancel_pending=cancel_pending,
+                stall_rule=stall_rule,
+            )
         self.core = core
         self.transactions = 0
         self._power_up_buffers()
@@ -650,6 +744,11 @@ class JointFirmware:
     def motor(self) -> Motor:
         """The motor model behind the firmware."""
         return self.core.motor
+
+    @property
+    def last_register(self) -> int:
+        """The register the last write phase named (a bare read runs it again)."""
+        return self._reg
 
     @property
     def flags(self) -> Flag:

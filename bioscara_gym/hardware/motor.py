@@ -1,10 +1,14 @@
 """Motor models behind the emulated firmware.
 
 The firmware emits a set-point velocity once per 10 ms tick together with the
-torque the driver current allows; the motor integrates the set point and moves
-its rotor (the encoder) after it. The PID error the firmware watches is set
-point minus encoder. :class:`KinematicStepper` is a cheap model for the
-driver tests; the MuJoCo arm provides another (``bioscara_gym.sim``).
+torque the driver current allows; the motor model plays the uStepper S32
+between firmware and rotor (:mod:`~bioscara_gym.hardware.drive`): the chip
+issues steps at that velocity, the rotor follows while the motor's torque
+allows, the library's 1 kHz closed loop keeps the driver's position counter
+and computes the PID error the firmware watches, and the encoder's velocity
+estimator gives the speed it reports. :class:`KinematicStepper` is the model
+of the driver tests and the validation against the real arm; the MuJoCo arm
+provides another (``bioscara_gym.hardware.sim``).
 """
 
 from __future__ import annotations
@@ -12,11 +16,45 @@ from __future__ import annotations
 import math
 from typing import Protocol, runtime_checkable
 
-#: Torque of the NEMA 17 motors at 100 % of the driver's 2.5 A output, N*m.
-TORQUE_AT_FULL_CURRENT_NM = 0.5
+import numpy as np
+
+from bioscara_gym.hardware.drive import (
+    CLOSED_LOOP_PERIOD_S,
+    ENCODER_COUNTS_PER_REV,
+    HALF_NORMAL_MEDIAN,
+    IDEAL_DRIVE,
+    USTEPS_PER_DEG,
+    VMAX_LIMIT,
+    VMAX_PER_DPS,
+    ClosedLoop,
+    DriveParams,
+    VelocityEstimator,
+)
+
 #: Motor degrees per full step: 200 full steps a turn, the unit of MOVESTEPS
 #: (firmware; C++ API).
 FULL_STEP_DEG = 1.8
+#: One electrical period of a 200-step hybrid stepper: the field laps a
+#: slipping rotor once every four full steps (a pole slip).
+POLE_PITCH_DEG = 4 * FULL_STEP_DEG
+#: The fastest the TMC5130 issues steps (VMAX 0x7FFE00 at the library's
+#: conversion), motor deg/s: about 35,200 deg/s, 586 rev/s.
+CHIP_MAX_SPEED_DPS = VMAX_LIMIT / VMAX_PER_DPS
+_COUNTS_PER_DEG = ENCODER_COUNTS_PER_REV / 360.0
+
+
+def _pole_slips(lead_deg: float) -> int:
+    """Pole slips a field leading its rotor by ``lead_deg`` has made: the first at two full steps.
+
+    The torque of a hybrid stepper reverses once the field leads the rotor
+    by half an electrical period; from there the rotor is thrown back, and
+    again every further period (four full steps).
+    """
+    return math.floor((abs(lead_deg) + 0.5 * POLE_PITCH_DEG) / POLE_PITCH_DEG)
+
+
+_RAD = math.pi / 180.0
+_DEG = 180.0 / math.pi
 
 
 @runtime_checkable
@@ -29,7 +67,12 @@ class Motor(Protocol):
 
     @property
     def setpoint_deg(self) -> float:
-        """Where the step generator has put the rotor's target."""
+        """The driver's position counter (XACTUAL): where moves count from.
+
+        The chip advances it with every step it issues; the library's closed
+        loop rewrites it to the encoder whenever the two differ by 15
+        microsteps or more.
+        """
         ...
 
     @property
@@ -39,20 +82,20 @@ class Motor(Protocol):
 
     @property
     def velocity_dps(self) -> float:
-        """Encoder speed."""
+        """The encoder's speed estimate (what GETENCODERRPM reports, x 6)."""
         ...
 
     @property
     def pid_error_deg(self) -> float:
-        """Set point minus encoder as the real stepper would show it, motor degrees."""
+        """The library's last PID error (``getPidError()``), in motor degrees."""
         ...
 
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        """Set the set-point velocity and the available torque (0-1 of full current)."""
+        """Set the step rate (deg/s) and the available torque (0-1 of full current)."""
         ...
 
     def hold_here(self) -> None:
-        """Move the set point onto the encoder (hard stop, zero PID error)."""
+        """Stop issuing steps where the rotor is (hard stop, zero PID error)."""
         ...
 
     def advance(self, dt: float) -> None:
@@ -61,22 +104,30 @@ class Motor(Protocol):
 
 
 class KinematicStepper:
-    """A stepper that follows its set point unless blocked.
+    """A stepper motor and its uStepper S32 drive, without a rigid-body simulation.
 
-    The rotor lags the set point by the angle a stepper needs to produce the
-    load torque (``asin(load / torque_max)`` of one full step, the stepper's
-    torque-angle curve); when the load exceeds what the current allows it
-    slips and stays put. End stops clamp the rotor, so a set point driven past
-    them builds up PID error, which is how homing finds the end stop.
+    The rotor follows the field while the acceleration asked of it (plus
+    friction and load) stays within the pull-out acceleration the current
+    allows at its speed (:class:`~bioscara_gym.hardware.drive.DriveParams`);
+    it then lags the field by its load angle. Beyond that it slips: it loses
+    steps, the asynchronous torque and friction decide its speed, every pole
+    slip knocks it back (a spike of PID error), and it locks back onto the
+    field once their speeds come within the pull-in range. End stops and a
+    blocked rotor hold it where it is while the field runs on, which is how
+    homing finds the end stop. The default drive is ideal: it never slips
+    and its PID error has no jitter.
 
     Args:
         position_deg: Initial rotor position, absolute motor degrees.
         lower_stop_deg: Lower end stop (motor degrees), ``-inf`` for none.
         upper_stop_deg: Upper end stop (motor degrees), ``inf`` for none.
-        load_torque_nm: Constant external torque on the rotor (e.g. gravity
-            through the transmission), signed.
-        max_speed_dps: The motor cannot turn faster; beyond it the rotor slips.
-        torque_at_full_current_nm: Torque at 100 % current.
+        drive: The motor's torque and jitter (default: ideal).
+        load_accel: Constant external load (e.g. gravity through the
+            transmission) as an acceleration of the rotor, motor rad/s², signed.
+        max_speed_dps: Steps are never issued faster than this (default: the
+            chip's own limit, about 35,200 deg/s).
+        rng: Random numbers for the PID error's jitter (seeded by the caller;
+            default seed 0).
     """
 
     def __init__(
@@ -84,76 +135,317 @@ class KinematicStepper:
         position_deg: float = 0.0,
         lower_stop_deg: float = -math.inf,
         upper_stop_deg: float = math.inf,
-        load_torque_nm: float = 0.0,
-        max_speed_dps: float = 6000.0,
-        torque_at_full_current_nm: float = TORQUE_AT_FULL_CURRENT_NM,
+        drive: DriveParams = IDEAL_DRIVE,
+        load_accel: float = 0.0,
+        max_speed_dps: float = CHIP_MAX_SPEED_DPS,
+        rng: np.random.Generator | None = None,
     ) -> None:
         """Create the motor at rest at ``position_deg``."""
         if lower_stop_deg >= upper_stop_deg:
             raise ValueError(f"end stops: lower {lower_stop_deg} must be below upper {upper_stop_deg}")
-        self._setpoint = float(position_deg)
-        self._position = float(position_deg)
-        self._velocity = 0.0
-        self._command_velocity = 0.0
-        self._torque_fraction = 0.0
+        if not max_speed_dps > 0:
+            raise ValueError(f"max_speed_dps={max_speed_dps!r} must be > 0")
         self.lower_stop_deg = lower_stop_deg
         self.upper_stop_deg = upper_stop_deg
-        self.load_torque_nm = load_torque_nm
+        self.drive = drive
+        self.load_accel = float(load_accel)
         self.max_speed_dps = max_speed_dps
-        self.torque_at_full_current_nm = torque_at_full_current_nm
+        self.rng = rng if rng is not None else np.random.default_rng(0)
         self.blocked = False  # tests set it to hold the rotor (an obstacle)
+        self._held = False  # a physics engine holds it (hold_rotor)
+        #: Counters of what the motor did (never reset by the model): times it
+        #: lost its field, pole slips, times it locked back on.
+        self.lost_sync = 0
+        self.pole_slips = 0
+        self.resyncs = 0
+        self._position = float(position_deg)
+        self._field = float(position_deg)
+        self._rotor_dps = 0.0
+        self._command_dps = 0.0
+        self._torque_fraction = 0.0
+        self._accel_rad_s2 = 0.0  # the field's acceleration over the current tick
+        self._accel_left_s = 0.0
+        self._falling = False  # the step rate came down on the last change (the jitter differs)
+        self._lag_deg = 0.0
+        self._synced = True
+        self._slip_deg = 0.0  # field minus rotor while slipping
+        self._kick = 0.0  # amplitude of the rotor's swing after its last pole slip, microsteps
+        self._kick_s = 0.0  # time since that pole slip
+        self._loop = ClosedLoop(self._position)
+        self._estimator = VelocityEstimator()
+        self._estimator.reset(self._position * _COUNTS_PER_DEG)
+        self._pid_error = 0.0
 
+    # ---------------------------------------------------------------- readings
     @property
     def setpoint_deg(self) -> float:
-        """Set point, absolute motor degrees."""
-        return self._setpoint
+        """The driver's position counter (XACTUAL), absolute motor degrees."""
+        return self._loop.xactual_deg
+
+    @property
+    def field_deg(self) -> float:
+        """Where the field is: every step the chip issued, absolute motor degrees."""
+        return self._field
 
     @property
     def position_deg(self) -> float:
-        """Encoder, absolute motor degrees."""
+        """Encoder (rotor), absolute motor degrees."""
         return self._position
 
     @property
+    def field_velocity_dps(self) -> float:
+        """The chip's step rate, deg/s."""
+        return self._command_dps
+
+    @property
+    def rotor_velocity_dps(self) -> float:
+        """The rotor's true speed, deg/s."""
+        return self._rotor_dps
+
+    @property
     def velocity_dps(self) -> float:
-        """Encoder speed over the last advance, deg/s."""
-        return self._velocity
+        """The encoder's speed estimate, deg/s (lags the rotor by about 50 ms)."""
+        return self._estimator.velocity_dps
 
     @property
     def pid_error_deg(self) -> float:
-        """Set point minus encoder, motor degrees."""
-        return self._setpoint - self._position
+        """The library's last PID error, motor degrees."""
+        return self._pid_error / USTEPS_PER_DEG
+
+    @property
+    def synced(self) -> bool:
+        """Whether the rotor follows its field (False: it slips, losing steps)."""
+        return self._synced
 
     @property
     def torque_fraction(self) -> float:
         """Available torque as a fraction of full current."""
         return self._torque_fraction
 
+    @property
+    def held(self) -> bool:
+        """Whether something outside holds the rotor (:meth:`hold_rotor`)."""
+        return self._held
+
+    def hold_rotor(self, position_deg: float) -> None:
+        """Something outside (an end stop, an obstacle in a physics engine) holds the rotor here.
+
+        A rotor that followed its field loses it; until :meth:`release_rotor`,
+        the rotor stays where it is put while the field runs on (pole slips).
+        """
+        self._position = float(position_deg)
+        self._rotor_dps = 0.0
+        if self._synced:
+            self.lost_sync += 1
+            self._synced = False
+            self._slip_deg = self._field - self._position
+        self._held = True
+
+    def release_rotor(self) -> None:
+        """Nothing holds the rotor any more: it moves under its own torque (and may lock on again)."""
+        self._held = False
+
+    def snapshot(self) -> dict[str, object]:
+        """The model's state, the random generator's included (not the drive's parameters: configuration)."""
+        state = {k: v for k, v in vars(self).items() if k not in ("rng", "drive", "_loop", "_estimator")}
+        state["_loop"] = (self._loop.xactual_deg, self._loop.error)
+        est = self._estimator
+        state["_estimator"] = (est._pos_est, est._vel_est, est._vel_int)
+        state["rng"] = self.rng.bit_generator.state
+        return state
+
+    def restore(self, state: dict[str, object]) -> None:
+        """Return to a :meth:`snapshot`."""
+        for key, value in state.items():
+            if key == "_loop":
+                self._loop.xactual_deg, self._loop.error = value  # type: ignore[misc]
+            elif key == "_estimator":
+                est = self._estimator
+                est._pos_est, est._vel_est, est._vel_int = value  # type: ignore[misc]
+            elif key == "rng":
+                self.rng.bit_generator.state = value  # type: ignore[assignment]
+            else:
+                setattr(self, key, value)
+
+    # ---------------------------------------------------------------- commands
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        """Set the set-point velocity (deg/s) and available torque (0-1)."""
-        self._command_velocity = velocity_dps
+        """Set the step rate (deg/s) and available torque (0-1) from the next step on."""
+        velocity_dps = max(-self.max_speed_dps, min(self.max_speed_dps, velocity_dps))
+        if velocity_dps != self._command_dps:
+            # The firmware's ramp changes the rate once a 10 ms tick.
+            self._accel_rad_s2 = (velocity_dps - self._command_dps) * _RAD / 0.01
+            self._accel_left_s = 0.01
+            self._falling = abs(velocity_dps) < abs(self._command_dps)
+        elif self._accel_left_s <= 0.0:
+            self._falling = False
+        self._command_dps = velocity_dps
         self._torque_fraction = torque_fraction
 
     def hold_here(self) -> None:
-        """Set point := encoder."""
-        self._setpoint = self._position
+        """Stop hard: the field, the counter and the step rate onto the rotor (released, following)."""
+        self._field = self._position
+        self._loop.xactual_deg = self._position
+        self._command_dps = 0.0
+        self._accel_rad_s2 = 0.0
+        self._accel_left_s = 0.0
+        self._lag_deg = 0.0
+        self._rotor_dps = 0.0
+        self._synced = True
+        self._held = False
+        self._slip_deg = 0.0
+        self._pid_error = 0.0
+
+    def place(self, position_deg: float) -> None:
+        """Put the rotor at ``position_deg`` by hand, at rest (the operator moves a disabled joint)."""
+        self._position = self._clamp(float(position_deg))
+        self.hold_here()
+        self._estimator.reset(self._position * _COUNTS_PER_DEG)
 
     def advance(self, dt: float) -> None:
-        """Integrate the set point and move the rotor after it for ``dt`` s."""
-        torque_max = self._torque_fraction * self.torque_at_full_current_nm
-        if torque_max <= 0.0:
-            # Unpowered: the rotor stays where it is, the set point follows it.
-            self._setpoint = self._position
-            self._velocity = 0.0
+        """Run the drive and the rotor for ``dt`` seconds in 1 ms closed-loop passes."""
+        n = max(1, round(dt / CLOSED_LOOP_PERIOD_S))
+        h = dt / n
+        for _ in range(n):
+            self._pass(h)
+        self._sample_jitter()
+
+    # ---------------------------------------------------------------- internals
+    def _pass(self, h: float) -> None:
+        """One closed-loop period: field, rotor, PID error, speed estimate."""
+        if self._torque_fraction <= 0.0:
+            # Unpowered: the rotor stays where it is; the chip's steps go nowhere.
+            self._field = self._loop.xactual_deg = self._position
+            self._rotor_dps = 0.0
+            self._synced = True
+            self._pid_error = 0.0
+            self._estimator.update(self._position * _COUNTS_PER_DEG)
             return
-        self._setpoint += self._command_velocity * dt
-        load = self.load_torque_nm
-        if abs(load) >= torque_max or self.blocked:
-            target = self._position  # slipping or held: the rotor does not follow
+        accel = 0.0
+        if self._accel_left_s > 0.0:
+            accel = self._accel_rad_s2
+            self._accel_left_s -= h
+        v_field = self._command_dps
+        advance = v_field * h
+        self._field += advance
+        if self._synced:
+            self._follow(v_field, accel, h)
         else:
-            lag = math.asin(abs(load) / torque_max) / (math.pi / 2) * FULL_STEP_DEG
-            target = self._setpoint + math.copysign(lag, load) if load else self._setpoint
-        step_limit = self.max_speed_dps * dt
-        target = min(max(target, self._position - step_limit), self._position + step_limit)
-        target = min(max(target, self.lower_stop_deg), self.upper_stop_deg)
-        self._velocity = (target - self._position) / dt
-        self._position = target
+            self._slip(v_field, accel, h)
+        error = self._loop.step(advance, self._position)
+        if self._kick >= 1.0:
+            # The thrown-back rotor swings about its stop and settles (kick_time_s).
+            drive = self.drive
+            self._kick_s += h
+            decay = math.exp(-self._kick_s / drive.kick_time_s) if drive.kick_time_s > 0 else 0.0
+            swing = self._kick * decay * math.cos(2.0 * math.pi * self._kick_s / drive.kick_period_s)
+            error += math.copysign(swing, error) if error else swing
+            if decay * self._kick < 1.0:
+                self._kick = 0.0
+        self._pid_error = error
+        self._estimator.update(self._position * _COUNTS_PER_DEG)
+
+    def _needed(self, v_dps: float, accel: float) -> float:
+        """Acceleration the motor must supply to move the rotor so, rad/s²."""
+        return accel + self.drive.friction(v_dps * _RAD) - self.load_accel
+
+    def _follow(self, v_field: float, accel: float, h: float) -> None:
+        drive = self.drive
+        omega = v_field * _RAD
+        needed = self._needed(v_field, accel)
+        pullout = drive.pullout(self._torque_fraction, omega)
+        held = (v_field != 0.0 and (self.blocked or self._held)) or self._at_stop(v_field)
+        if held or abs(needed) > pullout:
+            self.lost_sync += 1
+            self._synced = False
+            self._slip_deg = self._field - self._position
+            if held:
+                self._rotor_dps = 0.0
+            self._slip(v_field, accel, h)
+            return
+        lag = 0.0
+        if math.isfinite(pullout) and pullout > 0.0:
+            lag = math.asin(min(1.0, abs(needed) / pullout)) / (math.pi / 2) * FULL_STEP_DEG
+            lag = math.copysign(lag, needed) if needed else 0.0
+        self._lag_deg = lag
+        self._position = self._clamp(self._field - lag)
+        self._rotor_dps = v_field
+
+    def _slip(self, v_field: float, accel: float, h: float) -> None:
+        drive = self.drive
+        omega = self._rotor_dps * _RAD
+        if not (self.blocked or self._held):
+            push = drive.slip_fraction * drive.pullout(self._torque_fraction, omega)
+            direction = v_field - self._rotor_dps
+            drive_acc = math.copysign(push, direction) if direction and math.isfinite(push) else 0.0
+            outer = drive_acc + self.load_accel
+            if omega == 0.0:
+                # Stiction: it starts only once the push beats dry friction.
+                acc = (
+                    0.0
+                    if abs(outer) <= drive.friction_coulomb
+                    else outer - math.copysign(drive.friction_coulomb, outer)
+                )
+                new = acc * h
+            else:
+                new = omega + (outer - drive.friction(omega)) * h
+                if (new > 0.0) != (omega > 0.0) and abs(outer) <= drive.friction_coulomb:
+                    new = 0.0  # friction stops it; it does not reverse it
+            self._position = self._clamp(self._position + 0.5 * (omega + new) * _DEG * h)
+            self._rotor_dps = new * _DEG
+            if self._position in (self.lower_stop_deg, self.upper_stop_deg):
+                self._rotor_dps = 0.0
+        else:
+            self._rotor_dps = 0.0
+        before = self._slip_deg
+        self._slip_deg = self._field - self._position
+        laps = _pole_slips(self._slip_deg) - _pole_slips(before)
+        if laps > 0:
+            self.pole_slips += laps
+            residual = (
+                self._kick * math.exp(-self._kick_s / drive.kick_time_s) if drive.kick_time_s > 0 else 0.0
+            )
+            self._kick = residual + drive.kick_usteps
+            self._kick_s = 0.0
+        if self._can_lock(v_field, accel):
+            self.resyncs += 1
+            self._synced = True
+            self._field = self._position
+            self._rotor_dps = v_field
+            self._slip_deg = 0.0
+
+    def _can_lock(self, v_field: float, accel: float) -> bool:
+        """Whether the slipping rotor locks back onto the field now.
+
+        Its speed must be within the pull-in range of the field's, and the
+        field must not ask more of it than the pull-out torque allows.
+        """
+        if self.blocked or self._held or self._at_stop(v_field):
+            return False
+        drive = self.drive
+        if abs(v_field - self._rotor_dps) * _RAD > drive.pullin_speed and not (
+            v_field == 0.0 and self._rotor_dps == 0.0
+        ):
+            return False
+        return abs(self._needed(v_field, accel)) <= drive.pullout(self._torque_fraction, v_field * _RAD)
+
+    def _at_stop(self, v_field: float) -> bool:
+        """Whether an end stop holds the rotor against the field's direction."""
+        return (v_field > 0 and self._position >= self.upper_stop_deg) or (
+            v_field < 0 and self._position <= self.lower_stop_deg
+        )
+
+    def _clamp(self, position: float) -> float:
+        return min(max(position, self.lower_stop_deg), self.upper_stop_deg)
+
+    def _sample_jitter(self) -> None:
+        """Add the following rotor's jitter to the PID error the firmware reads next."""
+        noise = self.drive.noise
+        if noise is None or not self._synced or self._torque_fraction <= 0.0:
+            return
+        speed = self._command_dps * _RAD
+        median = noise.median(speed, self._falling) * self.drive.noise_scale
+        if median > 0.0:
+            sigma = median / HALF_NORMAL_MEDIAN
+            self._pid_error = math.copysign(
+                round(abs(self._pid_error + sigma * self.rng.standard_normal())), self._pid_error or 1.0
+            )
