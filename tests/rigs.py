@@ -398,7 +398,9 @@ def _mujoco_rig(name: str, backend_name: str, joint_name: str) -> JointRig:
         joint=backend.joints[joint_name],
         params=params,
         clock=clock,
-        advance=backend.step,
+        # Let the time pass (backend.step would count it from the last deadline,
+        # and the first step after a homing is an overrun that waits for nothing).
+        advance=backend.clock.sleep,
         device_flags=lambda: Flag(core.flags),
         restart_host=new_joint,
         features=frozenset({"stall", "deadman", "power_cycle", "host_restart", "physics"}),

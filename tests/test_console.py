@@ -263,7 +263,9 @@ def test_move_waits_until_the_joint_is_there(bioscara: Run, state: Path) -> None
     assert code == 0
     assert out.startswith("j4 at +1.0000 rad (target +1.0000)")
     table = status(bioscara, state)
-    assert table["j4"][:2] == ["+1.0000 rad", "+0.0000 rad/s"]
+    assert table["j4"][0] == "+1.0000 rad"
+    # The encoder's speed estimate (uStepper's velocity estimator) settles over ~50 ms after the stop.
+    assert abs(float(table["j4"][1].removesuffix(" rad/s"))) <= 0.001
     assert enabled(table, "j4") == "yes"
 
 

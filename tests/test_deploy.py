@@ -121,7 +121,11 @@ class ConstantPolicy:
 
 
 class PushJ1:
-    """Turns j1 at half speed towards the middle of its range (set on the first call)."""
+    """Turns j1 at 0.3 of its speed towards the middle of its range (set on the first call).
+
+    Slow enough for the firmware's stall detection to see a collision (85
+    microsteps a pass, within its spike limit; docs/firmware.md).
+    """
 
     def __init__(self) -> None:
         self.direction = 0
@@ -129,7 +133,7 @@ class PushJ1:
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         if self.direction == 0:
             self.direction = -1 if obs["observation"][0] > 0 else 1
-        return np.array([0.5 * self.direction, 0.0, 0.0, 0.0], dtype=np.float32)
+        return np.array([0.3 * self.direction, 0.0, 0.0, 0.0], dtype=np.float32)
 
 
 # ---------------------------------------------------------- a trained policy

@@ -362,16 +362,20 @@ def test_unknown_option_raises_naming_it(kwarg: str, value: str) -> None:
 # ---------------------------------------------------------------------- stall
 
 
-@pytest.mark.parametrize(
-    ("backend", "control_mode"), [("sim", "velocity"), ("sim", "position"), ("emulated", "velocity")]
-)
-def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str, control_mode: str) -> None:
-    env = make_env(REACH, backend=backend, control_mode=control_mode)
+#: j1 into the obstacle at 0.3 of its 1 rad/s: 10.5 rad/s at the motor, 85 microsteps a
+#: firmware pass once blocked, which its stall detection sees (a faster collision jumps
+#: past the firmware's spike limit and is not flagged: docs/firmware.md "Stall detection").
+PUSH_INTO_OBSTACLE = 0.3
+
+
+@pytest.mark.parametrize("backend", ["sim", "emulated"])
+def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str) -> None:
+    env = make_env(REACH, backend=backend, control_mode="velocity")
     env.reset(seed=3)
     _put_obstacle_ahead_of_j1(env)
     push = env.unwrapped._neutral_action()
-    push[0] = 1.0 if control_mode == "velocity" else min(1.0, push[0] + 0.3)
-    for _ in range(50):
+    push[0] = PUSH_INTO_OBSTACLE
+    for _ in range(80):
         obs, reward, terminated, truncated, info = env.step(push)
         if terminated:
             break
@@ -395,6 +399,25 @@ def test_stall_terminates_episode_with_penalty(make_env: MakeEnv, backend: str, 
         obs, _, terminated, _, info = env.step(env.unwrapped._neutral_action())
         assert not terminated
         assert all(f == 0 for f in info["flags"].values())
+
+
+def test_a_collision_at_full_speed_is_not_flagged_by_the_firmware(make_env: MakeEnv) -> None:
+    # j1 at its full 1 rad/s (35 rad/s at the motor): once blocked its PID error jumps
+    # by 285 microsteps in one pass, past the spike limit of 100; the firmware's filter
+    # drops it and keeps doing so (docs/firmware.md, "Stall detection"). The real arm on
+    # the packaged firmware source would press on at its drive current just the same.
+    env = make_env(REACH, backend="sim", control_mode="velocity")
+    env.reset(seed=3)
+    _put_obstacle_ahead_of_j1(env)
+    push = env.unwrapped._neutral_action()
+    push[0] = 1.0
+    for _ in range(50):
+        _, _, terminated, _, info = env.step(push)
+        assert not terminated
+    assert info["flags"]["j1"] & Flag.STALL == 0
+    tcp = kinematics.forward(_true_joints(env))
+    obstacle = env.unwrapped.sim.data.mocap_pos[_obstacle_mocap(env)]
+    assert math.hypot(tcp[0] - obstacle[0], tcp[1] - obstacle[1]) < 0.2, "j1 never reached the obstacle"
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,8 @@ written after every command, also a failed one, with
      "firmware": {"j1": {...}, ...},      # FirmwareCore.snapshot() per joint;
                                           # enums as {"enum": NAME}, Infinity/NaN
                                           # as Python's json writes them
+     "drive": {"j1": {...}, ...},         # the drive model's state per joint
+                                          # (its random generator is not kept)
      "host": {"gripper": {"enabled": false, "width_m": 0.08},
               "homing": {"j1": 0.03},     # homings left running (--no-wait)
               "stats": {"j1": {"transactions": 12, ...}}}}
@@ -56,7 +58,7 @@ from bioscara_gym.hardware.stats import CommStats
 
 #: ``format`` and ``version`` of the state file.
 STATE_FORMAT = "bioscara-console-state"
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 
 @dataclass
@@ -158,7 +160,7 @@ def save_state(path: Path, backend: Backend, facts: HostFacts) -> None:
     """
     if backend.sim is None:
         raise StateFileError(f"--state: the {backend.name} backend has no simulated state to save")
-    mj_state, cores = backend.sim.snapshot()  # type: ignore[attr-defined]
+    mj_state, cores, drives = backend.sim.snapshot()  # type: ignore[attr-defined]
     doc = {
         "format": STATE_FORMAT,
         "version": STATE_VERSION,
@@ -167,6 +169,9 @@ def save_state(path: Path, backend: Backend, facts: HostFacts) -> None:
         "time_s": backend.clock.now(),
         "mujoco": [float(x) for x in mj_state],
         "firmware": {name: {k: _encode(v) for k, v in core.items()} for name, core in cores.items()},
+        "drive": {
+            name: {k: _encode(v) for k, v in drive.items() if k != "rng"} for name, drive in drives.items()
+        },
         "host": {
             "gripper": {"enabled": facts.gripper_enabled, "width_m": facts.gripper_width_m},
             "homing": dict(facts.homing),
@@ -239,7 +244,7 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
             "--config or another file"
         )
     sim = backend.sim
-    fresh_state, fresh_cores = sim.snapshot()  # type: ignore[union-attr]
+    fresh_state, fresh_cores, fresh_drives = sim.snapshot()  # type: ignore[union-attr]
     mj = doc.get("mujoco")
     if (
         not isinstance(mj, list)
@@ -256,6 +261,16 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         if not isinstance(saved, dict) or set(saved) != set(fresh):
             raise StateFileError(f"{where}: firmware state of {name} does not match this firmware emulation")
         cores[name] = {k: _decode(saved[k], fresh[k], f"{where}: {name}.{k}") for k in fresh}
+    saved_drives = doc.get("drive")
+    if not isinstance(saved_drives, dict) or set(saved_drives) != set(fresh_drives):
+        raise StateFileError(f"{where}: 'drive' must hold the joints {', '.join(fresh_drives)}")
+    drives: dict[str, dict[str, object]] = {}
+    for name, fresh in fresh_drives.items():
+        keep = {k: v for k, v in fresh.items() if k != "rng"}
+        saved = saved_drives[name]
+        if not isinstance(saved, dict) or set(saved) != set(keep):
+            raise StateFileError(f"{where}: drive state of {name} does not match this drive model")
+        drives[name] = {k: _decode(saved[k], keep[k], f"{where}: {name}.{k}") for k in keep}
     facts = _host_facts(doc, fresh_cores, where)
-    sim.restore((np.asarray(mj, dtype=float), cores))  # type: ignore[union-attr]
+    sim.restore((np.asarray(mj, dtype=float), cores, drives))  # type: ignore[union-attr]
     return facts

@@ -274,6 +274,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             if self._snapshot is None:
                 self._snapshot = self.sim.snapshot()
             self.sim.restore(self._snapshot)
+            # The drives' PID-error jitter: a stream of its own, so it does not change the tasks.
+            self.sim.seed_drives(int(self._noise_rng.integers(2**63)))
         self._hold()
         self._move_to(self._random_pose())
         self.arm.read()

@@ -251,7 +251,9 @@ class EmulatedBackend(Backend):
         self.devices = {
             j.address: JointFirmware(None, sim.clock, core=sim.cores[j.name]) for j in config.joints
         }
-        self.bus: I2CBus = EmulatedI2CBus(self.devices, faults, clock=sim.clock, clock_hz=config.i2c_clock_hz)
+        self.bus: I2CBus = EmulatedI2CBus(
+            self.devices, faults, clock=sim.clock, clock_hz=config.i2c_clock_hz, timing=config.bus_timing
+        )
         if wrap_bus is not None:
             self.bus = wrap_bus(self.bus, sim.clock)
         joints = {

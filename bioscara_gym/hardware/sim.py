@@ -29,24 +29,47 @@ from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock, DeadlineScheduler
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
+from bioscara_gym.hardware.drive import IDEAL_DRIVE, DriveParams
 from bioscara_gym.hardware.firmware import FirmwareCore
 from bioscara_gym.hardware.gripper import BaseGripper
-from bioscara_gym.hardware.i2c_timing import check_clock_hz, wire_phases_s
-from bioscara_gym.hardware.motor import FULL_STEP_DEG
+from bioscara_gym.hardware.i2c_timing import WIRE_ONLY, TransactionTiming, check_clock_hz
+from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.hardware.registers import FLAGS_SIZE, TICK_S, Reg
 
 
 class MujocoMotor:
     """One joint actuator of the MuJoCo arm, seen from the firmware (motor degrees).
 
+    The stepper's drive is the same model as the emulator's
+    (:class:`~bioscara_gym.hardware.motor.KinematicStepper` with the joint's
+    calibrated :class:`~bioscara_gym.hardware.drive.DriveParams`): it decides
+    whether the rotor keeps its field (pull-out against current and speed),
+    keeps the library's position counter and PID error, and gives the
+    encoder's speed estimate. MuJoCo moves the joint after that rotor through
+    the stiff ``intvelocity`` actuator; when something outside holds the
+    joint (an end stop, an obstacle: a constraint force against the drive
+    of more than :data:`HELD_FRACTION` of its force at this current), the
+    rotor is held with it, slips, and its pole slips show in the PID error
+    as the real one's do. ANGLEMOVED reads MuJoCo's joint.
+
     Args:
         model: The compiled model.
         data: Its data.
         joint: Joint name (also the actuator's name).
         reduction: Signed reduction, motor turns per joint unit.
+        drive: The joint's motor and drive (default: ideal).
+        rng: Random numbers for the PID error's jitter.
     """
 
-    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, joint: str, reduction: float) -> None:
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        joint: str,
+        reduction: float,
+        drive: DriveParams = IDEAL_DRIVE,
+        rng: np.random.Generator | None = None,
+    ) -> None:
         """Bind to the joint and actuator called ``joint``."""
         self._model = model
         self._data = data
@@ -59,23 +82,19 @@ class MujocoMotor:
         self._kp100 = float(model.actuator_gainprm[self._act_id, 0])
         self._kv100 = float(-model.actuator_biasprm[self._act_id, 2])
         self._force100 = float(model.actuator_forcerange[self._act_id, 1])
-        # The model's drive is COMPLIANCE times softer than the real stepper (which
-        # reaches its force limit at one full step of lag) so that 2 ms physics steps
-        # stay stable; see assets/bioscara.xml. The firmware must still see the real
-        # stepper's PID error: the lag is scaled back below saturation and grows at
-        # the true rate once the set point runs away from a blocked rotor.
-        kp_true = self._force100 * abs(reduction) / math.radians(FULL_STEP_DEG)
-        self.compliance = kp_true / self._kp100
-        self._saturation_deg = self.compliance * FULL_STEP_DEG
         self._fraction = -1.0
         self._kv = 0.0
-        self._velocity = 0.0
+        self.stepper = KinematicStepper(self.position_deg, drive=drive, rng=rng)
+        self._tick_start = self.stepper.position_deg
+        self._tick_s = 0.0
+        self._range = tuple(float(x) for x in model.jnt_range[jid])  # the end stops, joint units
+        self._hold_push = 0.0  # fraction of the drive's force a held rotor presses with
         self.set_torque_fraction(0.0)
 
     @property
     def setpoint_deg(self) -> float:
-        """Set point (the actuator's activation), motor degrees."""
-        return self._deg_per_unit * self._data.act[self._actadr]
+        """The driver's position counter (XACTUAL), motor degrees."""
+        return self.stepper.setpoint_deg
 
     @property
     def position_deg(self) -> float:
@@ -84,17 +103,13 @@ class MujocoMotor:
 
     @property
     def velocity_dps(self) -> float:
-        """Joint velocity, motor deg/s."""
-        return self._deg_per_unit * self._data.qvel[self._dadr]
+        """The encoder's speed estimate, motor deg/s."""
+        return self.stepper.velocity_dps
 
     @property
     def pid_error_deg(self) -> float:
-        """The real stepper's PID error for the model's lag, motor degrees."""
-        x = self._deg_per_unit * (self._data.act[self._actadr] - self._data.qpos[self._qadr])
-        sat = self._saturation_deg
-        if -sat <= x <= sat:
-            return x / self.compliance
-        return math.copysign(FULL_STEP_DEG, x) + (x - math.copysign(sat, x))
+        """The library's last PID error, motor degrees."""
+        return self.stepper.pid_error_deg
 
     def set_torque_fraction(self, fraction: float) -> None:
         """Scale stiffness, damping and force limit with the driver current."""
@@ -110,22 +125,104 @@ class MujocoMotor:
         m.actuator_forcerange[i, 1] = self._force100 * fraction
 
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        """Set-point velocity for the next tick and the torque the current allows."""
+        """Step rate for the next tick and the torque the current allows."""
         self.set_torque_fraction(torque_fraction)
+        self.stepper.command(velocity_dps, torque_fraction)
         if torque_fraction <= 0.0:
             self.hold_here()
-            velocity_dps = 0.0
-        v = velocity_dps / self._deg_per_unit
-        self._data.ctrl[self._act_id] = v
-        # Damp the tracking error's rate, not the absolute speed: kv*(v_sp - qdot).
-        self._model.actuator_biasprm[self._act_id, 0] = self._kv * v
 
     def hold_here(self) -> None:
-        """Set point := joint position."""
+        """Stop hard where the joint is: the drive's rotor, field and counter onto it."""
+        self.stepper.place(self.position_deg)
         self._data.act[self._actadr] = self._data.qpos[self._qadr]
+        self._data.ctrl[self._act_id] = 0.0
+        self._tick_start = self.stepper.position_deg
+        self._tick_s = 0.0
 
     def advance(self, dt: float) -> None:
-        """Physics is stepped by :class:`ArmSim`; nothing to do here."""
+        """Run the drive for ``dt`` s; MuJoCo follows its rotor over the next physics steps."""
+        if self._tick_s == 0.0:
+            self._tick_start = self.stepper.position_deg
+        self.stepper.advance(dt)
+        self._tick_s += dt
+
+    def begin_physics(self) -> None:
+        """Point the actuator from the rotor's place at the tick's start to its place at the end.
+
+        A held rotor instead presses on with twice :data:`HELD_FRACTION` of
+        the drive's force, so :meth:`end_physics` finds out whether the
+        obstacle is still there.
+        """
+        elapsed = self._tick_s
+        self._tick_s = 0.0
+        if self.stepper.held:
+            push = self._hold_push * self._force100 / self._kp100  # at any current: kp and F scale alike
+            field = self.stepper.field_velocity_dps
+            self._data.act[self._actadr] = self._data.qpos[self._qadr] + math.copysign(
+                push, field * self._deg_per_unit
+            )
+            self._data.ctrl[self._act_id] = 0.0
+            self._model.actuator_biasprm[self._act_id, 0] = 0.0
+            return
+        start = self._tick_start / self._deg_per_unit
+        velocity = (
+            (self.stepper.position_deg - self._tick_start) / self._deg_per_unit / elapsed if elapsed else 0.0
+        )
+        self._data.act[self._actadr] = start
+        self._data.ctrl[self._act_id] = velocity
+        # Damp the tracking error's rate, not the absolute speed: kv*(v_sp - qdot).
+        self._model.actuator_biasprm[self._act_id, 0] = self._kv * velocity
+
+    def end_physics(self) -> None:
+        """After physics: if a constraint holds the joint against the drive, the rotor is held there.
+
+        Released once the field no longer drives it that way or the
+        obstacle gave way.
+        """
+        stepper = self.stepper
+        if self._fraction <= 0.0:
+            if stepper.held:
+                stepper.release_rotor()
+            return
+        drive = self._data.actuator_force[self._act_id]
+        held = self._data.qfrc_constraint[self._dadr]
+        q = self._data.qpos[self._qadr]
+        lo, hi = self._range
+        at_stop = q <= lo + END_STOP_BAND or q >= hi - END_STOP_BAND
+        fraction = HELD_FRACTION if at_stop else CONTACT_FRACTION
+        pressing = drive * held < 0.0 and abs(held) > fraction * self._force100 * self._fraction
+        driven = stepper.field_velocity_dps * drive * self._deg_per_unit > 0.0
+        if pressing and driven:
+            self._hold_push = min(1.0, 2.0 * fraction)
+            stepper.hold_rotor(self.position_deg)
+        elif stepper.held:
+            stepper.release_rotor()
+        self._tick_start = stepper.position_deg
+
+    def snapshot(self) -> dict[str, object]:
+        """The drive's state, for :meth:`restore`."""
+        return self.stepper.snapshot()
+
+    def restore(self, state: dict[str, object]) -> None:
+        """Return the drive to a :meth:`snapshot`; the actuator follows the joint."""
+        self.stepper.restore(state)
+        self._tick_start = self.stepper.position_deg
+        self._tick_s = 0.0
+
+
+#: An end stop pressing back on the drive with more than this fraction of the
+#: drive's force at its current holds the rotor: the real stepper's field
+#: then runs past it. (The model's drive is 16x softer than the stepper, so
+#: at 10 % it has about 3° of lag at the motor, the two full steps after
+#: which the real one slips a pole; waiting for its full force would delay
+#: every homing by half a second.)
+HELD_FRACTION = 0.1
+#: Anything else (an obstacle, an object) holds the rotor only once it takes
+#: nearly all the drive's force: the stepper slips when the load exceeds its
+#: pull-out torque, and the model's force limit is that torque.
+CONTACT_FRACTION = 0.9
+#: A joint this close to its range limit (rad or m) is at its end stop.
+END_STOP_BAND = 1e-3
 
 
 class SimClock:
@@ -163,6 +260,7 @@ class ArmSim:
             directions drive to, so a first homing takes a few seconds of
             simulated time.
         model_path: MJCF scene to load (the packaged one by default).
+        seed: Seed of the drives' PID-error jitter (see :meth:`seed_drives`).
     """
 
     def __init__(
@@ -170,6 +268,7 @@ class ArmSim:
         config: ArmConfig,
         initial_qpos: Mapping[str, float] | None = None,
         model_path: str | Path | None = None,
+        seed: int = 0,
     ) -> None:
         """Load and compile the model, power the firmware up."""
         self.config = config
@@ -181,8 +280,12 @@ class ArmSim:
         self.substeps_per_tick = round(substeps)
         self.clock = SimClock(self)
         self.motors = {
-            j.name: MujocoMotor(self.model, self.data, j.name, j.reduction) for j in config.joints
+            j.name: MujocoMotor(
+                self.model, self.data, j.name, j.reduction, j.drive, np.random.default_rng([seed, i])
+            )
+            for i, j in enumerate(config.joints)
         }
+        self._motor_list = list(self.motors.values())
         self.cores = {name: FirmwareCore(motor, 0.0) for name, motor in self.motors.items()}
         self._core_list = list(self.cores.values())
         self._qadr = {j.name: int(self.model.jnt_qposadr[self.model.joint(j.name).id]) for j in config.joints}
@@ -215,17 +318,27 @@ class ArmSim:
         self._pending = 0.0
         self.schedule.restart()
 
-    def snapshot(self) -> tuple[np.ndarray, dict[str, dict[str, object]]]:
-        """Physics and firmware state, for :meth:`restore` (e.g. a homed arm at rest)."""
+    def seed_drives(self, seed: int) -> None:
+        """Reseed every drive's PID-error jitter (an env does on each reset, from its own seed)."""
+        for i, motor in enumerate(self._motor_list):
+            motor.stepper.rng = np.random.default_rng([seed, i])
+
+    def snapshot(self) -> tuple[np.ndarray, dict[str, dict[str, object]], dict[str, dict[str, object]]]:
+        """Physics, drive and firmware state, for :meth:`restore` (e.g. a homed arm at rest)."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         state = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, state, spec)
-        return state, {name: core.snapshot() for name, core in self.cores.items()}
+        cores = {name: core.snapshot() for name, core in self.cores.items()}
+        return state, cores, {name: motor.snapshot() for name, motor in self.motors.items()}
 
-    def restore(self, snapshot: tuple[np.ndarray, dict[str, dict[str, object]]]) -> None:
-        """Return physics and every firmware core to a :meth:`snapshot`."""
-        state, cores = snapshot
+    def restore(
+        self, snapshot: tuple[np.ndarray, dict[str, dict[str, object]], dict[str, dict[str, object]]]
+    ) -> None:
+        """Return physics, every drive and every firmware core to a :meth:`snapshot`."""
+        state, cores, motors = snapshot
         mujoco.mj_setState(self.model, self.data, state, mujoco.mjtState.mjSTATE_INTEGRATION)
+        for name, motor in self.motors.items():
+            motor.restore(motors[name])
         for name, core in self.cores.items():
             core.restore(cores[name])
         self._pending = 0.0
@@ -257,19 +370,25 @@ class ArmSim:
         """
         self._pending += dt
         m, d, n = self.model, self.data, self.substeps_per_tick
-        cores = self._core_list
+        cores, motors = self._core_list, self._motor_list
         while self._pending >= TICK_S - 1e-9:
             self._pending -= TICK_S
             for core in cores:
-                core.tick()
+                core.tick()  # the drive runs the tick ahead of physics
+            for motor in motors:
+                motor.begin_physics()
             homing = [core for core in cores if core.homing_runs]
             if not homing:
                 mujoco.mj_step(m, d, nstep=n)
+                for motor in motors:
+                    motor.end_physics()
                 continue
             # The homing loop reads the PID error every 1 ms, not once a tick:
             # poll after every physics step (2 ms, the finest the model resolves).
             for _ in range(n):
                 mujoco.mj_step(m, d)
+                for motor in motors:
+                    motor.end_physics()
                 for core in homing:
                     core.poll_homing()
 
@@ -295,10 +414,17 @@ class SimJoint(BaseJoint):
         clock: The simulation clock.
         i2c_clock_hz: Bus clock whose wire time each call takes, Hz; ``None``:
             calls take no time.
+        timing: What a transaction takes beyond its bits (the configuration's
+            ``bus_timing``: the host's call, the joint's handler).
     """
 
     def __init__(
-        self, config: JointConfig, core: FirmwareCore, clock: Clock, i2c_clock_hz: float | None = None
+        self,
+        config: JointConfig,
+        core: FirmwareCore,
+        clock: Clock,
+        i2c_clock_hz: float | None = None,
+        timing: TransactionTiming = WIRE_ONLY,
     ) -> None:
         """Bind the joint to its firmware core."""
         super().__init__(config.name, config.reduction, config.min, config.max, clock)
@@ -311,8 +437,8 @@ class SimJoint(BaseJoint):
         if self.i2c_clock_hz is not None:
             for reg in Reg:
                 size = codec.payload_size(reg)
-                self._command_wire[reg] = wire_phases_s(1 + size, FLAGS_SIZE, self.i2c_clock_hz)
-                self._query_wire[reg] = wire_phases_s(1, size + FLAGS_SIZE, self.i2c_clock_hz)
+                self._command_wire[reg] = timing.phases_s(1 + size, FLAGS_SIZE, self.i2c_clock_hz, reg)
+                self._query_wire[reg] = timing.phases_s(1, size + FLAGS_SIZE, self.i2c_clock_hz, reg)
 
     def _command(self, reg: Reg, value: float | int) -> int:
         wire = self._command_wire.get(reg)
@@ -363,10 +489,10 @@ class SimGripper(BaseGripper):
         self._sim.data.ctrl[self._act_id] = angle_deg / self.reduction + self.offset
 
 
-
 def make_sim_joints(
     sim: ArmSim, names: Sequence[str] | None = None, i2c_clock_hz: float | None = None
 ) -> dict[str, SimJoint]:
     """One :class:`SimJoint` per configured joint of ``sim`` (calls take wire time at ``i2c_clock_hz``)."""
     names = names or [j.name for j in sim.config.joints]
-    return {n: SimJoint(sim.config.joint(n), sim.cores[n], sim.clock, i2c_clock_hz) for n in names}
+    timing = sim.config.bus_timing
+    return {n: SimJoint(sim.config.joint(n), sim.cores[n], sim.clock, i2c_clock_hz, timing) for n in names}
