@@ -217,6 +217,7 @@ EXTRA_COMMAND_MODULES = (
     "bioscara_gym.console.commands",
     "bioscara_gym.hardware.dynamixel.commands",
     "bioscara_gym.replay",
+    "bioscara_gym.validation.commands",
 )
 
 

@@ -26,6 +26,7 @@ __all__ = [
     "MetadataError",
     "MissingExtraError",
     "PolicyFileError",
+    "RecordingError",
     "StateFileError",
     "StateFileInUseError",
     "TrainingError",
@@ -113,3 +114,19 @@ class DeployError(Exception):
         super().__init__(message)
         self.code = code
         self.summary = summary
+
+
+class RecordingError(ValueError):
+    """A recording of the real arm that cannot be used (``bioscara validate``/``calibrate``).
+
+    Attributes:
+        path: The file or folder.
+        problem: What is wrong with it.
+    """
+
+    def __init__(self, path: Path | str, problem: str) -> None:
+        """Name the file and the problem: ``str()`` is ``<path>: <problem>``."""
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+

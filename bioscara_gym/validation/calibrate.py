@@ -1,0 +1,407 @@
+"""System identification: the model's free parameters fitted to the real arm's recordings.
+
+``bioscara calibrate`` runs these fits and writes a configuration whose
+``drive`` blocks, ``pid_noise`` profile and ``bus_timing`` come from the
+recordings (every other value is the input configuration's):
+
+* :func:`fit_bus_timing`: the host's overhead per transaction, the clock
+  periods its controller adds and the handler times the profiling firmware
+  did not measure, by non-negative least squares on ``RW_test/``.
+* :func:`fit_program_overhead`: what ``max_accel_test.cpp`` spends per pass
+  beyond its sleep and transactions, from the runs' constant-speed stretches
+  (position step over the reported speed is the real period).
+* :func:`fit_pid_noise`: the PID error of a following rotor, median by speed
+  band while the set speed rises and while it falls, from the free-running
+  rows of ``high_speed_stall_test/``.
+* :func:`fit_drive`: per joint, the pull-out acceleration, its fall with
+  speed, friction, the slipping rotor's torque and the pull-in range, by
+  differential evolution (scipy) on the ``maxAccel/`` replays: position and
+  peak speed of every run and whether it lost steps, plus the limits the
+  arm's authors state in ``maxAccel/README.md`` for runs not published.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.drive import DriveParams, PidNoiseProfile
+from bioscara_gym.hardware.i2c_timing import TransactionTiming, wire_time_s
+from bioscara_gym.hardware.registers import Reg
+from bioscara_gym.validation.experiments import max_accel
+from bioscara_gym.validation.recordings import (
+    HandlerTimes,
+    MaxAccelRun,
+    Recordings,
+    StallSignal,
+    Transactions,
+)
+
+__all__ = [
+    "README_LIMITS",
+    "Limit",
+    "calibrate",
+    "fit_bus_timing",
+    "fit_drive",
+    "fit_pid_noise",
+    "fit_program_overhead",
+]
+
+
+# ----------------------------------------------------------------- bus timing
+#: The functions of ``comm_speed_test.cpp`` by file: (read register, write register).
+_RW_REGISTERS = {"position": (Reg.ANGLEMOVED, Reg.MOVETOANGLE), "velocity": (Reg.GETENCODERRPM, Reg.SETRPM)}
+#: Bytes written and read by each (docs/protocol.md): a query writes the
+#: register and reads value and flags, a command writes register and value and reads the flags.
+_LENGTHS = {"read": (1, 5), "write": (5, 1)}
+
+
+def fit_bus_timing(
+    transactions: Sequence[Transactions], handlers: Sequence[HandlerTimes]
+) -> TransactionTiming:
+    """Host overhead, extra clock periods and unmeasured handler times from ``RW_test/``.
+
+    The profiling firmware measured the handlers of the position functions
+    (``baseline_joint_400kHz.csv``); those of GETENCODERRPM and SETRPM, the
+    host's overhead and the periods its controller adds are fitted to the
+    mean time of each function at each bus speed (non-negative least squares).
+
+    Raises:
+        ValueError: No position and velocity timings, or no handler times.
+    """
+    from scipy.optimize import lsq_linear
+
+    measured: dict[int, float] = {}
+    for h in handlers:
+        for name, us in h.mean_us().items():
+            if str(name) in Reg.__members__:
+                measured[int(Reg[str(name)])] = us * 1e-6
+    unknown = [int(Reg.GETENCODERRPM), int(Reg.SETRPM)]
+    rows, y = [], []
+    for tr in transactions:
+        if tr.what not in _RW_REGISTERS:
+            continue  # other host patterns: their program is not published
+        for kind, mean_us in (("read", tr.read_us.mean()), ("write", tr.write_us.mean())):
+            reg = int(_RW_REGISTERS[tr.what][0 if kind == "read" else 1])
+            wire = wire_time_s(*_LENGTHS[kind], tr.clock_hz)
+            row = [1.0, 1.0 / tr.clock_hz] + [1.0 if reg == u else 0.0 for u in unknown]
+            known = measured.get(reg, 0.0) if reg not in unknown else 0.0
+            rows.append(row)
+            y.append(mean_us * 1e-6 - wire - known)
+    if not rows or not measured:
+        raise ValueError("RW_test needs position_/velocity_<speed>kHz.csv and baseline_joint_*.csv")
+    sol = lsq_linear(np.array(rows), np.array(y), bounds=(0.0, np.inf)).x
+    handler_s = dict(measured)
+    handler_s.update({u: float(v) for u, v in zip(unknown, sol[2:], strict=True)})
+    return TransactionTiming(float(sol[0]), float(sol[1]), handler_s)
+
+
+def fit_program_overhead(runs: Sequence[MaxAccelRun], timing: TransactionTiming, clock_hz: float) -> float:
+    """Seconds ``max_accel_test.cpp`` spends per pass beyond its sleep and two reads.
+
+    On a stretch of constant speed (the reported speed within 1 % of the
+    command for five samples), the position step over the speed is the
+    real period; the mean over every such sample of every run, less the
+    logged sleep and the two transactions, is the program's own time.
+    """
+    reads = timing.transaction_s(1, 5, clock_hz, int(Reg.ANGLEMOVED)) + timing.transaction_s(
+        1, 5, clock_hz, int(Reg.GETENCODERRPM)
+    )
+    extra = []
+    for run in runs:
+        v = run.max_velocity
+        steady = np.abs(run.qd - v) < 0.01 * v
+        for i in range(5, len(run.t)):
+            if steady[i - 4 : i + 1].all():
+                real = (run.q[i] - run.q[i - 1]) / run.qd[i]
+                extra.append(real - (run.t[i] - run.t[i - 1]) - reads)
+    if not extra:
+        raise ValueError(
+            "no maxAccel run reaches a constant speed: the program's overhead cannot be measured"
+        )
+    return max(0.0, float(np.mean(extra)))
+
+
+# ----------------------------------------------------------------- PID noise
+def fit_pid_noise(signals: Sequence[StallSignal]) -> PidNoiseProfile:
+    """Median |PID error| per 5 rad/s band while the set speed rises and while it falls.
+
+    The bands are the validation's (:func:`~.experiments.stall.band_medians`),
+    pooled over every file's replayable passes (the old builds print the
+    same raw error; passes within 0.3 s before a trip are left out, they
+    belong to the stall); each band's median becomes a knot at its centre.
+    A band with fewer than 5 passes takes its neighbour's value.
+
+    Raises:
+        ValueError: No free-running passes at all.
+    """
+    from bioscara_gym.validation.experiments.stall import BAND_RAD_S, _bands
+
+    pools: dict[tuple[int, int], list[float]] = {}
+    for sig in signals:
+        keep = (sig.raw < 10_000) & ~((sig.set_speed == 0) & (np.abs(sig.speed) > 2.0))
+        for i in np.nonzero(sig.stalled > 0)[0]:
+            keep &= ~((sig.t > sig.t[i] - 0.3) & (sig.t <= sig.t[i]))
+        band, direction = _bands(sig.speed, sig.set_speed)
+        for b, d, v in zip(band[keep], direction[keep], sig.raw[keep], strict=True):
+            pools.setdefault((1 if d >= 0 else -1, int(b)), []).append(float(v))
+    if not pools:
+        raise ValueError("high_speed_stall_test holds no free-running passes to fit the PID-error profile on")
+    top = max(b for _, b in pools)
+    knots = tuple(BAND_RAD_S * (b + 0.5) for b in range(top + 1))
+
+    def medians(d: int) -> tuple[float, ...]:
+        out: list[float | None] = [
+            float(np.median(pools[(d, b)])) if len(pools.get((d, b), ())) >= 5 else None
+            for b in range(top + 1)
+        ]
+        known = [v for v in out if v is not None]
+        last = known[0] if known else 0.0
+        filled = []
+        for v in out:
+            last = v if v is not None else last
+            filled.append(round(float(last), 1))
+        return tuple(filled)
+
+    return PidNoiseProfile(knots, medians(1), medians(-1))
+
+
+# --------------------------------------------------------------------- drive
+@dataclass(frozen=True)
+class Limit:
+    """A limit the arm's authors state for a run they did not publish: lost steps or not.
+
+    Attributes:
+        joint: The joint.
+        max_velocity: Velocity commanded (joint units).
+        max_acceleration: Acceleration set (joint units).
+        current: Percent.
+        lost: Whether the motor lost steps.
+        source: Where it is stated.
+    """
+
+    joint: str
+    max_velocity: float
+    max_acceleration: float
+    current: float
+    lost: bool
+    source: str
+
+    def as_run(self) -> MaxAccelRun:
+        """A run of ``max_accel_test.cpp`` of these settings, 2 s long (no samples to compare)."""
+        t = 0.01012 * np.arange(1, 201)
+        from pathlib import Path
+
+        nan = np.full(len(t), np.nan)
+        return MaxAccelRun(
+            Path(f"README:{self.joint}_{self.max_velocity:g}_{self.max_acceleration:g}"),
+            self.joint,
+            self.max_velocity,
+            self.max_acceleration,
+            self.current,
+            t,
+            nan,
+            nan,
+        )
+
+
+#: ``maxAccel/README.md``: runs named there but not published (j3_15, j3_17, j3_18).
+README_LIMITS = (
+    Limit("j3", 5.0, 14.0, 20, False, "maxAccel/README.md: max acceleration at 14 rad/s2 (run j3_17)"),
+    Limit(
+        "j3", 5.0, 15.0, 20, True, "maxAccel/README.md: acc 15 rad/s2 and vel 5rad/s didnt work (run j3_18)"
+    ),
+    Limit("j3", 5.0, 10.0, 20, False, "maxAccel/README.md: max velocity 5 rad/s at 20% current (run j3_15)"),
+)
+
+#: What the fit may choose per joint: (field, low, high, searched on a log scale).
+#: Accelerations in motor rad/s² at 100 % current (pull-out) or as
+#: decelerations (friction): a lead screw's friction over its small inertia
+#: is thousands of rad/s², an arm's tens.
+DRIVE_BOUNDS = (
+    ("pullout_accel", 300.0, 100_000.0, True),
+    ("corner_speed", 20.0, 3000.0, True),
+    ("corner_exponent", 1.0, 12.0, False),
+    ("friction_coulomb", 1.0, 20_000.0, True),
+    ("friction_viscous", 0.0, 50.0, False),
+    ("slip_fraction", 0.0, 1.0, False),
+    ("pullin_speed", 0.5, 30.0, False),
+)
+
+
+def _with_drive(config: ArmConfig, joint: str, drive: DriveParams) -> ArmConfig:
+    joints = tuple(dataclasses.replace(j, drive=drive) if j.name == joint else j for j in config.joints)
+    return dataclasses.replace(config, joints=joints)
+
+
+def drive_cost(
+    config: ArmConfig, runs: Sequence[MaxAccelRun], limits: Sequence[Limit], step_loss_weight: float = 1.0
+) -> float:
+    """What the drive fit minimises: position and peak-speed errors, and step-loss verdicts.
+
+    Per published run: (position RMS / move)² + (peak speed error / peak)²
+    over the compared window, plus ``step_loss_weight`` if the simulated run
+    disagrees with the real one on lost steps; per stated limit, the weight
+    if the verdict differs.
+    """
+    total = 0.0
+    for run in runs:
+        sim = max_accel.replay(run, config)
+        commanded = max_accel.replay(run, max_accel.ideal(config, run.joint))
+        mask = max_accel.window(run, config)
+        real = run.q[mask] - run.q[0]
+        move = max(float(np.max(np.abs(real))), 1e-9)
+        rms = float(np.sqrt(np.mean((sim.q[mask] - sim.q[0] - real) ** 2))) / move
+        peak = float(np.max(np.abs(run.qd[mask])))
+        peak_err = abs(float(np.max(np.abs(sim.qd[mask]))) - peak) / peak
+        lost_real = max_accel.lost_steps(run.qd[mask], commanded.qd[mask], run)
+        lost_sim = max_accel.lost_steps(sim.qd[mask], commanded.qd[mask], run)
+        total += rms**2 + peak_err**2 + step_loss_weight * (lost_real != lost_sim)
+    for limit in limits:
+        run = limit.as_run()
+        sim = max_accel.replay(run, config)
+        commanded = max_accel.replay(run, max_accel.ideal(config, run.joint))
+        total += step_loss_weight * (max_accel.lost_steps(sim.qd, commanded.qd, run) != limit.lost)
+    return total
+
+
+def fit_drive(
+    config: ArmConfig,
+    joint: str,
+    runs: Sequence[MaxAccelRun],
+    limits: Sequence[Limit] = (),
+    *,
+    seed: int = 0,
+    maxiter: int = 40,
+    popsize: int = 16,
+    progress: Callable[[str], None] | None = None,
+) -> DriveParams:
+    """Fit one joint's drive to its ``maxAccel/`` runs and stated limits (differential evolution).
+
+    Raises:
+        ValueError: No run or limit of this joint.
+    """
+    from scipy.optimize import differential_evolution
+
+    runs = [r for r in runs if r.joint == joint]
+    limits = [lim for lim in limits if lim.joint == joint]
+    if not runs and not limits:
+        raise ValueError(f"{joint}: no maxAccel run or stated limit to fit its drive to")
+    base = config.joint(joint).drive
+    names = [b[0] for b in DRIVE_BOUNDS]
+    logs = [b[3] for b in DRIVE_BOUNDS]
+
+    def drive_of(x: np.ndarray) -> DriveParams:
+        values = {n: float(10**v if log else v) for n, v, log in zip(names, x, logs, strict=True)}
+        return base.with_values(**values)
+
+    def cost(x: np.ndarray) -> float:
+        try:
+            return drive_cost(_with_drive(config, joint, drive_of(x)), runs, limits)
+        except Exception:  # a drive the rig cannot even home with
+            return 1e3
+
+    calls = 0
+
+    def report(xk: np.ndarray, convergence: float = 0.0) -> None:
+        nonlocal calls
+        calls += 1
+        if progress:
+            progress(f"{joint}: generation {calls}, cost {cost(xk):.4f}")
+
+    bounds = [(math.log10(lo), math.log10(hi)) if log else (lo, hi) for _, lo, hi, log in DRIVE_BOUNDS]
+    result = differential_evolution(
+        cost,
+        bounds,
+        seed=seed,
+        maxiter=maxiter,
+        popsize=popsize,
+        tol=1e-6,
+        polish=False,
+        updating="deferred",
+        callback=report,
+    )
+    # A local polish from the best point (the cost steps where a run starts to lose steps).
+    from scipy.optimize import minimize
+
+    polished = minimize(
+        cost,
+        result.x,
+        method="Nelder-Mead",
+        bounds=bounds,
+        options={"maxfev": 40 * len(bounds), "xatol": 1e-4},
+    )
+    best = polished.x if polished.fun <= result.fun else result.x
+    if progress:
+        progress(f"{joint}: polished cost {min(polished.fun, result.fun):.4f} (from {result.fun:.4f})")
+    return drive_of(best)
+
+
+# ------------------------------------------------------------------ it all
+@dataclass
+class Calibration:
+    """What :func:`calibrate` produced, with the costs before and after."""
+
+    config: ArmConfig
+    timing: TransactionTiming
+    noise: PidNoiseProfile | None
+    drive_cost_before: dict[str, float]
+    drive_cost_after: dict[str, float]
+
+
+def calibrate(
+    config: ArmConfig,
+    rec: Recordings,
+    *,
+    seed: int = 0,
+    maxiter: int = 40,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Fit every parameter the recordings identify; return the calibrated configuration."""
+    timing = config.bus_timing
+    if rec.transactions and rec.handler_times:
+        timing = fit_bus_timing(rec.transactions, rec.handler_times)
+    if rec.max_accel:
+        overhead = fit_program_overhead(rec.max_accel, timing, config.i2c_clock_hz)
+        timing = dataclasses.replace(timing, program_overhead_s=overhead)
+    config = dataclasses.replace(config, bus_timing=timing)
+    noise = fit_pid_noise(rec.stall_signal) if rec.stall_signal else None
+    if noise is not None:
+        joints = tuple(
+            dataclasses.replace(j, drive=dataclasses.replace(j.drive, noise=noise)) for j in config.joints
+        )
+        config = dataclasses.replace(config, joints=joints)
+    limits = README_LIMITS if rec.root.resolve() == _packaged_root() else ()
+    before, after = {}, {}
+    for joint in sorted({r.joint for r in rec.max_accel} | {lim.joint for lim in limits}):
+        if joint not in config.names:
+            continue
+        before[joint] = drive_cost(
+            config,
+            [r for r in rec.max_accel if r.joint == joint],
+            [lim for lim in limits if lim.joint == joint],
+        )
+        drive = fit_drive(config, joint, rec.max_accel, limits, seed=seed, maxiter=maxiter, progress=progress)
+        config = _with_drive(config, joint, drive)
+        after[joint] = drive_cost(
+            config,
+            [r for r in rec.max_accel if r.joint == joint],
+            [lim for lim in limits if lim.joint == joint],
+        )
+    return Calibration(config, timing, noise, before, after)
+
+
+def _packaged_root() -> object:
+    from bioscara_gym.validation.recordings import DATA_DIR
+
+    return DATA_DIR.resolve()
+
+
+def finite_or_none(x: float) -> float | None:
+    """``x`` if finite (for JSON)."""
+    return x if math.isfinite(x) else None

@@ -1,0 +1,142 @@
+"""``bioscara validate`` and ``bioscara calibrate``: the simulated arm against recordings of a real one."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rich.console import Console
+
+from bioscara_gym.errors import CliError
+from bioscara_gym.hardware.config import load_config
+
+
+def _console() -> Console:
+    return Console(highlight=False, soft_wrap=True)
+
+
+def _check_output(path: Path | None, what: str) -> None:
+    """Refuse an output path whose folder does not exist or that is a folder (before any work)."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise CliError(f"{what} {path} is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise CliError(f"{what} {path}: folder {path.parent} does not exist")
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """``bioscara validate``: exit 0 only if every comparison passes."""
+    from bioscara_gym.validation import validate
+    from bioscara_gym.validation.report import print_table, rows_to_json, summary
+
+    _check_output(args.json, "--json")
+    if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
+        raise CliError(f"--plots {args.plots} is a file; give a folder")
+    if args.plots is not None:
+        from bioscara_gym.hardware.errors import require_extra
+
+        require_extra("matplotlib", "--plots", "validate")
+    config = load_config(args.config)
+    result = validate(args.dir, config)
+    print_table(result.rows)
+    passed, total = summary(result.rows)
+    con = _console()
+    con.print(
+        f"{passed} of {total} comparisons pass "
+        f"({len(result.recordings)} recordings in {result.recordings.root})"
+    )
+    if args.json:
+        rows_to_json(result.rows, args.json)
+        con.print(f"json      {args.json}")
+    if args.plots:
+        from bioscara_gym.validation.plots import write_plots
+
+        paths = write_plots(result, args.plots)
+        con.print(f"plots     {args.plots} ({len(paths)} PNG)")
+    return 0 if result.passed else 1
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """``bioscara calibrate``: fit, print the error per experiment before and after, write the config."""
+    import dataclasses
+
+    import yaml
+
+    from bioscara_gym.fsutil import atomic_write_text
+    from bioscara_gym.hardware.config import config_to_dict
+    from bioscara_gym.hardware.errors import require_extra
+    from bioscara_gym.validation import validate
+    from bioscara_gym.validation.calibrate import calibrate
+    from bioscara_gym.validation.recordings import find_recordings
+    from bioscara_gym.validation.report import summary
+
+    require_extra("scipy", "bioscara calibrate", "validate")
+    _check_output(args.out, "--out")
+    if args.maxiter < 1:
+        raise CliError(f"--maxiter must be >= 1, got {args.maxiter}")
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    config = load_config(args.config)
+    rec = find_recordings(args.dir)  # a folder without recordings fails here, before the fit
+    con = _console()
+    before = validate(args.dir, config)
+    result = calibrate(config, rec, seed=args.seed, maxiter=args.maxiter, progress=con.print)
+    after = validate(args.dir, result.config)
+    con.print("experiment                               rows passing before -> after")
+    by_experiment: dict[str, list[int]] = {}
+    for rows, slot in ((before.rows, 0), (after.rows, 1)):
+        for r in rows:
+            counts = by_experiment.setdefault(r.experiment, [0, 0, 0])
+            counts[slot] += r.passed
+            if slot == 0:
+                counts[2] += 1
+    for name, (b, a, n) in by_experiment.items():
+        con.print(f"{name:<60} {b}/{n} -> {a}/{n}")
+    for joint, cost in result.drive_cost_after.items():
+        con.print(f"{joint}: drive fit cost {result.drive_cost_before[joint]:.4f} -> {cost:.4f}")
+    pb, total = summary(before.rows)
+    pa, _ = summary(after.rows)
+    con.print(f"all: {pb} -> {pa} of {total} comparisons pass")
+    header = (
+        f"# Calibrated by `bioscara calibrate {args.dir or '(packaged recordings)'}` from "
+        f"{len(rec)} recordings in {rec.root}\n"
+        "# (docs/validation.md): drive, pid_noise and bus_timing come from the fit; the rest from "
+        f"{args.config or 'the packaged configuration'}.\n"
+    )
+    data = config_to_dict(dataclasses.replace(result.config))
+    atomic_write_text(args.out, header + yaml.safe_dump(data, sort_keys=False))
+    con.print(f"config    {args.out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``validate`` and ``calibrate`` to the ``bioscara`` command."""
+    p = sub.add_parser("validate", help="replay the real arm's recordings on the simulated arm and compare")
+    p.add_argument(
+        "dir",
+        nargs="?",
+        type=Path,
+        help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
+    )
+    p.add_argument("--config", type=Path, help="arm configuration to judge (default: the packaged one)")
+    p.add_argument("--json", type=Path, metavar="FILE", help="write every row as JSON")
+    p.add_argument(
+        "--plots", type=Path, metavar="DIR", help="write one PNG per recording, simulated over real"
+    )
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("calibrate", help="fit the motor, drive and bus model to recordings of a real arm")
+    p.add_argument(
+        "dir",
+        nargs="?",
+        type=Path,
+        help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
+    )
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="CONFIG", help="where to write the configuration"
+    )
+    p.add_argument("--config", type=Path, help="configuration to start from (default: the packaged one)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the optimizer")
+    p.add_argument("--maxiter", type=int, default=40, help="generations of the drive fit per joint")
+    p.set_defaults(func=cmd_calibrate)

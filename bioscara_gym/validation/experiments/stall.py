@@ -1,0 +1,364 @@
+"""``high_speed_stall_test/``: the firmware's stall signal while the host ramps the velocity.
+
+Each row of a file is one main-loop pass of the firmware as it printed it
+over serial: raw |PID error|, after the spike filter, after the low-pass,
+measured and set speed (motor rad/s), the threshold, the stall flag. The
+replay runs the same firmware rules on the simulated joint and logs the
+same values each pass (:attr:`~bioscara_gym.hardware.firmware.FirmwareCore.stall_log`):
+
+* **The firmware build.** Some files come from earlier builds than the
+  packaged source. Each file's build is read off its own columns
+  (:func:`stall_rule_of`): the threshold's slope, the speed band and its
+  offset from the threshold column, the spike limit from the jumps the
+  filter let through and those it removed.
+* **The commands.** The host's SETRPM values are the set-speed column, sent
+  when it changes (the program sent one per pass of its own loop, with a
+  GETENCODERRPM after it), at the row's time. The joint was set up as
+  ``high_speed_stall_test.cpp`` does (max acceleration 30, max velocity 10
+  rad/s at the joint, 20 % current, sensitivity from the threshold).
+* **The obstacle.** In the files named ``*STALL*`` the operator blocked the
+  joint; the replay blocks the simulated rotor at the pass before the
+  measured speed first drops sharply.
+
+Compared: per 5 rad/s speed band and direction of the ramp, the median of
+the raw, spike-removed and filtered signal (within 30 % of the real), and
+every stall trip (within 50 ms of the real one, none where the real arm had
+none).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, StallRule
+from bioscara_gym.hardware.registers import FLAG_STALL, STALL_RPM_PER_RAD_S
+from bioscara_gym.validation.recordings import StallSignal
+from bioscara_gym.validation.report import Row
+from bioscara_gym.validation.rig import JointRig
+
+#: Bounds (issue #23): band medians within 30 %, trips within 50 ms.
+BAND_BOUND_PCT = 30.0
+TRIP_BOUND_S = 0.05
+#: Band medians below this (1/256 microsteps; a sixth of the lowest
+#: threshold, 60) are compared against it, not against themselves: 3 against 5
+#: is encoder noise, not a 67 % error.
+ERROR_FLOOR = 10.0
+#: Width of the speed bands, motor rad/s.
+BAND_RAD_S = 5.0
+#: A band needs this many passes in both runs to be compared: the median of
+#: fewer half-normal samples scatters by more than the bound (at 20 passes
+#: its standard error is about 20 %).
+MIN_BAND_ROWS = 20
+#: The programs' limits per joint (max acceleration, max velocity; joint units):
+#: ``high_speed_stall_test.cpp`` for j4; for j3 its README's "max accel and
+#: vel from test" (``maxAccel/README.md``: 14 rad/s², 5 rad/s).
+PROGRAM_LIMITS = {"j4": (30.0, 10.0), "j3": (14.0, 5.0)}
+#: The programs' current, percent (``enable(20, 20)``).
+PROGRAM_CURRENT = 20
+#: A pause in the log longer than this starts a new segment (no rows while stalled).
+SEGMENT_GAP_S = 0.1
+#: The spike limit of a build that let jumps through which the packaged source's 100 removes.
+OLD_SPIKE_LIMIT = 1000.0
+
+
+def stall_rule_of(sig: StallSignal) -> tuple[StallRule, int]:
+    """The stall detector of the build that wrote ``sig``, and the sensitivity it ran at.
+
+    Read off the file: the threshold at standstill is 10 x the sensitivity;
+    its slope per rad/s from the passes below 11 rad/s; the band is where the
+    threshold stands above the line, and the offset by how much. A file
+    whose filter let a jump of more than 100 through (the packaged source's
+    limit) comes from a build with a larger one: :data:`OLD_SPIKE_LIMIT`,
+    checked against the smallest jump it removed.
+    """
+    w, thr = sig.speed, sig.threshold
+    low = np.abs(w) < 11.0
+    slope, base = (
+        np.polyfit(w[low], thr[low], 1)
+        if low.sum() > 5 and np.ptp(w[low]) > 1
+        else (0.0, float(np.median(thr)))
+    )
+    base_sens = round(base / 10.0)
+    slope = round(float(slope) * 12) / 12  # the old builds' 5/12; 0 in the packaged source
+    residual = thr - (10.0 * base_sens + slope * w)
+    band = residual > 1.0
+    if band.any():
+        offset = float(np.median(residual[band]))
+        lo, hi = float(np.min(np.abs(w[band]))), float(np.max(np.abs(w[band])))
+        above = np.abs(w[~band])
+        higher = above[above > hi]
+        hi = hi if len(higher) else FIRMWARE_STALL_RULE.band[1]  # the band reaches the file's top speed
+        band_edges = (math.floor(lo), round(hi) if len(higher) else hi)
+    else:
+        offset, band_edges = FIRMWARE_STALL_RULE.band_offset, FIRMWARE_STALL_RULE.band
+    jumps = sig.raw[1:] - sig.despiked[:-1]
+    removed = sig.raw[1:] != sig.despiked[1:]
+    kept = float(np.max(jumps[~removed])) if (~removed).any() else 0.0
+    limit = FIRMWARE_STALL_RULE.spike_limit if kept <= FIRMWARE_STALL_RULE.spike_limit else OLD_SPIKE_LIMIT
+    if removed.any() and float(np.min(jumps[removed])) <= limit:
+        limit = float(np.min(jumps[removed])) - 1.0
+    rule = dataclasses.replace(
+        FIRMWARE_STALL_RULE, spike_limit=limit, slope=slope, band=band_edges, band_offset=round(offset, 1)
+    )
+    return rule, int(base_sens)
+
+
+def segments(sig: StallSignal) -> list[slice]:
+    """Runs of consecutive passes (the firmware prints nothing while stalled)."""
+    gaps = np.nonzero(np.diff(sig.t) > SEGMENT_GAP_S)[0]
+    starts = [0, *(gaps + 1)]
+    ends = [*(gaps + 1), len(sig.t)]
+    return [slice(a, b) for a, b in zip(starts, ends, strict=True)]
+
+
+def block_time(sig: StallSignal, seg: slice) -> float | None:
+    """When the operator blocked the joint: the pass before the measured speed first drops by 1 rad/s.
+
+    Only in files named ``*STALL*`` and only in a segment that ends in a
+    trip; ``None`` elsewhere.
+    """
+    if "STALL" not in sig.name or not sig.stalled[seg].any():
+        return None
+    w = np.abs(sig.speed[seg])
+    drops = np.nonzero(np.diff(w) < -1.0)[0]
+    if not len(drops):
+        return None
+    return float(sig.t[seg][drops[0]])
+
+
+@dataclass(frozen=True)
+class StallReplay:
+    """The simulated firmware's serial log over a file's replayable segments."""
+
+    t: np.ndarray
+    raw: np.ndarray
+    despiked: np.ndarray
+    filtered: np.ndarray
+    speed: np.ndarray
+    set_speed: np.ndarray
+    threshold: np.ndarray
+    stalled: np.ndarray
+    rule: StallRule
+    skipped: list[str]
+    spans: list[tuple[float, float]]
+
+
+def _replayable(sig: StallSignal, seg: slice) -> str | None:
+    """Why a segment cannot be replayed, or None."""
+    moving = (sig.set_speed[seg] == 0) & (np.abs(sig.speed[seg]) > 2.0)
+    if moving.sum() > 3:
+        return (
+            f"{sig.t[seg][0] - sig.t[0]:.1f}-{sig.t[seg][-1] - sig.t[0]:.1f} s: set speed 0 while the motor "
+            "turns (a command the log does not show)"
+        )
+    return None
+
+
+def replay(sig: StallSignal, config: ArmConfig, seed: int = 0) -> StallReplay:
+    """Replay every replayable segment of ``sig`` on the simulated joint."""
+    rule, sensitivity = stall_rule_of(sig)
+    params = config.joint(sig.joint)
+    per_motor = 1.0 / params.reduction  # joint units per motor rad/s
+    logs: list[tuple[float, ...]] = []
+    skipped: list[str] = []
+    spans: list[tuple[float, float]] = []
+    for k, seg in enumerate(segments(sig)):
+        why = _replayable(sig, seg)
+        if why:
+            # the part before the unknown command is still the host's ramp
+            moving = np.nonzero((sig.set_speed[seg] == 0) & (np.abs(sig.speed[seg]) > 2.0))[0]
+            skipped.append(why)
+            seg = slice(seg.start, seg.start + int(moving[0]))
+            if seg.stop - seg.start < 10:
+                continue
+        # "an unconstrained joint motor" (the test's README): no end stops
+        rig = JointRig(config, sig.joint, stall_rule=rule, seed=seed + k, end_stops=False)
+        joint = rig.joint
+        joint.enable(PROGRAM_CURRENT, PROGRAM_CURRENT)
+        accel, velocity = PROGRAM_LIMITS.get(sig.joint, (params.max_acceleration, params.max_velocity))
+        joint.set_max_acceleration(accel)
+        joint.set_max_velocity(velocity)
+        joint.enable_stallguard(sensitivity)
+        core = rig.firmware.core
+        core.stall_log = log = []
+        t_real = sig.t[seg] - sig.t[seg][0]
+        spans.append((sig.t[seg][0] - sig.t[0], sig.t[seg][-1] - sig.t[0]))
+        blocked_at = block_time(sig, seg)
+        # The program sends every pass of its loop; its period is the median
+        # time between changes of the set speed in the log.
+        changes = np.nonzero(np.diff(sig.set_speed[seg]) != 0)[0]
+        period = float(np.median(np.diff(t_real[changes]))) if len(changes) > 2 else 0.02
+        t0 = rig.now
+        last_sent = -math.inf
+        last_set = None
+        for i, ts in enumerate(t_real):
+            target = sig.set_speed[seg][i]
+            if blocked_at is not None and ts >= blocked_at - sig.t[seg][0]:
+                rig.motor.blocked = True
+            if target != last_set or ts - last_sent >= period - 1e-6:
+                wait = t0 + ts - rig.now
+                if wait > 0:
+                    rig.sleep(wait)
+                if core.flags & FLAG_STALL:
+                    break  # the program ends on the refusal
+                try:
+                    joint.set_velocity(target * per_motor)
+                    joint.get_velocity()
+                except Exception:
+                    break
+                last_set, last_sent = target, ts
+        # a trip may come a few passes after the log's last row (the bound is 50 ms)
+        rig.sleep(max(0.0, t0 + t_real[-1] + TRIP_BOUND_S + 0.01 - rig.now))
+        for row in log:
+            if row[0] - t0 <= t_real[-1] + TRIP_BOUND_S + 1e-6:
+                logs.append((row[0] - t0 + (sig.t[seg][0] - sig.t[0]), *row[1:]))
+    arr = np.array(logs) if logs else np.zeros((0, 8))
+    return StallReplay(*(arr[:, i] for i in range(8)), rule, skipped, spans)
+
+
+def _bands(speed: np.ndarray, set_speed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Band index (5 rad/s) and ramp direction (+1 up, -1 down) of each pass."""
+    band = np.floor(np.abs(speed) / BAND_RAD_S).astype(int)
+    direction = np.zeros(len(set_speed))
+    direction[1:] = np.sign(np.diff(set_speed))
+    for i in range(1, len(direction)):
+        if direction[i] == 0:
+            direction[i] = direction[i - 1]
+    return band, direction
+
+
+def band_medians(
+    values: np.ndarray, speed: np.ndarray, set_speed: np.ndarray, keep: np.ndarray
+) -> dict[tuple[int, int], tuple[float, int]]:
+    """(direction, band) -> (median, passes) over the passes in ``keep``."""
+    band, direction = _bands(speed, set_speed)
+    out = {}
+    for d in (1, -1):
+        for b in np.unique(band[keep & (direction == d)]):
+            sel = keep & (direction == d) & (band == b)
+            out[(d, int(b))] = (float(np.median(values[sel])), int(sel.sum()))
+    return out
+
+
+def _trip_times(t: np.ndarray, stalled: np.ndarray) -> list[float]:
+    return [float(x) for x in t[stalled > 0]]
+
+
+def compare(sig: StallSignal, sim: StallReplay) -> list[Row]:
+    """Band medians of the three signals and the trips."""
+    name = f"high_speed_stall_test/{sig.name}"
+    rows = []
+    t_real = sig.t - sig.t[0]
+    spans = sim.spans
+    in_span = np.zeros(len(t_real), dtype=bool)
+    for a, b in spans:
+        in_span |= (t_real >= a - 1e-6) & (t_real <= b + 1e-6)
+    real_keep = in_span & (sig.raw < 10_000) & ~((sig.set_speed == 0) & (np.abs(sig.speed) > 2.0))
+    sim_keep = np.zeros(len(sim.t), dtype=bool)
+    for a, b in spans:
+        sim_keep |= (sim.t >= a - 1e-6) & (sim.t <= b + 1e-6)
+    rule = sim.rule
+    rule_note = (
+        f"build: spike limit {rule.spike_limit:g}, slope {rule.slope:.3g}, "
+        f"band {rule.band[0]:g}-{rule.band[1]:g} rad/s +{rule.band_offset:g}"
+    )
+    for label, real_v, sim_v in (
+        ("raw |PID error|", sig.raw, sim.raw),
+        ("spikes removed", sig.despiked, sim.despiked),
+        ("filtered", sig.filtered, sim.filtered),
+    ):
+        real_m = band_medians(real_v, sig.speed, sig.set_speed, real_keep)
+        sim_m = band_medians(sim_v, sim.speed, sim.set_speed, sim_keep)
+        for direction in (1, -1):
+            cells = []
+            for key in sorted(k for k in real_m if k[0] == direction and k in sim_m):
+                (rv, rn), (sv, sn) = real_m[key], sim_m[key]
+                if rn < MIN_BAND_ROWS or sn < MIN_BAND_ROWS:
+                    continue
+                err = 100.0 * abs(sv - rv) / max(rv, ERROR_FLOOR)
+                cells.append((key[1], rv, sv, err))
+            if not cells:
+                continue
+            worst = max(cells, key=lambda c: c[3])
+            within = sum(c[3] <= BAND_BOUND_PCT for c in cells)
+            rows.append(
+                Row(
+                    name,
+                    f"{label}, ramp {'up' if direction > 0 else 'down'}: worst band",
+                    worst[1],
+                    worst[2],
+                    worst[3],
+                    BAND_BOUND_PCT,
+                    "",
+                    "%",
+                    worst[3] <= BAND_BOUND_PCT,
+                    f"{within} of {len(cells)} bands within {BAND_BOUND_PCT:g} %; worst "
+                    f"{worst[0] * BAND_RAD_S:g}-{(worst[0] + 1) * BAND_RAD_S:g} rad/s"
+                    + (f"; {rule_note}" if label.startswith("raw") and direction > 0 else ""),
+                )
+            )
+    real_trips = [t for t in _trip_times(t_real, sig.stalled * in_span) if not _sg_file(sig)]
+    sim_trips = _trip_times(sim.t, sim.stalled)
+    if real_trips or sim_trips:
+        for rt in real_trips:
+            near = [st for st in sim_trips if abs(st - rt) <= 0.5]
+            if near:
+                dt = min(near, key=lambda st: abs(st - rt)) - rt
+                rows.append(
+                    Row(
+                        name,
+                        "stall trip time",
+                        rt,
+                        rt + dt,
+                        abs(dt) * 1e3,
+                        TRIP_BOUND_S * 1e3,
+                        "s",
+                        "ms",
+                        abs(dt) <= TRIP_BOUND_S,
+                    )
+                )
+            else:
+                rows.append(Row.verdict(name, "stall trip", f"at {rt:.2f} s", "none", False))
+        false = [st for st in sim_trips if all(abs(st - rt) > 0.5 for rt in real_trips)]
+        if false:
+            rows.append(
+                Row.verdict(
+                    name, "false stall trips", "0", str(len(false)), False, f"first at {false[0]:.2f} s"
+                )
+            )
+    else:
+        rows.append(Row.verdict(name, "stall trips (free run)", "0", "0", True))
+    for why in sim.skipped:
+        rows.append(Row.verdict(name, "not replayed", "-", "-", True, why))
+    return rows
+
+
+def _sg_file(sig: StallSignal) -> bool:
+    """Whether the file's stall column is the old build's StallGuard flag, not the PID rule.
+
+    ``j4_adaptive_stall_threshold.csv`` marks 205 passes whose filtered error
+    never crossed the threshold, every one with a nonzero SG_RESULT: that
+    build printed the driver's StallGuard there (the README: "SG_RESULT did
+    not indicate stall"). Judged by the PID rule, it never tripped.
+    """
+    marked = sig.stalled > 0
+    return bool(marked.any() and not (sig.filtered[marked] > sig.threshold[marked]).any())
+
+
+def run_all(signals: list[StallSignal], config: ArmConfig) -> tuple[list[Row], dict[str, StallReplay]]:
+    """Replay and compare every file."""
+    rows, sims = [], {}
+    for sig in signals:
+        sim = sims[sig.name] = replay(sig, config)
+        rows += compare(sig, sim)
+    return rows, sims
+
+
+def threshold_speed(rpm: float) -> float:
+    """Motor rad/s as the firmware divides (``qd / 9.549296596425384``)."""
+    return rpm / STALL_RPM_PER_RAD_S

@@ -1,0 +1,181 @@
+"""``tracking_error/``: j1 following a ramp under the ROS 2 joint trajectory controller at 50 Hz.
+
+The recordings hold the controller's reference and the joint's measured
+position every 20 ms. The replay sends the recorded reference the way the
+controller did, through this package's driver to the simulated j1 (20 %
+current, max velocity 1 rad/s, the file's max acceleration):
+
+* **position interface**: each cycle reads the position and writes the
+  reference as the position command (MOVETOANGLE);
+* **velocity interface**: each cycle reads the position and writes
+  ``kff * v_ref + kp * (r - q) + ki * integral`` (the gains in the file
+  name; ``v_ref`` the reference's slope) as the velocity command (SETRPM).
+
+Compared: the steady-state error on the ramp, ``(r - q) / ramp speed`` in
+seconds, averaged over the middle 60 % of the ramp, against the README's
+table and the recording itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.validation.recordings import TrackingRun
+from bioscara_gym.validation.report import Row
+from bioscara_gym.validation.rig import JointRig
+
+#: The README's steady-state errors of the position controller, s, by (ramp rad/s, max accel rad/s²).
+README_POSITION = {(0.157, 0.157): 0.52, (0.314, 0.157): 1.0, (0.157, 1.57): 0.07, (0.314, 1.57): 0.12}
+#: The README: "Steady-state tracking error is zero, where kp > 0" (velocity controller).
+README_VELOCITY = 0.0
+#: Bounds: within 25 % of the README's figure; where that is zero, within this many seconds.
+README_BOUND_PCT = 25.0
+ZERO_BOUND_S = 0.02
+#: j1's max velocity in the test (the README: "configured to be 1.0 rad/s").
+MAX_VELOCITY = 1.0
+
+
+@dataclass(frozen=True)
+class TrackingReplay:
+    """The simulated run at the recording's times."""
+
+    t: np.ndarray
+    reference: np.ndarray
+    feedback: np.ndarray
+
+
+#: Pre-roll: the recordings start with the joint already on a ramp, so the
+#: replay runs the controller on the reference extended backwards at its
+#: first slope for this long first (the chip needs ramp / max accel to get
+#: up to speed, 2 s at 0.314 rad/s and 0.157 rad/s²).
+PREROLL_S = 4.0
+#: The controller's period, s (50 Hz).
+PERIOD_S = 0.02
+
+
+def _reference(run: TrackingRun) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded reference with a pre-roll: times from -PREROLL_S, positions on the first slope."""
+    v0 = float(np.polyfit(run.t[:10], run.reference[:10], 1)[0])
+    if abs(v0) < 0.2 * run.ramp_speed:
+        return run.t, run.reference
+    pre = np.arange(-PREROLL_S, 0.0, PERIOD_S)
+    return np.concatenate([pre, run.t]), np.concatenate([run.reference[0] + v0 * pre, run.reference])
+
+
+def replay(run: TrackingRun, config: ArmConfig, seed: int = 0) -> TrackingReplay:
+    """Run the controller's 50 Hz loop on the simulated j1 with the recorded reference."""
+    params = config.joint("j1")
+    t_ref, reference = _reference(run)
+    # Where the real joint was against the reference at the first row, less
+    # the lag the chip builds up while it gets to speed in the pre-roll.
+    offset = float(run.feedback[0] - run.reference[0])
+    if len(t_ref) > len(run.t):
+        v0 = float(reference[1] - reference[0]) / PERIOD_S
+        offset += np.sign(v0) * v0 * v0 / (2.0 * run.max_acceleration)
+    rig = JointRig(config, "j1", start_q=float(reference[0] + offset), seed=seed)
+    joint = rig.joint
+    joint.enable(params.drive_current, params.hold_current)
+    joint.set_max_acceleration(run.max_acceleration)
+    joint.set_max_velocity(MAX_VELOCITY)
+    t0 = rig.now - float(t_ref[0])
+    v_ref = np.gradient(reference, t_ref)
+    kp, ki, kff = (run.gains.get(k, 0.0) for k in ("p", "i", "kff"))
+    integral = 0.0
+    q_out = []
+    last = float(t_ref[0])
+    for i, ts in enumerate(t_ref):
+        rig.sleep(max(0.0, t0 + ts - rig.now))
+        q = joint.get_position()
+        if ts >= 0.0:
+            q_out.append(q)
+        r = float(reference[i])
+        if run.interface == "position":
+            joint.set_position(r)
+        else:
+            integral += (r - q) * (ts - last)
+            joint.set_velocity(kff * float(v_ref[i]) + kp * (r - q) + ki * integral)
+        last = ts
+    return TrackingReplay(run.t, run.reference, np.array(q_out))
+
+
+def steady_state_error(t: np.ndarray, reference: np.ndarray, feedback: np.ndarray, ramp: float) -> float:
+    """Mean ``(r - q) / ramp`` over the middle 60 % of the longest stretch at the ramp speed, s."""
+    v = np.gradient(reference, t)
+    on = np.abs(np.abs(v) - ramp) < 0.1 * ramp
+    best, start = (0, 0), None
+    for i, flag in enumerate([*on, False]):
+        if flag and start is None:
+            start = i
+        elif not flag and start is not None:
+            if i - start > best[1] - best[0]:
+                best = (start, i)
+            start = None
+    a, b = best
+    if b - a < 10:
+        return float("nan")
+    lo, hi = a + int(0.2 * (b - a)), b - int(0.2 * (b - a))
+    sign = np.sign(np.mean(v[lo:hi]))
+    return float(np.mean(sign * (reference[lo:hi] - feedback[lo:hi])) / ramp)
+
+
+def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
+    """Steady-state error against the README and the recording."""
+    name = f"tracking_error/{run.name}"
+    real = steady_state_error(run.t, run.reference, run.feedback, run.ramp_speed)
+    simulated = steady_state_error(sim.t, sim.reference, sim.feedback, run.ramp_speed)
+    rows = []
+    if run.interface == "position":
+        readme = README_POSITION.get((round(run.ramp_speed, 3), round(run.max_acceleration, 3)))
+        if readme is not None:
+            rows.append(
+                Row.compare(
+                    name,
+                    "steady-state error vs README",
+                    readme,
+                    simulated,
+                    README_BOUND_PCT,
+                    unit="s",
+                    note=f"the recording: {real:.3f} s",
+                )
+            )
+    else:
+        gains = ", ".join(f"{k} {v:g}" for k, v in run.gains.items())
+        bound_note = f"README: zero for kp > 0 ({gains}); the recording: {real:.3f} s"
+        if run.gains.get("p", 0.0) > 0:
+            rows.append(
+                Row.compare(
+                    name,
+                    "steady-state error vs README",
+                    README_VELOCITY,
+                    simulated,
+                    ZERO_BOUND_S,
+                    unit="s",
+                    relative=False,
+                    note=bound_note,
+                )
+            )
+    rows.append(
+        Row.compare(
+            name,
+            "steady-state error vs recording",
+            real,
+            simulated,
+            ZERO_BOUND_S,
+            unit="s",
+            relative=False,
+            note="bound: 20 ms",
+        )
+    )
+    return rows
+
+
+def run_all(runs: list[TrackingRun], config: ArmConfig) -> tuple[list[Row], dict[str, TrackingReplay]]:
+    """Replay and compare every run."""
+    rows, sims = [], {}
+    for run in runs:
+        sim = sims[run.name] = replay(run, config)
+        rows += compare(run, sim)
+    return rows, sims

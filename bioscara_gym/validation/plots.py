@@ -1,0 +1,159 @@
+"""The simulated curve over the real one: one PNG per recording (matplotlib, the ``[validate]`` extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bioscara_gym.validation import Validation
+
+__all__ = ["write_plots"]
+
+_REAL = {"color": "black", "lw": 1.2, "label": "real arm"}
+_SIM = {"color": "tab:orange", "lw": 1.2, "label": "simulated"}
+
+
+def _figure(rows: int, title: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.6 * rows), sharex=True, squeeze=False)
+    fig.suptitle(title, fontsize=10)
+    return plt, fig, axes[:, 0]
+
+
+def _save(plt, fig, path: Path) -> Path:
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".tmp")
+    fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def _max_accel(v: Validation, out: Path) -> list[Path]:
+    paths = []
+    for run in v.recordings.max_accel:
+        sim = v.replays["max_accel"][run.name]
+        plt, fig, (ax1, ax2) = _figure(
+            2,
+            f"maxAccel/{run.name}: {run.joint}, {run.max_velocity:g} at "
+            f"{run.max_acceleration:g}, {run.current:g} % current",
+        )
+        ax1.plot(sim.t, run.q - run.q[0], **_REAL)
+        ax1.plot(sim.t, sim.q - sim.q[0], **_SIM)
+        ax1.set_ylabel("moved")
+        ax2.plot(sim.t, run.qd, **_REAL)
+        ax2.plot(sim.t, sim.qd, **_SIM)
+        ax2.set_ylabel("speed (encoder estimate)")
+        ax2.set_xlabel("time, s (the program's sleeps and transactions)")
+        ax1.legend(loc="upper left", fontsize=8)
+        paths.append(_save(plt, fig, out / f"maxAccel_{run.name}.png"))
+    return paths
+
+
+def _setting_max_val(v: Validation, out: Path) -> list[Path]:
+    paths = []
+    for run in v.recordings.setting_max_val:
+        sim = v.replays["setting_max_val"][run.name]
+        plt, fig, (ax1, ax2) = _figure(2, f"settingMaxVal/{run.name}")
+        ax1.plot(run.t, run.position - run.position[0], **_REAL)
+        ax1.plot(sim.t, sim.position, **_SIM)
+        ax1.set_ylabel("motor deg")
+        ax2.plot(run.t, run.velocity, **_REAL)
+        ax2.plot(sim.t, sim.velocity, **_SIM)
+        ax2.set_ylabel("deg/s")
+        ax2.set_xlabel("time, s")
+        ax1.legend(loc="upper left", fontsize=8)
+        paths.append(_save(plt, fig, out / f"settingMaxVal_{run.name}.png"))
+    return paths
+
+
+def _stall(v: Validation, out: Path) -> list[Path]:
+    paths = []
+    for sig in v.recordings.stall_signal:
+        sim = v.replays["stall_signal"][sig.name]
+        t = sig.t - sig.t[0]
+        plt, fig, (ax1, ax2, ax3) = _figure(3, f"high_speed_stall_test/{sig.name}")
+        ax1.plot(t, np.clip(sig.raw, 0, 500), ".", ms=1.5, color="black", label="real raw |PID error|")
+        ax1.plot(sim.t, np.clip(sim.raw, 0, 500), ".", ms=1.5, color="tab:orange", label="simulated raw")
+        ax1.set_ylabel("1/256 µsteps")
+        ax1.legend(loc="upper left", fontsize=8, markerscale=6)
+        ax2.plot(t, sig.filtered, color="black", lw=1, label="real filtered")
+        ax2.plot(sim.t, sim.filtered, color="tab:orange", lw=1, label="simulated filtered")
+        ax2.plot(t, sig.threshold, color="tab:red", lw=0.8, ls="--", label="threshold")
+        for trip in t[sig.stalled > 0]:
+            ax2.axvline(trip, color="black", lw=0.8, ls=":")
+        for trip in sim.t[sim.stalled > 0]:
+            ax2.axvline(trip, color="tab:orange", lw=0.8, ls=":")
+        ax2.legend(loc="upper left", fontsize=8)
+        ax3.plot(t, sig.speed, **_REAL)
+        ax3.plot(sim.t, sim.speed, **_SIM)
+        ax3.plot(t, sig.set_speed, color="grey", lw=0.8, ls="--", label="set speed")
+        ax3.set_ylabel("motor rad/s")
+        ax3.set_xlabel("time, s")
+        ax3.legend(loc="upper left", fontsize=8)
+        paths.append(_save(plt, fig, out / f"stall_{sig.name}.png"))
+    return paths
+
+
+def _tracking(v: Validation, out: Path) -> list[Path]:
+    paths = []
+    for run in v.recordings.tracking:
+        sim = v.replays["tracking"][run.name]
+        plt, fig, (ax1, ax2) = _figure(2, f"tracking_error/{run.name}")
+        ax1.plot(run.t, run.reference, color="grey", lw=0.8, ls="--", label="reference")
+        ax1.plot(run.t, run.feedback, **_REAL)
+        ax1.plot(sim.t, sim.feedback, **_SIM)
+        ax1.set_ylabel("j1, rad")
+        ax1.legend(loc="upper left", fontsize=8)
+        ax2.plot(run.t, (run.reference - run.feedback) / run.ramp_speed, **_REAL)
+        ax2.plot(sim.t, (sim.reference - sim.feedback) / run.ramp_speed, **_SIM)
+        ax2.set_ylabel("(r - q) / ramp, s")
+        ax2.set_xlabel("time, s")
+        paths.append(_save(plt, fig, out / f"tracking_{run.name}.png"))
+    return paths
+
+
+def _transactions(v: Validation, out: Path) -> list[Path]:
+    paths = []
+    for tr in v.recordings.transactions:
+        sim = v.replays.get("transactions", {}).get(tr.name)
+        if sim is None:
+            continue
+        plt, fig, (ax1, ax2) = _figure(2, f"RW_test/{tr.name}: time per call")
+        for ax, kind, values in ((ax1, "read", tr.read_us), (ax2, "write", tr.write_us)):
+            ax.hist(np.clip(values, 0, 3000), bins=80, color="grey", label=f"real {kind} calls")
+            ax.axvline(float(np.mean(values)), color="black", lw=1.2, label="real mean")
+            ax.axvline(sim[kind], color="tab:orange", lw=1.5, label="simulated")
+            ax.legend(loc="upper right", fontsize=8)
+        ax2.set_xlabel("µs")
+        paths.append(_save(plt, fig, out / f"RW_{tr.name}.png"))
+    return paths
+
+
+def write_plots(v: Validation, out: Path | str) -> list[Path]:
+    """One PNG per recording into ``out`` (created); returns the paths.
+
+    Raises:
+        MissingExtraError: matplotlib is not installed (the ``[validate]`` extra).
+    """
+    from bioscara_gym.hardware.errors import require_extra
+
+    require_extra("matplotlib", "--plots", "validate")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    for kind, draw in (
+        ("max_accel", _max_accel),
+        ("setting_max_val", _setting_max_val),
+        ("stall_signal", _stall),
+        ("tracking", _tracking),
+        ("transactions", _transactions),
+    ):
+        if kind in v.replays:
+            paths += draw(v, out)
+    return paths

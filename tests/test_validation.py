@@ -1,0 +1,188 @@
+"""The simulated arm against the real arm's recordings: one recording of each kind, and bad input.
+
+The full validation (every recording) is ``bioscara validate`` and
+``benchmarks/validate_real.py``; the fit is ``bioscara calibrate`` (slow, not here).
+Expected values come from the recordings themselves (their files, their
+READMEs) as literals.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bioscara_gym.errors import RecordingError
+from bioscara_gym.hardware import load_config
+from bioscara_gym.validation import validate
+from bioscara_gym.validation.experiments import max_accel, rw, setting_max_val, stall, tracking
+from bioscara_gym.validation.recordings import (
+    DATA_DIR,
+    find_recordings,
+    read_max_accel,
+    read_setting_max_val,
+    read_stall_signal,
+    read_tracking,
+    read_transactions,
+)
+
+CONFIG = load_config()
+
+
+# ------------------------------------------------------------------ readers
+def test_max_accel_reader_takes_the_programs_header_and_samples() -> None:
+    run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
+    assert (run.joint, run.max_velocity, run.max_acceleration, run.current) == ("j1", 2.0, 3.0, 20.0)
+    assert len(run.t) == 198
+    assert run.t[0] == pytest.approx(0.0101075) and run.q[0] == pytest.approx(-4.72375)
+    assert run.qd[-1] == pytest.approx(4.0971e-05)
+
+
+def test_setting_max_val_reader_takes_the_limits() -> None:
+    run = read_setting_max_val(DATA_DIR / "settingMaxVal" / "accel_test_5000_10000_online_change.csv")
+    assert (run.max_acceleration, run.max_velocity, run.online_change) == (5000.0, 10000.0, True)
+    assert run.position[-1] == pytest.approx(35999.746094)
+
+
+def test_stall_reader_reads_gzipped_logs() -> None:
+    sig = read_stall_signal(DATA_DIR / "high_speed_stall_test" / "j4_STALL_adaptive_stall_threshold.csv.gz")
+    assert sig.joint == "j4" and len(sig.t) == 2908
+    assert (sig.raw[-3], sig.raw[-2], sig.raw[-1]) == (420.0, 275.0, 236.0)
+    assert sig.stalled[-1] == 1.0
+
+
+def test_tracking_reader_finds_j1s_reference_and_feedback() -> None:
+    run = read_tracking(DATA_DIR / "tracking_error" / "record_0p314_1p57_j1.csv.gz")
+    assert (run.interface, run.ramp_speed, run.max_acceleration) == ("position", 0.314, 1.57)
+    vel = read_tracking(DATA_DIR / "tracking_error" / "record_0p314_1p57_j1_vel_p0p5_i0p0_d0p0_kff1p0.csv.gz")
+    assert vel.interface == "velocity" and vel.gains == {"p": 0.5, "i": 0.0, "d": 0.0, "kff": 1.0}
+
+
+def test_transaction_reader_takes_the_bus_speed_from_the_name() -> None:
+    tr = read_transactions(DATA_DIR / "RW_test" / "position_100kHz.csv.gz")
+    assert (tr.what, tr.clock_hz) == ("position", 100_000.0)
+    assert tr.read_us.mean() == pytest.approx(860.34, abs=0.01)  # RW_test/README.md, Table 3
+
+
+# ----------------------------------------------- one recording of each kind
+def test_j4_at_34_rad_per_s2_runs_at_the_16_bit_cut_acceleration() -> None:
+    # The real j4 reached 1.89 rad/s in the 0.5 s of maxAccel/j4_4 (asked 10 rad/s at
+    # 34 rad/s^2): not lost steps but SETUP's moveSteps(0) cutting AMAX to 16 bits
+    # (408 rad/s^2 at the motor is 73,146 -> 7,610: 2.43 deg/s^2 x 1000, 3.5 rad/s^2).
+    run = read_max_accel(DATA_DIR / "maxAccel" / "j4_4.csv")
+    rows = {r.quantity: r for r in max_accel.compare(run, max_accel.replay(run, CONFIG), CONFIG)}
+    assert rows["peak speed"].real == pytest.approx(1.891, abs=1e-3)
+    assert rows["peak speed"].passed, rows["peak speed"]
+    assert rows["lost steps"].real == "no" and rows["lost steps"].passed
+    assert rows["position RMS"].passed
+
+
+def test_j1_at_2_rad_per_s_loses_steps_as_the_real_one_did() -> None:
+    # maxAccel/README.md: "at 3rad/s2 and 2rad/s joint doesnt reach max velocity".
+    run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
+    sim = max_accel.replay(run, CONFIG)
+    rows = {r.quantity: r for r in max_accel.compare(run, sim, CONFIG)}
+    assert rows["lost steps"].real == "yes" and rows["lost steps"].sim == "yes"
+    assert sim.lost_sync >= 1
+    assert max(abs(sim.qd)) < 1.0  # it never got near the 2 rad/s asked
+
+
+def test_ten_million_deg_per_s2_is_cut_to_the_16_bit_register() -> None:
+    # settingMaxVal/accel_test_10000000_200000.csv: the real motor accelerated at 9,021 deg/s^2.
+    run = read_setting_max_val(DATA_DIR / "settingMaxVal" / "accel_test_10000000_200000.csv")
+    rows = {r.quantity: r for r in setting_max_val.compare(run, setting_max_val.replay(run))}
+    assert rows["ramp acceleration"].real == pytest.approx(9021, abs=5)
+    assert rows["ramp acceleration"].sim == pytest.approx(9021, abs=0.01 * 9021)
+    assert all(r.passed for r in rows.values())
+
+
+def test_a_blocked_j4_trips_within_50_ms_of_the_real_one() -> None:
+    sig = read_stall_signal(
+        DATA_DIR / "high_speed_stall_test" / "j4_LOW_SPEED_STALL_adaptive_stall_threshold_two_levels.csv"
+    )
+    rule, sensitivity = stall.stall_rule_of(sig)
+    assert sensitivity == 6 and rule.spike_limit > 243  # the build let a jump of 243 through
+    rows = stall.compare(sig, stall.replay(sig, CONFIG))
+    trips = [r for r in rows if r.quantity == "stall trip time"]
+    assert len(trips) == 1 and trips[0].passed, rows
+    assert not [r for r in rows if r.quantity == "false stall trips"]
+
+
+def test_the_position_controller_lags_as_the_readme_says() -> None:
+    # tracking_error/README.md, Test 1: ~0.12 s at 0.314 rad/s and 1.57 rad/s^2.
+    run = read_tracking(DATA_DIR / "tracking_error" / "record_0p314_1p57_j1.csv.gz")
+    rows = {r.quantity: r for r in tracking.compare(run, tracking.replay(run, CONFIG))}
+    assert rows["steady-state error vs README"].real == 0.12
+    assert rows["steady-state error vs README"].passed
+
+
+def test_transactions_take_the_measured_time_at_400_khz() -> None:
+    tr = read_transactions(DATA_DIR / "RW_test" / "position_400kHz.csv.gz")
+    rows = rw.compare(tr, rw.replay(tr, CONFIG))
+    assert [r.real for r in rows] == [pytest.approx(270.70, abs=0.01), pytest.approx(624.66, abs=0.01)]
+    assert all(r.passed for r in rows), rows
+
+
+# ---------------------------------------------------------------- bad input
+def test_a_folder_without_recordings_is_one_error_naming_it(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match=f"^{tmp_path}: holds no recordings"):
+        find_recordings(tmp_path)
+
+
+def test_a_malformed_csv_names_the_file_and_line(tmp_path: Path) -> None:
+    (tmp_path / "maxAccel").mkdir()
+    lines = (DATA_DIR / "maxAccel" / "j1_1.csv").read_text().splitlines()
+    lines[12] = "0.03, oops, 0.1, 0.2"
+    bad = tmp_path / "maxAccel" / "j1_1.csv"
+    bad.write_text("\n".join(lines))
+    with pytest.raises(RecordingError, match=r"j1_1\.csv: line 13: not a number"):
+        find_recordings(tmp_path)
+
+
+def test_a_recording_of_an_unknown_joint_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "maxAccel").mkdir()
+    text = (DATA_DIR / "maxAccel" / "j1_1.csv").read_text().replace("joint: j1", "joint: j9")
+    (tmp_path / "maxAccel" / "j9_1.csv").write_text(text)
+    with pytest.raises(RecordingError, match=r"j9_1\.csv: unknown joint 'j9'"):
+        find_recordings(tmp_path)
+
+
+def test_a_users_folder_of_their_own_recordings_is_validated(tmp_path: Path) -> None:
+    (tmp_path / "maxAccel").mkdir()
+    shutil.copy(DATA_DIR / "maxAccel" / "j3_6.csv", tmp_path / "maxAccel")
+    result = validate(tmp_path, CONFIG)
+    assert [r.experiment for r in result.rows] == ["maxAccel/j3_6"] * 3
+    assert result.passed
+
+
+def test_validate_on_an_empty_folder_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym", "validate", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"bioscara validate: error: {tmp_path}: holds no recordings: expected "
+        "maxAccel/, settingMaxVal/, high_speed_stall_test/, "
+        "stall_detection_test/, tracking_error/ or RW_test/ with .csv files "
+        "(the arm repository's test/ layout)"
+    ]
+
+
+def test_calibrate_refuses_a_missing_output_folder_before_fitting(tmp_path: Path) -> None:
+    out = tmp_path / "nowhere" / "arm.yaml"
+    proc = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym", "calibrate", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert (
+        proc.stderr.strip() == f"bioscara calibrate: error: --out {out}: folder {out.parent} does not exist"
+    )
