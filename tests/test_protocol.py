@@ -357,7 +357,7 @@ def test_get_position_follows_the_reply_flags_not_the_previous_state(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", offset=0.5)
-    scripted_bus.queue(f32_reply(90.0, NOT_HOMED), ack(NOT_HOMED))  # NOTHOMED confirmed by a PING
+    scripted_bus.queue(f32_reply(90.0, NOT_HOMED), ack(NOT_HOMED), ack(NOT_HOMED))  # NOTHOMED confirmed twice
     assert joint.get_position() == 0.0
     assert not joint.is_homed()
 
@@ -404,10 +404,11 @@ def test_motion_raises_stalled_when_reply_says_stall(
     scripted_bus: Any, make_ready: Callable[..., Joint], command: Callable[[Joint], None]
 ) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(flags(STALL), ack(STALL))  # a new STALL is confirmed by a PING
+    # a new STALL is confirmed by two PINGs; the joint is then stopped (MOVESTEPS runs even when stalled)
+    scripted_bus.queue(flags(STALL), ack(STALL), ack(STALL), flags(STALL))
     with pytest.raises(StalledError, match="j1"):
         command(joint)
-    assert len(scripted_bus.log) == 2 and scripted_bus.log[1] == (0x11, PING, 2)
+    assert scripted_bus.log[1:] == [(0x11, PING, 2), (0x11, PING, 2), (0x11, bytes((0x29, 0)), 1)]
     assert joint.is_stalled()
 
 
@@ -415,10 +416,11 @@ def test_set_velocity_raises_not_enabled_when_reply_says_deadman_tripped(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED))  # a new NOTENABLED is confirmed by a PING
+    # a new NOTENABLED is confirmed by two PINGs; the firmware ran the SETRPM anyway, so STOP follows
+    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED), flags(NOT_ENABLED))
     with pytest.raises(NotEnabledError):
         joint.set_velocity(0.1)
-    assert len(scripted_bus.log) == 2
+    assert scripted_bus.log[1:] == [(0x11, PING, 2), (0x11, PING, 2), (0x11, bytes((0x29, 0)), 1)]
 
 
 @pytest.mark.parametrize(
@@ -628,9 +630,10 @@ def test_max_rate_sent_as_magnitude_in_motor_degrees(
 
 def test_get_flags_pings_and_returns_reply_flags(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED))  # the new NOTHOMED read twice
+    # the new NOTHOMED read twice more (registers.STICKY_CONFIRMATIONS)
+    scripted_bus.queue(ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED))
     assert joint.get_flags() == Flag.BUSY | Flag.NOT_HOMED
-    assert scripted_bus.log == [(0x11, PING, 2), (0x11, PING, 2)]
+    assert scripted_bus.log == [(0x11, PING, 2)] * 3
     assert joint.is_busy()
     assert not joint.is_homed()
 

@@ -23,6 +23,7 @@ from bioscara_gym.hardware.registers import (
     REPLY_FLAGS_CLEAR,
     REPLY_FLAGS_SET,
     RESERVED_FLAG_BITS,
+    STICKY_CONFIRMATIONS,
     STICKY_FLAGS,
     Flag,
     Reg,
@@ -173,21 +174,27 @@ class Joint(BaseJoint):
     def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int) -> None:
         """Read the flags again if ``flags`` shows a sticky flag newly set (:data:`STICKY_FLAGS`).
 
+        The flag counts as real only when :data:`STICKY_CONFIRMATIONS` further
+        readings (PINGs) all show it: one flipped bit in the reply and another
+        in a single confirming PING would otherwise stop a run on a stall or
+        deadman trip that never happened.
+
         Raises:
-            _BadReply: ``implausible``: the second reading lacks it, so the
+            _BadReply: ``implausible``: a later reading lacks it, so the
                 first reply's flags byte was corrupted.
         """
         may_set = self._flags_set_by(reg, sent) | (FLAG_NOT_ENABLED if reg == Reg.DISABLECLOSEDLOOP else 0)
         appeared = flags & ~self._flags & STICKY_FLAGS & ~may_set
         if not appeared:
             return
-        _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
-        if appeared & ~confirmed:
-            raise _BadReply(
-                "implausible",
-                f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
-                f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
-            )
+        for _ in range(STICKY_CONFIRMATIONS):
+            _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
+            if appeared & ~confirmed:
+                raise _BadReply(
+                    "implausible",
+                    f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
+                    f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
+                )
 
     # ------------------------------------------------------------ transfer
     def _transfer(
