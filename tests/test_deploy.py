@@ -48,7 +48,9 @@ def assert_every_joint_disabled(summary: dict[str, Any]) -> None:
     for name, state in summary["final_state"].items():
         assert state["source"] in ("emulator", "mock device"), name
         assert state["flags"] & Flag.NOT_ENABLED, f"{name} still enabled: {state}"
+        assert state["drive_current"] in (0, None) and state["hold_current"] in (0, None), state
     assert summary["arm_disabled"] is True
+    assert summary["not_confirmed_disabled"] == []
     assert summary["arm_state"] == "finalized"
 
 
@@ -223,13 +225,20 @@ def test_nan_action_stops_before_the_arm_sees_it(deploy: Callable[..., Run], bac
     assert_every_joint_disabled(lines[-1])
 
 
-def test_persistent_nacks_end_in_a_named_comm_error_with_joints_disabled(deploy: Callable[..., Run]) -> None:
+def test_persistent_nacks_end_in_a_named_comm_error_and_no_joint_claimed_safe(
+    deploy: Callable[..., Run],
+) -> None:
     run = deploy(faults="nack=1.0")
     assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
     assert "communication error: j1 (0x11): PING failed after 3 attempts" in str(run.error)
     summary = read_log(run.log)[-1]
     assert summary["stop_reason"] == "comm_error" and summary["joint"] == "j1"
-    assert_every_joint_disabled(summary)
+    for name, state in summary["final_state"].items():  # nothing reached them: as powered up
+        assert state["flags"] & Flag.NOT_ENABLED and state["drive_current"] == 0, name
+    # ... but no joint acknowledged a disable, so none is claimed safe
+    assert summary["arm_disabled"] is False
+    assert summary["not_confirmed_disabled"] == ["j1", "j2", "j3", "j4"]
+    assert "j4: no answer, still powered as far as we know: cut the power" in run.output
 
 
 def test_bus_lost_mid_run_reports_the_joints_it_could_not_disable(deploy: Callable[..., Run]) -> None:
@@ -244,6 +253,67 @@ def test_bus_lost_mid_run_reports_the_joints_it_could_not_disable(deploy: Callab
     assert summary["stop_reason"] == "comm_error"
     assert summary["not_confirmed_disabled"] == ["j1", "j2", "j3", "j4"]
     assert "NOT confirmed disabled" in run.output and "cut the power" in run.output
+
+
+class AnswersFF:
+    """A joint that has stopped sending: every byte read is 0xFF (the bus left high).
+
+    Its firmware keeps running (its main loop, its deadman); only the replies are lost.
+    """
+
+    def __init__(self, firmware: Any) -> None:
+        self.firmware = firmware
+
+    def transfer(self, data: bytes, read_len: int) -> bytes:
+        return b"\xff" * read_len
+
+    def update(self) -> None:
+        self.firmware.update()
+
+
+@pytest.mark.parametrize(
+    ("fault", "wording"),
+    [
+        pytest.param("nack", "j2: no answer", id="j2-nacks"),
+        pytest.param("ff", "j3: no valid answer", id="j3-answers-0xff"),
+    ],
+)
+def test_a_joint_lost_mid_run_is_named_and_never_counted_as_disabled(
+    deploy: Callable[..., Run], fault: str, wording: str
+) -> None:
+    # Seen: with j2 NACKing from mid-episode the velocity-mode deploy printed
+    # "arm disabled: every joint reports not enabled" while the emulator's j2
+    # still had 40 % drive current (its deadman set NOT_ENABLED, which keeps
+    # the currents).
+    name, address = ("j2", 0x12) if fault == "nack" else ("j3", 0x13)
+
+    def lose_joint(cycle: int, env: gym.Env) -> None:
+        if cycle == 5:
+            backend = env.unwrapped.backend
+            devices = backend.bus.devices
+            if fault == "nack":
+                del devices[address]
+            else:
+                devices[address] = AnswersFF(devices[address])
+            # The joint's last delivered exchange was 60 ms ago (its replies were
+            # lost that long): its deadman trips at the next pass, as seen.
+            backend.sim.cores[name].last_rx -= 0.06
+
+    run = deploy(policy=ConstantPolicy([0.0, -0.5, 0.5, 0.0]), env=REACH, on_cycle=lose_joint)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    summary = run.summary
+    assert summary["arm_disabled"] is False
+    assert summary["not_confirmed_disabled"] == [name]
+    core = run.backend.sim.cores[name]
+    assert core.flags & Flag.NOT_ENABLED  # the deadman tripped ...
+    assert core.drive_current > 0  # ... and kept the current: the joint is not safe
+    assert summary["final_state"][name]["drive_current"] == core.drive_current
+    assert "every joint reports not enabled" not in run.output
+    assert f"{wording}, still powered as far as we know: cut the power" in run.output
+    others = [n for n in ("j1", "j2", "j3", "j4") if n != name]
+    for other in others:
+        assert summary["final_state"][other]["drive_current"] == 0
+    assert f"confirmed disabled: {', '.join(others)}" in run.output
 
 
 def test_deadman_guard_stops_when_a_joint_is_silent_over_50_ms(deploy: Callable[..., Run]) -> None:

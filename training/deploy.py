@@ -24,7 +24,11 @@ Any stop (NaN action, stall, bus error, deadman, a run log that cannot be
 written, Ctrl-C/SIGTERM) ends in
 :func:`~bioscara_gym.hardware.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
 sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
-the arm is left disabled in every case. The run log is JSON Lines, one line
+in every case each joint is sent its disable (currents 0) whatever its flags
+say, and one it could not reach or whose disable was not acknowledged is
+named (``j2: no answer, still powered as far as we know: cut the power``):
+the flags are no proof, since the firmware's deadman sets NOT_ENABLED and
+keeps the currents. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
 
 =============  ======================================================================
@@ -44,7 +48,9 @@ written and flushed per record, so it is complete after Ctrl-C:
 ``stop``       reason, message, joint
 ``summary``    episodes, successes, cycles, period/jitter/overrun statistics, stop_reason,
                message, joint, final_state (per-joint flags after the stop, read from the
-               emulator where there is one), arm_disabled, not_confirmed_disabled,
+               emulator where there is one, with its drive and hold currents), arm_disabled
+               (every joint's own disable acknowledged), not_confirmed_disabled,
+               not_confirmed_warnings (one line per such joint: why, and to cut the power),
                bus (per joint: transactions, retries, errors by kind ``bus`` / ``malformed``
                / ``implausible``, as ``bioscara status`` counts them), gripper (width_m,
                state_file, saved_width_m: what was written, ``null`` if nothing), log_error,
@@ -697,10 +703,14 @@ class Deployment:
             "message": outcome.message,
             "joint": outcome.joint,
             "final_state": state,
-            "arm_disabled": all(not s["enabled"] for s in state.values()),
+            # Safe only where the joint's own disable was acknowledged: the flags are no
+            # proof (a deadman trip sets NOT_ENABLED and keeps the currents). A completed
+            # run got here through deactivate(), which raises unless every disable went through.
+            "arm_disabled": not report.not_confirmed if report else True,
             "arm_state": arm.state.value,
             "problems": report.problems if report else [],
             "not_confirmed_disabled": report.not_confirmed if report else [],
+            "not_confirmed_warnings": report.warnings() if report else [],
             "gripper": {
                 "width_m": self._gripper_width,
                 "state_file": str(arm.gripper.state_file) if arm.gripper.state_file else None,
@@ -722,15 +732,19 @@ class Deployment:
         raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
 
     def _disabled_line(self) -> str:
-        """Whether every joint is confirmed disabled, or which are not."""
+        """Which joints acknowledged their disable, and each one that did not, named."""
         s = self.summary
+        names = list(s["final_state"])
         if s["arm_disabled"]:
-            return "arm disabled: every joint reports not enabled; arm shut down, bus closed"
-        enabled = [n for n, st in s["final_state"].items() if st["enabled"]]
-        return (
-            f"[red]arm NOT confirmed disabled[/red]: {', '.join(enabled)} still enabled "
-            f"({escape('; '.join(s['problems'])) or 'no reply'}); cut the power"
-        )
+            return (
+                f"arm disabled: {', '.join(names)} acknowledged their disable (currents 0); "
+                "arm shut down, bus closed"
+            )
+        confirmed = [n for n in names if n not in s["not_confirmed_disabled"]]
+        lines = "; ".join(s["not_confirmed_warnings"])
+        done = f"confirmed disabled: {', '.join(confirmed)}" if confirmed else "no joint confirmed disabled"
+        done = f"; {done}"
+        return f"[red]arm NOT confirmed disabled[/red]: {escape(lines)}{done}"
 
     def _print_summary(self) -> None:
         """The summary as a table, and where the log is."""

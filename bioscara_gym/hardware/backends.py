@@ -148,6 +148,18 @@ class Backend:
             return Flag(sim.cores[name].flags)  # type: ignore[attr-defined]
         return None
 
+    def device_currents(self, name: str) -> tuple[int, int] | None:
+        """Joint ``name``'s drive and hold current (percent) as its device holds them, or ``None``.
+
+        Only the firmware emulator behind a simulated arm can be looked
+        into; on hardware and on ``mock`` this is ``None``.
+        """
+        sim = self.sim
+        if sim is not None:
+            core = sim.cores[name]  # type: ignore[attr-defined]
+            return int(core.drive_current), int(core.hold_current)
+        return None
+
     def comm_stats(self) -> dict[str, CommStats]:
         """Bus statistics per joint (empty where there is no bus)."""
         return {n: j.stats for n, j in self.joints.items() if isinstance(j, Joint)}
