@@ -263,7 +263,8 @@ def test_move_waits_until_the_joint_is_there(bioscara: Run, state: Path) -> None
     assert code == 0
     assert out.startswith("j4 at +1.0000 rad (target +1.0000)")
     table = status(bioscara, state)
-    assert table["j4"][:2] == ["+1.0000 rad", "+0.0000 rad/s"]
+    assert table["j4"][0] == "+1.0000 rad"
+    assert abs(float(table["j4"][1].split()[0])) <= 0.0002  # at rest: the simulated motor's ripple
     assert enabled(table, "j4") == "yes"
 
 

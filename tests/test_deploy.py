@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import io
+import itertools
 import json
 import os
 import signal
@@ -162,7 +163,11 @@ def test_expert_deploy_completes_and_logs_every_cycle(deploy: Callable[..., Run]
     summary = lines[-1]
     assert summary["stop_reason"] == "completed"
     assert summary["episodes"] == 2 and summary["cycles"] == len(cycles) == 100
-    assert summary["period_mean_s"] == pytest.approx(0.04)
+    # In simulation the reset teleports the arm, so each joint's first reading is
+    # confirmed by a second (docs/protocol.md): ~3 ms of bus time after the
+    # schedule restarts, taken from each episode's first period.
+    assert summary["period_mean_s"] == pytest.approx(0.04, abs=1e-4)
+    assert summary["period_max_s"] == pytest.approx(0.04, abs=1e-4)
     assert set(cycles[0]) >= {"t", "period_s", "work_s", "action", "commands", "q", "qd", "flags", "overrun"}
     for phase in ("check", "configure", "activate", "home", "run", "deactivate", "cleanup"):
         assert any(r["type"] == "phase" and r["phase"] == phase for r in lines), phase
@@ -314,6 +319,45 @@ def test_a_joint_lost_mid_run_is_named_and_never_counted_as_disabled(
     for other in others:
         assert summary["final_state"][other]["drive_current"] == 0
     assert f"confirmed disabled: {', '.join(others)}" in run.output
+
+
+class FlipsNextPosition:
+    """A joint whose next ANGLEMOVED reply comes back with one bit flipped; the rest as they are."""
+
+    def __init__(self, firmware: Any, bit: int) -> None:
+        self.firmware, self.bit = firmware, bit
+
+    def transfer(self, data: bytes, read_len: int) -> bytes:
+        reply = bytearray(self.firmware.transfer(data, read_len))
+        if data == bytes((0x18,)) and self.bit is not None:
+            reply[self.bit // 8] ^= 1 << (self.bit % 8)
+            self.bit = None
+        return bytes(reply)
+
+    def update(self) -> None:
+        self.firmware.update()
+
+
+def test_a_flipped_exponent_bit_in_a_position_is_read_again_and_logged(deploy: Callable[..., Run]) -> None:
+    # Seen: one flipped exponent bit in j2's position reply, and the log showed
+    # q 0.174 -> 0.338 -> 0.176 m within 40 ms on a 0.03 m/s joint, no error
+    # counted. Bit 30 (the exponent's top bit) turns ~14 760 motor degrees
+    # into ~1e-34: position = the homing offset, within the end stops.
+    def flip(cycle: int, env: gym.Env) -> None:
+        if cycle == 20:
+            devices = env.unwrapped.backend.bus.devices
+            devices[0x12] = FlipsNextPosition(devices[0x12], bit=30)
+
+    run = deploy(policy=ConstantPolicy([0.0, -0.5, 0.0, 0.0]), env=REACH, on_cycle=flip)
+    assert run.error is None, run.output
+    lines = read_log(run.log)
+    cycles = [r for r in lines if r["type"] == "cycle"]
+    q2 = [c["q"]["j2"] for c in cycles]
+    assert max(abs(b - a) for a, b in itertools.pairwise(q2)) < 0.03 * 0.04 * 2  # never 2x the limit
+    flipped = [c for c in cycles if "bus" in c and "j2" in c["bus"]]
+    assert [c["cycle"] for c in flipped] == [20]
+    assert flipped[0]["bus"]["j2"] == {"retries": 1, "implausible": 1}
+    assert lines[-1]["bus"]["j2"]["errors"]["implausible"] == 1
 
 
 def test_deadman_guard_stops_when_a_joint_is_silent_over_50_ms(deploy: Callable[..., Run]) -> None:

@@ -134,7 +134,7 @@ def test_homed_position_exactly_a_tenth_of_the_range_beyond_a_stop_is_accepted(
 ) -> None:
     # docs/protocol.md: a homed position beyond [min, max] by MORE than 10 % of the range is implausible.
     joint = exact_joint(scripted_bus, READY)
-    scripted_bus.queue(struct.pack("<f", degrees) + flags(READY))
+    scripted_bus.queue(struct.pack("<f", degrees) + flags(READY), struct.pack("<f", degrees) + flags(READY))
     assert joint.get_position() == position
     assert joint.stats.total_errors == 0
 
@@ -364,9 +364,8 @@ def test_position_is_0_when_the_offset_read_in_get_position_is_nan(scripted_bus:
     joint = Joint("j1", 0x11, 35.0, -J1_LIMIT, J1_LIMIT, scripted_bus, clock=ManualClock())
     scripted_bus.queue(ack(NOT_HOMED | NOT_ENABLED))
     joint.init()
-    scripted_bus.queue(
-        struct.pack("<f", 35.0) + flags(NOT_ENABLED), struct.pack("<f", float("nan")) + flags(NOT_ENABLED)
-    )
+    reading = struct.pack("<f", 35.0) + flags(NOT_ENABLED)
+    scripted_bus.queue(reading, reading, struct.pack("<f", float("nan")) + flags(NOT_ENABLED))
     assert joint.get_position() == 0.0
     assert joint.flags == NOT_HOMED | NOT_ENABLED
 
@@ -611,16 +610,17 @@ def test_post_homing_of_a_joint_that_did_not_home_says_so(
 def test_after_post_homing_positions_need_no_offset_read(
     scripted_bus: Any, make_j1: Callable[..., Joint]
 ) -> None:
-    # docs/arm.md: post_homing() stores the offset; get_position() is one
-    # transaction (ANGLEMOVED), q = deg2rad(deg)/reduction + offset.
+    # docs/arm.md: post_homing() stores the offset; get_position() reads
+    # ANGLEMOVED only (twice: the first reading after a homing is confirmed),
+    # q = deg2rad(deg)/reduction + offset.
     joint = make_j1()
     joint.adopt_homing(-0.1)  # homes to min
     scripted_bus.queue(ack(READY), flags(READY))  # PING, HOMEOFFSET := -3.04647
     joint.post_homing()
     scripted_bus.clear_log()
-    scripted_bus.queue(struct.pack("<f", 0.0) + flags(READY))
+    scripted_bus.queue(struct.pack("<f", 0.0) + flags(READY), struct.pack("<f", 0.0) + flags(READY))
     assert joint.get_position() == -J1_LIMIT
-    assert scripted_bus.writes() == [bytes([0x18])]  # ANGLEMOVED only
+    assert scripted_bus.writes() == [bytes([0x18])] * 2  # ANGLEMOVED only
 
 
 class LeapClock(ManualClock):

@@ -340,10 +340,14 @@ def test_get_position_reads_angle_moved_and_adds_offset(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", offset=0.5)
-    scripted_bus.queue(f32_reply(90.0, READY))
+    scripted_bus.queue(f32_reply(90.0, READY), f32_reply(90.0, READY))
     q = joint.get_position()
-    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)]
+    # the first reading after init() has nothing to compare with: a second one must agree (docs/protocol.md)
+    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)] * 2
     assert q == pytest.approx(math.radians(90.0) / 35.0 + 0.5, rel=1e-12)
+    scripted_bus.queue(f32_reply(90.0, READY))
+    joint.get_position()
+    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)] * 3  # later ones are compared with it
 
 
 def test_get_position_is_zero_while_not_homed(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:
@@ -872,10 +876,11 @@ def test_malformed_read_reply_counts_as_failed_attempt(
 ) -> None:
     joint = make_ready("j1", offset=0.5)
     joint.stats.reset()
-    scripted_bus.queue(bad_reply, f32_reply(90.0, READY))
+    scripted_bus.queue(bad_reply, f32_reply(90.0, READY), f32_reply(90.0, READY))  # the last: confirmation
     assert joint.get_position() == pytest.approx(math.radians(90.0) / 35.0 + 0.5)
-    assert joint.stats.transactions == 2
+    assert joint.stats.transactions == 3
     assert joint.stats.errors == 1
+    assert joint.stats.retries == 1
 
 
 def test_only_malformed_replies_give_comm_error(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:

@@ -128,6 +128,14 @@ class BaseJoint(abc.ABC):
     def _query(self, reg: Reg) -> tuple[float | int, int]:
         """Read a register; return its payload value and the flags byte."""
 
+    def forget_position(self) -> None:  # noqa: B027 - optional hook
+        """Compare no later position reading with an earlier one (the bus driver's check, docs/protocol.md).
+
+        Called on ``init()`` and around a homing, where the encoder's zero
+        may change, and by a simulation that teleports the joint: the next
+        reading is then confirmed by a second one instead.
+        """
+
     def _open(self) -> None:  # noqa: B027 - optional hook
         """Acquire the connection (bus handle); called by :meth:`init`."""
 
@@ -355,6 +363,7 @@ class BaseJoint(abc.ABC):
         self._open()
         self._initialized = True
         self._enable_needed = False  # a new session: the joint's own flags decide
+        self.forget_position()
         try:
             ack = self._get(Reg.PING)
             if ack != ACK:
@@ -531,6 +540,7 @@ class BaseJoint(abc.ABC):
         # one: a host that dies in between leaves NaN, which init() reads as
         # "home again" rather than trusting the joint's homed flag.
         self._send(Reg.HOMEOFFSET, math.nan)
+        self.forget_position()
         self._offset_lost = False
         self._homing_offset = self.max if velocity > 0 else self.min
         self._send_blocking(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
@@ -577,6 +587,7 @@ class BaseJoint(abc.ABC):
             )
         self._homing_offset = self.max if velocity > 0 else self.min
         self._current_b_cmd = Reg.HOME
+        self.forget_position()
         self._offset_lost = False
 
     def post_homing(self) -> None:
@@ -591,6 +602,7 @@ class BaseJoint(abc.ABC):
             raise NotHomedError("homing did not complete (aborted or failed)", joint=self.name)
         self.offset = self._homing_offset
         self._offset_known = True
+        self.forget_position()
         self._send(Reg.HOMEOFFSET, self.offset)
 
     def wait_while_busy(self, period_s: float = BUSY_POLL_S, timeout_s: float | None = None) -> None:

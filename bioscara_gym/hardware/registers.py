@@ -322,3 +322,32 @@ POSITION_UNHOMED_EXTRA_DEG = 360.0
 #: and beyond what a NEMA17 hybrid stepper turns under its own power
 #: (15 000 full steps/s) (our choice).
 MAX_PLAUSIBLE_RPM = 4500.0
+
+# ------------------------------------- host: believing a position reading
+# A position read (ANGLEMOVED) of a homed joint is compared with the last one
+# the driver believed: a reading that implies a move faster than the joint can
+# make in the time between is read again before anyone sees it
+# (docs/protocol.md, "Positions are read again when they jump"). A flipped
+# mantissa or exponent bit that leaves the value within the end stops is
+# caught this way; the range checks above cannot see it.
+
+#: Factor on the joint's speed and acceleration limits (the ones the driver
+#: sent: SETMAXVELOCITY, SETMAXACCELERATION, or the configuration's) before a
+#: move counts as too fast. The real joints exceed their limits: j4 reached
+#: 14.3 rad/s, 1.43 times its configured 10 rad/s, when commanded 20
+#: (maxAccel/j4_5), and accelerated at up to 37 rad/s^2, 1.24 times the 30 set
+#: (maxAccel/j4_5, column qdd); 2 leaves room above both (our choice).
+PLAUSIBLE_SPEED_MARGIN = 2.0
+#: Motor degrees a reading may lie beyond the predicted reach: encoder noise,
+#: the rotor's lag and lurches behind its ramped set point, and the timing of
+#: the samples. Over every pair of successive readings in the real arm's
+#: recordings (maxAccel/, settingMaxVal/, tracking_error/), the largest lurch
+#: beyond the ramp the limits allow (with the margin above) is 3.9 motor
+#: degrees (maxAccel/j1_3: j1 at 3 rad/s^2, where it skips steps audibly);
+#: 5 degrees, under 3 full steps (our choice). A reading of j1 off by bit 13
+#: of its float (4 degrees at 4100) is then still believed: 0.11 degrees at
+#: the joint.
+PLAUSIBLE_JUMP_DEG = 5.0
+#: Readings at least this far apart in time give a speed the next bound may
+#: use (the firmware's main-loop period: closer readings see the same sample).
+PLAUSIBLE_SPEED_MIN_DT_S = TICK_S
