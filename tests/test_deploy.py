@@ -482,6 +482,57 @@ def test_metadata_mismatch_is_refused_before_any_bus_traffic(
     assert not run.log.exists()
 
 
+class TorchRefusesNaN:
+    """Raises what torch raises for an actor whose weights hold NaN (two lines, as seen)."""
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        raise ValueError(
+            "Expected parameter loc (Tensor of shape (1, 4)) of distribution Normal(loc: torch.Size([1, 4]), "
+            "scale: torch.Size([1, 4])) to satisfy the constraint Real(), but found invalid values:\n"
+            "tensor([[nan, nan, nan, nan]])"
+        )
+
+
+@pytest.mark.parametrize(
+    ("policy", "expected"),
+    [
+        (TorchRefusesNaN(), "fails on a probe observation (ValueError: Expected parameter loc"),
+        (ConstantPolicy([0.1, np.inf, 0.0, 0.0]), "gives a non-finite action [0.1, inf, 0. , 0. ]"),
+    ],
+    ids=["raises", "inf"],
+)
+def test_a_policy_whose_numbers_are_broken_is_refused_in_the_check_phase(
+    deploy: Callable[..., Run], sac_model: Path, policy: Any, expected: str
+) -> None:
+    # Seen: a model.zip whose actor weights hold NaN reached the arm check as a
+    # two-line torch message and exit 1.
+    run = deploy(policy=policy, metadata=read_metadata(sac_model))
+    assert run.error is not None and run.error.code == EXIT_REFUSED
+    message = str(run.error)
+    assert message.startswith("refused: given policy ") and expected in message, message
+    assert "\n" not in message and "nothing was sent to the arm" in message
+    assert run.backend.bus.transactions == 0
+    assert not run.log.exists()
+
+
+def test_a_policy_that_fails_mid_run_is_a_one_line_safety_stop(deploy: Callable[..., Run]) -> None:
+    calls = {"n": 0}
+
+    def fails_at_cycle_3(obs: dict[str, np.ndarray]) -> np.ndarray:
+        calls["n"] += 1
+        if calls["n"] > 3:
+            TorchRefusesNaN()(obs)
+        return np.zeros(4, dtype=np.float32)
+
+    run = deploy(policy=fails_at_cycle_3)
+    assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
+    assert "the policy failed to act (ValueError: Expected parameter loc" in str(run.error)
+    assert "\n" not in str(run.error)
+    summary = read_log(run.log)[-1]
+    assert summary["stop_reason"] == "nan_action" and summary["cycles"] == 3
+    assert_every_joint_disabled(summary)
+
+
 # ------------------------------------------------------------------ signals
 def test_signal_guard_raises_at_once_outside_the_control_loop() -> None:
     with SignalGuard(), pytest.raises(Interrupted) as caught:

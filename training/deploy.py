@@ -3,7 +3,9 @@
 Reads top to bottom, as a deployment runs:
 
 1. **check** the policy's metadata against the env it would drive (task,
-   spaces, control mode and rate); a mismatch is refused before anything is
+   spaces, control mode and rate) and against the copy inside the model file,
+   and run the policy once on a probe observation (NaN, infinity or a failure
+   inside the policy is refused); a mismatch is refused before anything is
    sent to the arm.
 2. **configure**: connect and ping every joint.
 3. **activate**: enable the joints, stall detection and limits.
@@ -270,7 +272,8 @@ def load_policy(args: DeployArgs) -> LoadedPolicy:
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
     from bioscara_gym.training.algos import load_model, sb3_policy
 
-    model, metadata = load_model(Path(args.model))
+    # What the policy was trained for is proven by its own copy, not by an editable file.
+    model, metadata = load_model(Path(args.model), require_embedded=True)
     sb3 = sb3_policy(model)
     shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {args.model}")
     return LoadedPolicy(lambda env: sb3, metadata, f"{metadata['algo'].upper()} {args.model}", shapes)
@@ -384,8 +387,9 @@ class Deployment:
                 check_policy_shapes(loaded.shapes, env)
         except MetadataError as e:
             raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
+        _probe_policy(loaded, env, self.args.seed)
         checked = "metadata and own inputs and outputs match" if loaded.shapes else "metadata matches"
-        self._phase("check", f"policy {checked} the env; nothing sent to the arm yet")
+        self._phase("check", f"policy {checked} the env, and acts finitely; nothing sent to the arm yet")
 
     def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
         """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet."""
@@ -565,7 +569,7 @@ class Deployment:
         arm = env.unwrapped.arm
         t_clock = arm.backend.clock.now()
         t_wall, period, wall_period = clock.tick(t_clock)
-        raw = policy(obs)
+        raw = _act(policy, obs)
         where = {"cycle": self._counts["cycles"], "episode": ep, "step": step, "t": t_clock}
         try:
             result, check = safety.step(raw)
@@ -790,6 +794,41 @@ class Deployment:
             )
 
 
+def _probe_policy(loaded: LoadedPolicy, env: gym.Env, seed: int) -> None:
+    """Run the policy once on an observation of the env's space, before the arm is touched.
+
+    The env's first real observation needs the arm homed, so the probe is an
+    observation drawn from the env's observation space with the run's seed: a
+    policy whose own numbers are broken (a NaN weight) gives NaN or infinity,
+    or fails inside its library, for any input.
+
+    Raises:
+        DeployError: One line naming the policy and what it gave.
+    """
+    space = env.observation_space
+    space.seed(seed)
+    probe = space.sample()
+    try:
+        action = np.asarray(loaded.make(env)(probe), dtype=np.float64)
+    except Exception as e:  # torch's distribution checks, onnxruntime: one line, not their traceback
+        raise DeployError(
+            f"refused: {loaded.description} fails on a probe observation ({type(e).__name__}: "
+            f"{_first_line(e)}); are its weights NaN or infinite? nothing was sent to the arm"
+        ) from e
+    if not np.all(np.isfinite(action)):
+        raise DeployError(
+            f"refused: {loaded.description} gives a non-finite action "
+            f"{np.array2string(action, precision=3, separator=', ')} on a probe observation; "
+            "nothing was sent to the arm"
+        )
+
+
+def _first_line(e: BaseException) -> str:
+    """The first line of an exception's message (torch's span several)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else "no message"
+
+
 def _check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
     """Refuse a policy's env kwargs that the env does not take, naming them.
 
@@ -891,6 +930,21 @@ def _gripper_saved(gripper: BaseGripper) -> str:
     if gripper.saved_width_m is None:
         return f"not saved (the gripper was not enabled; {path} unchanged)"
     return f"saved to {path}"
+
+
+def _act(policy: Policy, obs: dict[str, np.ndarray]) -> Any:
+    """The policy's action; a failure inside the policy is a safety stop in one line.
+
+    Raises:
+        SafetyStop: ``nan_action``: the policy raised (e.g. torch refusing a
+            NaN mean); the arm has not seen this cycle's action.
+    """
+    try:
+        return policy(obs)
+    except Exception as e:
+        raise SafetyStop(
+            StopReason.NAN_ACTION, f"the policy failed to act ({type(e).__name__}: {_first_line(e)})"
+        ) from e
 
 
 def _floats(action: Any) -> np.ndarray:

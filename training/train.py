@@ -40,7 +40,7 @@ from bioscara_gym.training.hyperparams import (
     default_config_path,
     load_hyperparams,
 )
-from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
+from bioscara_gym.training.metadata import build_metadata, resolve_env_id, save_policy
 from bioscara_gym.training.run import (
     CHECKPOINT_RE,
     STATE_NAME,
@@ -474,9 +474,8 @@ def train(args: TrainArgs) -> TrainResult:
             if env is not None:
                 env.close()
         with guard.shielded():  # a signal now would cut the final model in half
-            model_path = out / "model.zip"
-            _save_model(model, model_path)
-            metadata_path = write_metadata(
+            model_path, metadata_path = save_policy(
+                model,
                 out,
                 build_metadata(
                     eval_env,
@@ -568,12 +567,9 @@ def train_bc(args: TrainArgs, env_id: str, hp: Hyperparams) -> TrainResult:
             final = run_episodes(eval_env, act, hp.eval_episodes, seed=args.seed + EVAL_SEED_OFFSET)
         finally:
             eval_env.close()
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        model_path = out / "model.zip"
-        model.save(model_path)
-        metadata_path = write_metadata(
-            out,
+        model_path, metadata_path = save_policy(
+            model,
+            Path(args.out),
             build_metadata(
                 env,
                 env_id,
