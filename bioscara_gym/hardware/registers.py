@@ -179,6 +179,33 @@ SENSITIVITY_MAX = 255
 HOMING_RPM_MIN = 1.0
 HOMING_RPM_MAX = 250.0
 
+# ---------------------------------- what a configuration may ask of a joint
+# Values the motor or the firmware cannot honour are refused when the
+# configuration is loaded (hardware/config.py), with these bounds.
+
+#: Lowest homing sensitivity: the homing stops at the first PID-error sample
+#: above it (firmware, polled every 1 ms), and the PID error of a free joint
+#: at rest reaches 17 (high_speed_stall_test/J3_UP_ramp.csv, ``data 0``); a
+#: lower threshold ends the homing where the joint stands: threshold 0
+#: "homed" j1 at once, believed 3.0465 rad, true 2.9246 (issue #24). The arm
+#: uses 25-50 (parameter file); 20 leaves room above the noise (our choice).
+HOMING_THRESHOLD_MIN = 20
+#: Lowest homing and drive current, percent: at 0 % the motor has no torque,
+#: so a homing "finds its stop" where it stands and a drive cannot move.
+DRIVE_CURRENT_MIN_PCT = 1
+#: Fastest motor speed a joint may be configured for, RPM. The fastest the
+#: real motors were measured to turn is 1639 RPM (maxAccel/j4_5: j4 at
+#: 14.3 rad/s, reduction 12, commanded 20 rad/s); 2000 RPM, 1.2 times that,
+#: is beyond what they can do (our choice). A limit above it (j4 at
+#: 1e6 rad/s was accepted) clamps nothing.
+MOTOR_RPM_MAX = 2000.0
+#: Largest motor acceleration a joint may be configured for, deg/s^2. The
+#: real joints lost their ramp above j1 3 rad/s^2 (6,000 deg/s^2 at the
+#: motor), j3 15 rad/s^2 (20,600) and j4 between 30 and 34 rad/s^2 (20,600 to
+#: 23,400; maxAccel/README.md); 30,000 deg/s^2 is 1.28 times the highest that
+#: failed (our choice).
+MOTOR_ACCELERATION_MAX_DPS2 = 30_000.0
+
 # --------------------------------------------------- firmware timings
 #: Main-loop period in seconds: stall detection and the deadman run once per
 #: 10 ms tick (firmware).
