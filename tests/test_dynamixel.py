@@ -269,6 +269,28 @@ def test_parse_ids() -> None:
         parse_ids("250-253")
 
 
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("0-300", r"IDs must be 0-252, got 300 \(in '0-300'\)"),  # said "got 253": the first one past
+        ("1-1000000000", r"got 1000000000 \(in '1-1000000000'\)"),  # was expanded first: 22.7 GB, killed
+        ("7,400", r"got 400 \(in '400'\)"),
+    ],
+)
+def test_parse_ids_checks_a_range_before_expanding_it(spec: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_ids(spec)
+
+
+def test_cli_emulate_refuses_a_huge_id_range_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from bioscara_gym.cli import main
+
+    assert main(["emulate", "dynamixel", "--ids", "1-1000000000", "--link", "/nonexistent/dxl"]) == 2
+    err = capsys.readouterr().err
+    expected = "--ids '1-1000000000': IDs must be 0-252, got 1000000000 (in '1-1000000000')"
+    assert err == f"bioscara emulate: error: {expected}\n"
+
+
 # ---------------------------------------------------- driver over the SDK
 
 

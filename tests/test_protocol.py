@@ -17,6 +17,7 @@ import math
 import os
 import struct
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -947,11 +948,34 @@ def test_smbus_open_without_permission_raises_comm_error_with_hint(monkeypatch: 
         SMBusI2C(1)
 
 
+def test_smbus_open_of_a_regular_file_names_the_device(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen: "[Errno 25] Inappropriate ioctl for device", without the path.
+    device = tmp_path / "i2c-1"
+    device.write_bytes(b"")
+    monkeypatch.setattr("bioscara_gym.hardware.bus.DEVICE_PATH", str(tmp_path / "i2c-{bus}"))
+    with pytest.raises(CommError, match=rf"^{device}: Inappropriate ioctl for device: not an I2C adapter"):
+        SMBusI2C(1)
+
+
+def test_smbus_transfer_error_names_the_device_and_address(fake_smbus: type[FakeSMBus]) -> None:
+    bus = SMBusI2C(1)
+
+    def refuse(*msgs: smbus2.i2c_msg) -> None:
+        raise OSError(25, "Inappropriate ioctl for device")
+
+    fake_smbus.instances[0].i2c_rdwr = refuse  # type: ignore[method-assign]
+    with pytest.raises(OSError, match=r"Inappropriate ioctl for device \(/dev/i2c-1, address 0x11\)") as info:
+        bus.transfer(0x11, PING, 2)
+    assert info.value.errno == 25
+
+
 def test_smbus_transfer_is_one_combined_write_then_read(fake_smbus: type[FakeSMBus]) -> None:
     bus = SMBusI2C(1)
     reply = bus.transfer(0x12, b"\x18", 5)
     (device,) = fake_smbus.instances
-    assert device.bus == 1
+    assert device.bus == "/dev/i2c-1"
     assert len(device.calls) == 1
     (write, read) = device.calls[0]
     assert write[:3] == (0x12, 0, 1)  # addr, flags (write), len

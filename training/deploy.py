@@ -103,6 +103,7 @@ from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
 from bioscara_gym.training.deploy_log import BusStats, LoopStats, RunLog
 from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
+from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import (
     PolicyShapes,
     check_metadata,
@@ -270,7 +271,8 @@ def load_policy(args: DeployArgs) -> LoadedPolicy:
             lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
         )
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
-    from bioscara_gym.training.algos import load_model, sb3_policy
+    with needed_by("deploy --model"):
+        from bioscara_gym.training.algos import load_model, sb3_policy
 
     # What the policy was trained for is proven by its own copy, not by an editable file.
     model, metadata = load_model(Path(args.model), require_embedded=True)
