@@ -229,6 +229,23 @@ def test_home_no_wait_leaves_the_homing_running(bioscara: Run, state: Path) -> N
     assert status(bioscara, state)["j4"][3:5] == ["homing…", "BUSY NOT_HOMED"]
 
 
+def test_homing_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run, state: Path) -> None:
+    # Seen: `home j1` after `home --no-wait` aborted all four homings and disabled
+    # the arm while saying "wait for it in bioscara monitor".
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "--no-wait", "--state", str(state))
+    code, _, err = bioscara("home", "j1", "--state", str(state))
+    assert code == 2
+    assert err == (
+        "bioscara home: error: j1: busy (a homing is running); wait for it in `bioscara monitor` "
+        "or abort it with `bioscara home j1 --abort`"
+    )
+    table = status(bioscara, state)
+    for name in ("j1", "j2", "j3", "j4"):
+        assert table[name][2:5] == ["yes", "homing…", "BUSY NOT_HOMED"], name
+    assert enabled(table, "gripper") == "yes"
+
+
 def test_homing_left_running_is_finished_by_a_later_command(bioscara: Run, state: Path) -> None:
     bioscara("enable", "--state", str(state))
     bioscara("home", "j4", "--no-wait", "--state", str(state))
