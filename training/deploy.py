@@ -45,7 +45,9 @@ written and flushed per record, so it is complete after Ctrl-C:
                bus (only when the cycle had any: per joint, retries and errors by kind that
                the driver recovered from or not); the cycle a safety stop cut short: action,
                flags, bus, ``stopped: true``
-``bus``        phase ``bring-up``, joints: retries and errors during configure/activate/home
+``bus``        phase (configure, activate, home, reset with its episode, deactivate, cleanup,
+               safe stop, shutdown), joints: that phase's retries and errors; with the
+               cycle records' they add up to the summary's totals
 ``episode``    episode, success, distance, steps, return, stalled
 ``stop``       reason, message, joint
 ``summary``    episodes, successes, cycles, period/jitter/overrun statistics, stop_reason,
@@ -56,13 +58,14 @@ written and flushed per record, so it is complete after Ctrl-C:
                bus (per joint: transactions, retries, errors by kind ``bus`` / ``malformed``
                / ``implausible``, as ``bioscara status`` counts them), gripper (width_m,
                state_file, saved_width_m: what was written, ``null`` if nothing), log_error,
-               exit_code
+               log_records_lost, exit_code
 =============  ======================================================================
 
 A record that cannot be written (disk full) stops the run like any safety
-stop (exit 3, arm disabled); the stop and summary records are then written
-if the disk lets them, and the printed summary says how many records are
-missing. A log that cannot be opened or take its header refuses the run.
+stop (exit 3, arm disabled); what of it reached the disk is cut off again, so
+every line stays a whole JSON record; the stop and summary records are then
+written if the disk lets them, and the printed summary names the records
+that are missing. A log that cannot be opened or take its header refuses the run.
 
 On ``mock`` and ``emulated`` time is simulated: ``period_s`` is simulated and
 the loop runs as fast as the host can unless ``--realtime`` paces it on the
@@ -339,6 +342,20 @@ class Deployment:
             self._early_phases.append(record)
         else:
             self._log.write(record)
+            self._log_bus(name)
+
+    def _log_bus(self, phase: str, **where: Any) -> None:
+        """A ``bus`` record of the retries and errors since the last record that took them, if any.
+
+        Cycle records take their cycle's; this takes a phase's (configure,
+        activate, home, an episode's reset, deactivate, cleanup, the safe
+        stop, shutdown), so the records add up to the summary's totals.
+        """
+        if self._bus is None or self._log is None:
+            return
+        changes = self._bus.cycle()
+        if changes:
+            self._log.write({"type": "bus", "phase": phase, **where, "joints": changes})
 
     def _starting(self, name: str, detail: str) -> None:
         """Print that a phase starts (a failure in it is printed right after)."""
@@ -524,9 +541,6 @@ class Deployment:
         """Run every episode behind the safety layer."""
         self._guard = DeadmanGuard(env.unwrapped.arm.backend)
         safety = SafetyLayer(env, self._guard)
-        recovered = self._bus.cycle()
-        if recovered:
-            self._log.write({"type": "bus", "phase": "bring-up", "joints": recovered})
         self._phase(
             "run",
             f"{self.args.episodes} episode(s) at {env.unwrapped.control_freq:g} Hz, log {self.log_path}",
@@ -537,6 +551,7 @@ class Deployment:
     def _run_episode(self, env: gym.Env, policy: Policy, safety: SafetyLayer, ep: int) -> None:
         """Reset, then one cycle after another until the episode ends."""
         obs, info = env.reset(seed=self.args.seed + ep)
+        self._log_bus("reset", episode=ep)
         if hasattr(policy, "reset"):
             policy.reset()
         self._guard.restart()
@@ -672,6 +687,7 @@ class Deployment:
         with self._signals.shielded():
             outcome = _classify(e)
             outcome.stop_report = safe_stop(arm)  # the arm first, then the words
+            self._log_bus("safe stop")
             self._gripper_width = outcome.stop_report.gripper_width_m
             self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(outcome.message)}")
             self._log.write(
@@ -691,6 +707,7 @@ class Deployment:
             self._guard.detach()
         if arm.state is not Lifecycle.FINALIZED:
             arm.shutdown()
+        self._log_bus("shutdown")
         self.summary = self._summarise(env, outcome)
         self._log.write({"type": "summary", **self.summary})
 
@@ -723,6 +740,7 @@ class Deployment:
                 "saved_width_m": arm.gripper.saved_width_m,
             },
             "log_error": None if self._log.error is None else str(self._log.error),
+            "log_records_lost": list(self._log.lost),
             "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
@@ -789,9 +807,10 @@ class Deployment:
         self.console.print(table)
         self.console.print(f"log        {self.log_path}", markup=False)
         if self._log.error is not None:
+            lost = f": {', '.join(self._log.lost)}" if self._log.lost else ""
             self.console.print(
-                f"log incomplete: {self._log.dropped} record(s) not written "
-                f"({self._log.error.strerror or self._log.error})",
+                f"log incomplete: {self._log.dropped} record(s) not written{lost} "
+                f"({self._log.error.strerror or self._log.error}); every line in it is a whole record",
                 markup=False,
             )
 
