@@ -182,6 +182,45 @@ def test_a_recorded_error_is_raised_again_as_the_same_oserror() -> None:
     pytest.fail("no recorded error")
 
 
+def test_a_different_read_length_is_a_mismatch_naming_both() -> None:
+    (session,) = read_trace(TRACES / "deploy_reach_expert.jsonl")
+    first = session.transactions[0]
+    bus = ReplayBus(session)
+    with pytest.raises(TraceMismatch) as caught:
+        bus.transfer(first.address, first.write, first.read_len + 1)
+    assert f"read {first.read_len}, sent" in str(caught.value)
+    assert str(caught.value).endswith(f"read {first.read_len + 1}")
+
+
+class _Failing:
+    """A bus whose every transfer raises ``OSError(errno, message)``."""
+
+    def __init__(self, errno: int, message: str) -> None:
+        self.errno, self.message = errno, message
+
+    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
+        raise OSError(self.errno, self.message)
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_bus_error_is_recorded_with_its_errno_and_message_and_raised_unchanged(tmp_path: Path) -> None:
+    from bioscara_gym.hardware.clock import ManualClock
+    from bioscara_gym.hardware.recording import Recording, RecordingBus
+
+    recording = Recording(tmp_path / "t.jsonl", "x")
+    bus = RecordingBus(_Failing(121, "Remote I/O error"), recording, ManualClock(), "i2c", load_config())
+    with pytest.raises(OSError) as caught:
+        bus.transfer(0x12, b"\x18", 5)
+    assert (caught.value.errno, caught.value.strerror) == (121, "Remote I/O error")
+    bus.close()
+    (session,) = read_trace(tmp_path / "t.jsonl")
+    (tx,) = session.transactions
+    assert (tx.address, tx.write, tx.read_len, tx.read) == (0x12, b"\x18", 5, None)
+    assert (tx.errno, tx.message) == (121, "Remote I/O error")
+
+
 def test_after_a_mismatch_every_transfer_raises_it_again() -> None:
     (session,) = read_trace(TRACES / "deploy_reach_expert.jsonl")
     bus = ReplayBus(session)
