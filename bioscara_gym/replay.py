@@ -249,15 +249,22 @@ def replay_session(session: TraceSession) -> SessionResult:
     )
 
 
-def replay(path: str | Path, on_session: Callable[[SessionResult], None] | None = None) -> ReplayResult:
+def replay(
+    path: str | Path,
+    on_session: Callable[[SessionResult], None] | None = None,
+    check_digests: bool = True,
+) -> ReplayResult:
     """Replay every session of a trace, in order, up to the first that does not match.
 
+    ``check_digests=False`` replays a hand-made or hand-edited trace (lines
+    without digests, or whose digests no longer match).
+
     Raises:
-        TraceError: The trace cannot be read.
+        TraceError: The trace cannot be read, or a line was changed after recording.
         ReplayError: A session's command or backend cannot be replayed.
     """
     results = []
-    for session in read_trace(path):
+    for session in read_trace(path, check_digests):
         result = replay_session(session)
         results.append(result)
         if on_session is not None:
@@ -290,9 +297,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     out = Console(highlight=False, markup=False, soft_wrap=True)
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
+    check = not getattr(args, "unchecked", False)
     try:
-        sessions = read_trace(args.file)
-        result = replay(args.file)
+        sessions = read_trace(args.file, check)
+        result = replay(args.file, check_digests=check)
     except TraceError as e:
         err.print(f"bioscara replay: error: {e}")
         return EXIT_ERROR
@@ -316,7 +324,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run a recorded bus trace's commands again and check every byte the driver sends",
         description="Replay a trace written with --record: the recorded command runs again against the "
         "recorded replies; exit 0 if the driver sent exactly the recorded bytes in the recorded order, "
-        "1 at the first difference (index, expected bytes, bytes sent), 2 if the trace cannot be read.",
+        "1 at the first difference (index, expected bytes, bytes sent), 2 if the trace cannot be read or a "
+        "line was changed after recording (its digest names it).",
     )
     p.add_argument("file", type=Path, metavar="FILE", help="trace (JSON Lines) written with --record")
+    p.add_argument(
+        "--unchecked",
+        action="store_true",
+        help="replay a hand-made or hand-edited trace: lines without digests, or whose digests do not match",
+    )
     p.set_defaults(func=cmd_replay)

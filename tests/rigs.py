@@ -673,7 +673,7 @@ def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
     from stable_baselines3 import SAC, HerReplayBuffer
 
     from bioscara_gym.training.features import GoalErrorExtractor
-    from bioscara_gym.training.metadata import build_metadata, write_metadata
+    from bioscara_gym.training.metadata import build_metadata, save_policy
 
     torch.set_num_threads(1)
     env_kwargs = {"control_mode": "cartesian", "reward_type": "log"}
@@ -690,10 +690,9 @@ def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
         device="cpu",
     )
     model.learn(200)
-    model.save(out / "model.zip")
-    write_metadata(out, build_metadata(env, env_id, env_kwargs, algo="sac"))
+    model_path, _ = save_policy(model, out, build_metadata(env, env_id, env_kwargs, algo="sac"))
     env.close()
-    return out / "model.zip"
+    return model_path
 
 
 # ------------------------------------------------------- a motor the test sets

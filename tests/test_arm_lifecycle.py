@@ -10,6 +10,8 @@ configures again once the bus is healthy. Behaviour every backend shares is para
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from rigs import CONFIG, DT, NAMES, NEAR_END_STOPS, MakeBackend, cycle_until, motor_rate_deg, spy
 
@@ -402,3 +404,14 @@ def test_failed_deactivate_falls_back_to_unconfigured(emulated_homed_arm: Arm) -
     with pytest.raises(CommError, match=r"j1 \(0x11\): STOP failed"):
         arm.deactivate()
     assert arm.state is Lifecycle.UNCONFIGURED
+
+
+def test_docs_arm_md_says_what_the_code_does() -> None:
+    # docs/arm.md said claiming a claimed interface is a no-op (it raises) and that a
+    # failed cycle leaves the arm INACTIVE (the seed's on_error leaves it UNCONFIGURED).
+    text = (Path(__file__).parent.parent / "docs" / "arm.md").read_text(encoding="utf-8")
+    rows = text.splitlines()
+    row = next(line for line in rows if line.startswith("| claiming the interface already claimed"))
+    assert "ArmStateError" in row and "no-op" not in row
+    assert "failed read/write (ACTIVE) --> (disable all, deinit all) --> UNCONFIGURED" in text
+    assert "the arm goes INACTIVE" not in text

@@ -650,6 +650,45 @@ INVALID_CASES = [
         r"config\.yaml: joint j1: homing\.threshold -1 is outside 0-255",
         id="homing-threshold-negative",
     ),
+    # Values the motor and the firmware cannot honour (issue #24; registers.py has their sources).
+    pytest.param(
+        _set_joint("j4", "max_velocity", 1.0e6),
+        r"config\.yaml: joint j4: max_velocity 1000000\.0 rad/s is 1\.146e\+08 RPM at the motor; the "
+        r"motors were measured to 1639 RPM, so at most 2000 RPM \(17\.453292519943293 rad/s\)$",
+        id="max-velocity-beyond-the-motor",
+    ),
+    pytest.param(
+        _set_joint("j2", "max_velocity", 0.14),
+        r"config\.yaml: joint j2: max_velocity 0\.14 m/s is 2100 RPM at the motor; .* at most 2000 RPM",
+        id="lift-max-velocity-beyond-the-motor",
+    ),
+    pytest.param(
+        _set_joint("j1", "max_acceleration", 15.0),
+        r"config\.yaml: joint j1: max_acceleration 15\.0 rad/s² is 3\.008e\+04 deg/s² at the motor; the "
+        r"joints lose their ramp above 23,400 deg/s², so at most 30000 \(14\.9599[0-9]* rad/s²\)$",
+        id="max-acceleration-beyond-the-motor",
+    ),
+    pytest.param(
+        _set_homing("j1", "threshold", 0),
+        r"config\.yaml: joint j1: homing\.threshold 0 is below 20: a free joint's PID error at rest "
+        r"reaches 17, so the homing would stop where the joint stands",
+        id="homing-threshold-zero",
+    ),
+    pytest.param(
+        _set_homing("j3", "threshold", 19),
+        r"config\.yaml: joint j3: homing\.threshold 19 is below 20",
+        id="homing-threshold-19",
+    ),
+    pytest.param(
+        _set_homing("j2", "current", 0),
+        r"config\.yaml: joint j2: homing\.current 0 % gives the motor no torque: the homing would stop",
+        id="homing-current-zero",
+    ),
+    pytest.param(
+        _set_joint("j4", "drive_current", 0),
+        r"config\.yaml: joint j4: drive_current 0 % gives the motor no torque: the joint could not move$",
+        id="drive-current-zero",
+    ),
     # Velocity, acceleration, reduction.
     pytest.param(
         _set_joint("j3", "max_velocity", 0.0),
@@ -821,3 +860,37 @@ def test_value_error_in_file_names_path_and_joint(tmp_path: Path, default_dict: 
     path.write_text(yaml.safe_dump(default_dict), encoding="utf-8")
     with pytest.raises(ConfigError, match=re.escape(f"{path}: joint j2: homing.speed 5e-05 m/s")):
         load_config(path)
+
+
+# --------------------------------------------------------------------------
+# The bounds of what the arm can honour: the limits themselves are accepted.
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("joint", "field", "value"),
+    [
+        ("j1", "homing.threshold", 20),  # registers.HOMING_THRESHOLD_MIN
+        ("j2", "homing.current", 1),
+        ("j4", "drive_current", 1),
+        ("j4", "max_velocity", 2000.0 * 6.0 / math.degrees(12.0)),  # 2000 RPM at the motor exactly
+        ("j3", "max_acceleration", 30_000.0 / math.degrees(24.0)),  # 30,000 deg/s^2 at the motor exactly
+    ],
+)
+def test_the_bounds_of_what_the_arm_can_honour_are_themselves_accepted(
+    default_dict: dict[str, Any], joint: str, field: str, value: float
+) -> None:
+    spec = next(j for j in default_dict["joints"] if j["name"] == joint)
+    if field.startswith("homing."):
+        spec["homing"][field.removeprefix("homing.")] = value
+    else:
+        spec[field] = value
+    config_from_dict(default_dict, source="config.yaml")
+
+
+def test_a_dynamixel_joint_is_not_bound_by_the_steppers_limits() -> None:
+    # An XL430 is not the Bioscara's stepper: its limits are the servo's.
+    path = Path(__file__).parent.parent / "bioscara_gym" / "hardware" / "dynamixel" / "dynamixel_arm.yaml"
+    data = yaml.safe_load(path.read_text())
+    data["joints"][0]["max_velocity"] = 300.0  # 2865 RPM at "reduction 1"
+    config_from_dict(data, source="dynamixel_arm.yaml")

@@ -131,6 +131,7 @@ def test_collect_refuses_an_existing_dataset_without_overwrite(
         (["--expert", "--env", "Bioscara-Nope", "--episodes", "1"], "unknown env"),
         (["--expert", "--episodes", "0"], "--episodes must be > 0"),
         (["--episodes", "1"], "exactly one of --expert or --model"),
+        (["--expert", "--episodes", "1", "--seed", "-1"], "--seed must be >= 0, got -1"),  # was a traceback
     ],
 )
 def test_collect_bad_input_is_one_line_and_writes_nothing(

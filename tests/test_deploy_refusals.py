@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from rigs import train_tiny_sac
 
 from bioscara_gym.cli import main
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
-from bioscara_gym.training.metadata import build_metadata, write_metadata
+from bioscara_gym.training.metadata import EMBEDDED_NAME, build_metadata, write_metadata
 
 REACH = "Bioscara-Reach-v0"
 PICK_PLACE = "Bioscara-PickPlace-v0"
@@ -55,13 +56,20 @@ def bus_traffic(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bytes]]:
 
 
 # ------------------------------------------------------------ file editors
-def edit_metadata(change: Callable[[dict[str, Any]], Any]) -> Callable[[Path], list[str]]:
-    """A row's setup: copy the policy, replace its metadata by ``change(metadata)``."""
+def edit_metadata(
+    change: Callable[[dict[str, Any]], Any], inside: bool = False
+) -> Callable[[Path], list[str]]:
+    """A row's setup: copy the policy, replace its metadata by ``change(metadata)``.
+
+    ``inside``: the copy inside ``model.zip`` too, as a model trained so would have it.
+    """
 
     def setup(run: Path) -> list[str]:
         metadata = json.loads((run / "metadata.json").read_text())
         new = change(metadata)
         (run / "metadata.json").write_text(json.dumps(metadata if new is None else new))
+        if inside:
+            embed(run, metadata if new is None else new)
         return ["--model", str(run / "model.zip")]
 
     return setup
@@ -109,6 +117,56 @@ def pick_place_metadata(run: Path) -> list[str]:
     env = gym.make(PICK_PLACE, control_mode="cartesian", backend="mock")
     write_metadata(run, build_metadata(env, PICK_PLACE, {"control_mode": "cartesian"}, algo="sac"))
     env.close()
+    return ["--model", str(run / "model.zip")]
+
+
+def pick_place_metadata_inside_and_beside(run: Path) -> list[str]:
+    """The Reach weights, with PickPlace metadata both beside and inside the zip: only the shapes tell."""
+    pick_place_metadata(run)
+    embed(run, json.loads((run / "metadata.json").read_text()))
+    return ["--model", str(run / "model.zip")]
+
+
+def embed(run: Path, metadata: dict[str, Any] | None) -> None:
+    """Replace the copy of the metadata inside ``run/model.zip`` (``None``: remove it)."""
+    path = run / "model.zip"
+    with zipfile.ZipFile(path) as old:
+        members = {n: old.read(n) for n in old.namelist() if n != EMBEDDED_NAME}
+    with zipfile.ZipFile(path, "w") as new:
+        for name, data in members.items():
+            new.writestr(name, data)
+        if metadata is not None:
+            new.writestr(EMBEDDED_NAME, json.dumps(metadata))
+
+
+def mode_and_rate_edited_in_both_places(run: Path) -> list[str]:
+    """Seen: control_mode (and control_freq) changed in env_kwargs and config.env_kwargs by hand."""
+    metadata = json.loads((run / "metadata.json").read_text())
+    metadata["config"] = {"env_kwargs": dict(metadata["env_kwargs"])}
+    for kwargs in (metadata["env_kwargs"], metadata["config"]["env_kwargs"]):
+        kwargs.update(control_mode="velocity", control_freq=25.0)
+    (run / "metadata.json").write_text(json.dumps(metadata))
+    return ["--model", str(run / "model.zip")]
+
+
+def saved_without_its_copy(run: Path) -> list[str]:
+    """A model.zip saved before the metadata travelled inside it."""
+    embed(run, None)
+    return ["--model", str(run / "model.zip")]
+
+
+def nan_actor_weights(run: Path) -> list[str]:
+    """The actor's output layer full of NaN, model and metadata otherwise intact."""
+    import torch
+    from stable_baselines3 import SAC
+
+    from bioscara_gym.training.metadata import save_policy
+
+    act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
+    sac = SAC.load(run / "model.zip", device="cpu", custom_objects=act_only)
+    with torch.no_grad():
+        sac.policy.actor.mu.weight.fill_(float("nan"))
+    save_policy(sac, run, json.loads((run / "metadata.json").read_text()))
     return ["--model", str(run / "model.zip")]
 
 
@@ -164,7 +222,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
     ("metadata-no-algo", edit_metadata(without("algo")), [], "does not say which algorithm"),
     (
         "metadata-unknown-kwarg",
-        edit_metadata(setting(3, "env_kwargs", "arm_speed")),
+        edit_metadata(setting(3, "env_kwargs", "arm_speed"), inside=True),
         [],
         "env_kwargs has 'arm_speed', which Bioscara-Reach-v0 does not take",
     ),
@@ -182,7 +240,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
     ),
     (
         "metadata-bad-control-mode",
-        edit_metadata(setting("torque", "env_kwargs", "control_mode")),
+        edit_metadata(setting("torque", "env_kwargs", "control_mode"), inside=True),
         [],
         "control_mode 'torque' must be one of",
     ),
@@ -206,7 +264,26 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "reach-model-pick-place-metadata",
         pick_place_metadata,
         [],
+        "metadata.json says env_id is 'Bioscara-PickPlace-v0', but",
+    ),
+    (
+        "reach-model-pick-place-metadata-inside-too",
+        pick_place_metadata_inside_and_beside,
+        [],
         "takes 12 values of observation 'observation', the env gives 22",
+    ),
+    (
+        "metadata-mode-and-rate-edited-in-both-places",
+        mode_and_rate_edited_in_both_places,
+        [],
+        "metadata.json says env_kwargs.control_mode is 'velocity', but",
+    ),
+    ("model-without-its-own-copy", saved_without_its_copy, [], "carries no copy of its training metadata"),
+    (
+        "model-nan-actor-weights",
+        nan_actor_weights,
+        [],
+        "policy weight actor.mu.weight holds 128 non-finite value(s) (NaN or inf)",
     ),
     (
         "onnx-graph-disagrees-with-its-obs-keys",
@@ -305,11 +382,21 @@ def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
 @pytest.mark.parametrize(
     ("setup", "expected"),
     [
-        (pick_place_metadata, "takes 12 values of observation 'observation', the env gives 22"),
+        (pick_place_metadata_inside_and_beside, "takes 12 values of observation 'observation'"),
+        (pick_place_metadata, "metadata.json says env_id is 'Bioscara-PickPlace-v0', but"),
+        (mode_and_rate_edited_in_both_places, "says env_kwargs.control_mode is 'velocity', but"),
+        (nan_actor_weights, "policy weight actor.mu.weight holds 128 non-finite value(s)"),
         (truncate_model, "truncated, not a stable-baselines3 zip, or another"),
         (edit_metadata(without("env_kwargs", "control_freq")), "env_kwargs.control_freq is missing"),
     ],
-    ids=["reach-model-pick-place-metadata", "truncated-model-zip", "metadata-no-control-freq"],
+    ids=[
+        "reach-model-pick-place-metadata-inside-too",
+        "reach-model-pick-place-metadata",
+        "mode-edited-in-both-places",
+        "nan-actor-weights",
+        "truncated-model-zip",
+        "metadata-no-control-freq",
+    ],
 )
 def test_eval_refuses_the_same_policy_files_in_one_line(
     setup: Callable[[Path], list[str]],

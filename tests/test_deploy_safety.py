@@ -218,3 +218,63 @@ def test_safe_stop_reports_joints_it_could_not_reach(gripper_state_file: Path) -
     report = safe_stop(arm)
     assert report.not_confirmed == ["j1", "j2", "j3", "j4"]
     assert any(p.startswith("j1: disable failed") for p in report.problems)
+
+
+# ----------------------------------- rules a changed line above the drivers would break
+def test_deadman_guard_keeps_the_long_gap_when_two_quick_exchanges_follow(listened: Backend) -> None:
+    # The longest silence since the last check counts, not the last one.
+    clock, j1, j2 = listened.clock, listened.joints["j1"], listened.joints["j2"]
+    j1.init()
+    j2.init()
+    guard = DeadmanGuard(listened)
+    j2.get_flags()
+    clock.sleep(0.06)
+    j1.get_flags()
+    j2.get_flags()
+    clock.sleep(0.001)
+    j1.get_flags()
+    j2.get_flags()
+    assert guard.silences() == {"j1": pytest.approx(0.06), "j2": pytest.approx(0.06)}
+    with pytest.raises(SafetyStop, match=r"went 60\.0 ms without a transaction"):
+        guard.check()
+
+
+def test_deadman_guard_check_starts_anew_and_restart_forgets(listened: Backend) -> None:
+    clock, j1 = listened.clock, listened.joints["j1"]
+    j1.init()
+    guard = DeadmanGuard(listened, limit_s=0.05)
+    clock.sleep(0.04)
+    j1.get_flags()
+    assert guard.check() == pytest.approx(0.04)
+    clock.sleep(0.01)
+    assert guard.check() == pytest.approx(0.05)  # j2, never talked to: exactly the limit, not more
+    clock.sleep(0.02)
+    guard.restart()
+    assert guard.silences() == {"j1": 0.0, "j2": 0.0}
+
+
+def test_a_stall_the_env_reports_without_a_joint_still_stops_in_words(listened: Backend) -> None:
+    layer = SafetyLayer(RaisingEnv(listened, RuntimeError()), DeadmanGuard(listened))
+    with pytest.raises(SafetyStop) as stop:
+        layer._check_stall({"stalled": True})
+    assert stop.value.reason is StopReason.STALL and stop.value.joint is None
+    assert str(stop.value).startswith("a joint (the env did not say which) stalled")
+    layer._check_stall({"stalled": False, "stalled_joint": "j1"})  # no stall: nothing
+
+
+def test_a_joint_disabled_mid_run_stops_only_while_the_arm_is_active(listened: Backend) -> None:
+    env = RaisingEnv(listened, RuntimeError())
+    layer = SafetyLayer(env, DeadmanGuard(listened))
+    arm = env.arm
+    arm.configure()
+    arm.activate()
+    arm.read()
+    layer._check_enabled()  # every joint enabled: nothing
+    listened.joints["j2"].device_flags |= int(Flag.NOT_ENABLED)  # the firmware's deadman, a power dip
+    arm.read()
+    with pytest.raises(SafetyStop) as stop:
+        layer._check_enabled()
+    assert stop.value.reason is StopReason.JOINT_ERROR and stop.value.joint == "j2"
+    assert "j2 reports not enabled while the arm is active" in str(stop.value)
+    arm.deactivate()
+    layer._check_enabled()  # inactive: a disabled joint is what deactivate leaves

@@ -13,12 +13,16 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
-from rigs import J1, build_emulated
+from rigs import J1, J2, build_emulated
 
 from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.config import JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import Fault, FaultPlan
 from bioscara_gym.hardware.errors import CommError, StalledError
 from bioscara_gym.hardware.joint import Joint
@@ -76,54 +80,101 @@ def make_j1(scripted_bus: Any) -> Callable[..., Joint]:
 # ----------------------------------------------- the 40 single-bit flips
 
 
-class _Bus:
-    """A bus answering from a list, for the bit-flip experiment (no fixture checks).
+class _FlipBus:
+    """A joint homed at its max stop and at rest, for the bit-flip experiment (no fixture checks).
 
-    A PING that is not in the list (the driver confirming a sticky flag) is
-    answered with the joint's true flags, READY.
+    Answers PING, HOMEOFFSET and GETENCODERRPM truly and every command with
+    the flags byte; ANGLEMOVED with ``bad`` once when it is set, else ``good``.
     """
 
-    def __init__(self, replies: list[bytes]) -> None:
-        self.replies = list(replies)
+    def __init__(self, offset: float, good: bytes) -> None:
+        self.offset, self.good = offset, good
+        self.bad: bytes | None = None
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
-        if data == bytes((Reg.PING,)) and len(self.replies) < 3:
+        if len(data) > 1 or read_len == 1:
+            return flags(READY)
+        reg = data[0]
+        if reg == Reg.PING:
             return ack(READY)
-        return self.replies.pop(0)
+        if reg == Reg.HOMEOFFSET:
+            return f32(self.offset) + flags(READY)
+        if reg == Reg.GETENCODERRPM:
+            return f32(0.0) + flags(READY)
+        reply, self.bad = (self.bad, None) if self.bad is not None else (self.good, None)
+        return reply
 
     def close(self) -> None:
         pass
 
 
-def detected_flips(q: float) -> int:
-    """Of the 40 single-bit flips of j1's ANGLEMOVED reply at ``q`` (homed, ready), how many are caught.
+@dataclass(frozen=True)
+class FlipOutcome:
+    """Of the 40 single-bit flips of one ANGLEMOVED reply: how many were rejected, how many did no harm."""
 
-    Caught: the driver rejects the reply (counts an error) and reads again.
+    detected: int
+    harmless: int
+
+    @property
+    def safe(self) -> int:
+        """Detected or harmless."""
+        return self.detected + self.harmless
+
+
+def flip_outcome(params: JointConfig, q: float, seen_before_s: float | None = None) -> FlipOutcome:
+    """Flip each of the 40 bits of the joint's ANGLEMOVED reply at ``q`` (homed at ``max``, at rest).
+
+    ``seen_before_s``: None, the flipped reply is the first reading after
+    ``init()`` (the experiment as first run); else a true reading and the
+    encoder's speed were read that long before it, as a control loop does.
+    Detected: the driver rejects the reply (counts an error) and uses a good
+    one. Harmless: it believes the reply, but the position is off by less
+    than 0.1 degree (revolute) or 0.1 mm (the lift).
     """
-    good = f32(j1_degrees(q)) + flags(READY)
-    caught = 0
+    good = f32(math.degrees(params.reduction * (q - params.max))) + flags(READY)
+    harmless_within = 1e-4 if params.joint_type == "prismatic" else math.radians(0.1)
+    detected = harmless = 0
     for bit in range(8 * len(good)):
         bad = bytearray(good)
         bad[bit // 8] ^= 1 << (bit % 8)
-        bus = _Bus([ack(READY), f32(J1_LIMIT) + flags(READY), bytes(bad), good])
-        joint = Joint("j1", 0x11, 35.0, -J1_LIMIT, J1_LIMIT, bus, clock=ManualClock())
+        bus = _FlipBus(params.max, good)
+        clock = ManualClock()
+        joint = Joint(params.name, params.address, params.reduction, params.min, params.max, bus, clock=clock)
         joint.init()
+        joint.set_max_velocity(params.max_velocity)
+        joint.set_max_acceleration(params.max_acceleration)
+        if seen_before_s is not None:
+            joint.get_position()
+            joint.get_velocity()
+            clock.sleep(seen_before_s)
+        bus.bad = bytes(bad)
+        errors = joint.stats.total_errors
         q_read = joint.get_position()
-        if joint.stats.total_errors:
-            caught += 1
-            assert q_read == pytest.approx(q, abs=1e-5)  # the second, good reply was used
-    return caught
+        if joint.stats.total_errors > errors:
+            detected += 1
+            assert q_read == pytest.approx(q, abs=1e-5)  # a good reply was used
+        elif abs(q_read - q) < harmless_within:
+            harmless += 1
+    return FlipOutcome(detected, harmless)
 
 
-def test_bit_flip_experiment_detects_at_least_12_of_40() -> None:
-    # Before the plausibility checks only the 4 reserved flag bits were caught;
-    # the sticky flags' confirmation catches STALL, NOTENABLED and NOTHOMED too.
-    assert detected_flips(1.0) >= 12
+def test_bit_flip_experiment_first_reading_after_init() -> None:
+    # Measured on j1 at 1.0 rad: 12 detected and 14 harmless (26) before the
+    # position reading was confirmed by a second one (issue #24: at least 38).
+    outcome = flip_outcome(J1, 1.0)
+    assert outcome.safe >= 38
+    assert outcome.detected >= 25
 
 
-@pytest.mark.parametrize("q", [-2.0, 0.0, 3.0])
-def test_bit_flip_experiment_beats_the_reserved_bits_alone(q: float) -> None:
-    assert detected_flips(q) >= 11
+@pytest.mark.parametrize(
+    ("params", "q"), [(J1, -2.0), (J1, 0.0), (J1, 3.0), (J2, 0.0), (J2, 0.17), (J2, 0.3)]
+)
+def test_bit_flip_experiment_in_a_25_hz_loop_at_rest(params: JointConfig, q: float) -> None:
+    # The reading 40 ms after a true one, the joint at rest: a flip that moves
+    # the position further than the joint can go in 40 ms is read again.
+    # Before: j1 11-14 detected, 24-31 safe; j2 12 detected, 26-29 safe.
+    outcome = flip_outcome(params, q, seen_before_s=0.04)
+    assert outcome.safe >= 38
 
 
 # ------------------------------------------------------- implausible values
@@ -131,9 +182,10 @@ def test_bit_flip_experiment_beats_the_reserved_bits_alone(q: float) -> None:
 
 def test_huge_angle_is_read_again(scripted_bus: Any, make_j1: Callable[..., Joint]) -> None:
     joint = make_j1()
-    scripted_bus.queue(f32(-3.8e19) + flags(READY), f32(j1_degrees(1.0)) + flags(READY))
+    good = f32(j1_degrees(1.0)) + flags(READY)
+    scripted_bus.queue(f32(-3.8e19) + flags(READY), good, good)  # the last confirms the first good one
     assert joint.get_position() == pytest.approx(1.0, abs=1e-5)
-    assert (joint.stats.transactions, joint.stats.retries, joint.stats.implausible) == (2, 1, 1)
+    assert (joint.stats.transactions, joint.stats.retries, joint.stats.implausible) == (3, 1, 1)
 
 
 def test_implausible_angle_twice_raises_comm_error_with_joint_register_and_bytes(
@@ -160,6 +212,7 @@ def test_homed_position_margin_is_a_tenth_of_the_range(
     joint = make_j1(retries=0)
     scripted_bus.queue(f32(j1_degrees(q)) + flags(READY))
     if plausible:
+        scripted_bus.queue(f32(j1_degrees(q)) + flags(READY))  # the confirming second reading
         assert joint.get_position() == pytest.approx(q, abs=1e-5)
     else:
         with pytest.raises(CommError, match="end stops"):
@@ -264,11 +317,25 @@ def test_a_stall_in_a_motion_reply_is_confirmed_by_reading_the_flags_again(
     scripted_bus: Any, make_j1: Callable[..., Joint]
 ) -> None:
     joint = make_j1()
-    scripted_bus.queue(flags(STALL), ack(STALL))
+    scripted_bus.queue(flags(STALL), ack(STALL), ack(STALL), flags(STALL))
     with pytest.raises(StalledError, match="stalled"):
         joint.set_velocity(0.1)
     assert joint.stats.errors == 0
-    assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.SETRPM, Reg.PING]
+    assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.SETRPM, Reg.PING, Reg.PING, Reg.STOP]
+
+
+@pytest.mark.parametrize(("bit", "name"), [(STALL, "STALL"), (NOT_ENABLED, "NOT_ENABLED")])
+def test_a_sticky_flag_flipped_in_the_reply_and_the_first_ping_is_still_caught(
+    scripted_bus: Any, make_j1: Callable[..., Joint], bit: int, name: str
+) -> None:
+    # At corrupt=0.05 a reply and its one confirming PING were both flipped
+    # once in a deploy, which then stopped on a NOT_ENABLED that never was.
+    joint = make_j1()
+    scripted_bus.queue(flags(bit), ack(bit), ack(READY), flags(READY))
+    joint.set_velocity(0.1)  # no StalledError / NotEnabledError
+    assert joint.stats.implausible == 1
+    assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.SETRPM, Reg.PING, Reg.PING, Reg.SETRPM]
+    assert name not in repr(joint.flags)
 
 
 @pytest.mark.parametrize(
@@ -494,3 +561,141 @@ def test_home_with_a_lost_reply_on_the_emulated_bus_homes_once() -> None:
     assert j.is_homed()
     assert j.get_position() == pytest.approx(J1.max, abs=0.01)
     assert j.stats.retries == 0
+
+
+# ------------------------------------------- real readings are believed
+
+REALDATA = Path(__file__).parent / "data" / "realdata"
+
+
+class _RecordingBus:
+    """Serves a recording's positions and speeds, each at its recorded time, to the driver.
+
+    ANGLEMOVED and GETENCODERRPM answer the current sample (motor degrees and
+    RPM); every command is acknowledged; the joint says homed and ready.
+    """
+
+    def __init__(self, degrees: list[float], rpm: list[float]) -> None:
+        self.degrees, self.rpm, self.i = degrees, rpm, 0
+
+    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
+        if len(data) > 1 or read_len == 1:
+            return flags(READY)
+        reg = data[0]
+        if reg == Reg.PING:
+            return ack(READY)
+        if reg == Reg.HOMEOFFSET:
+            return f32(0.0) + flags(READY)
+        if reg == Reg.ANGLEMOVED:
+            return f32(self.degrees[self.i]) + flags(READY)
+        return f32(self.rpm[self.i]) + flags(READY)
+
+    def close(self) -> None:
+        pass
+
+
+def replay_readings(
+    joint: Joint, bus: _RecordingBus, times: list[float], max_velocity: float, max_acceleration: float
+) -> None:
+    """The recording's experiment as the driver sees it: limits, the speed command, then each sample read."""
+    clock = joint.clock
+    assert isinstance(clock, ManualClock)
+    joint.init()
+    joint.enable(20, 20)
+    joint.set_max_velocity(max_velocity)
+    joint.set_max_acceleration(max_acceleration)
+    joint.set_velocity(max_velocity)
+    for i, t in enumerate(times):
+        bus.i = i
+        clock.sleep(max(0.0, t - clock.now()))
+        joint.get_position()
+        joint.get_velocity()
+
+
+def read_max_accel(path: Path) -> tuple[float, float, list[tuple[float, float, float]]]:
+    """A maxAccel recording: its velocity and acceleration settings and its ``(t, q, qd)`` rows."""
+    lines = path.read_text().splitlines()
+    pairs = (line.partition(":") for line in lines)
+    setting = {k: float(v) for k, _, v in pairs if k in ("Vel", "max Accel")}
+    rows = []
+    for line in lines:
+        cells = line.split(",")
+        if len(cells) == 4 and cells[0].strip()[:1].isdigit():
+            rows.append(tuple(float(c) for c in cells[:3]))
+    return setting["Vel"], setting["max Accel"], rows  # type: ignore[return-value]
+
+
+@pytest.mark.parametrize("path", sorted((REALDATA / "maxAccel").glob("*.csv")), ids=lambda p: p.stem)
+def test_no_reading_of_the_real_arm_is_rejected_max_accel(path: Path) -> None:
+    # Each joint run at its set limits, readings every 10 ms: the real joints
+    # overshoot their limits (j4_5 reached 14.3 rad/s on 20 commanded, 10
+    # configured; j1_3 skips steps at 3 rad/s^2), and none of it may look
+    # like a corrupted reading (docs/protocol.md).
+    params = load_config().joint(path.stem.split("_")[0])
+    vel, acc, rows = read_max_accel(path)
+    middle = (max(q for _, q, _ in rows) + min(q for _, q, _ in rows)) / 2  # unhomed: centred in the range
+    bus = _RecordingBus(
+        [math.degrees(params.reduction * (q - middle)) for _, q, _ in rows],
+        [math.degrees(params.reduction * qd) / 6.0 for _, _, qd in rows],
+    )
+    joint = Joint(params.name, 0x11, params.reduction, params.min, params.max, bus, clock=ManualClock())
+    replay_readings(joint, bus, [t for t, _, _ in rows], vel, acc)
+    assert joint.stats.total_errors == 0
+    assert joint.stats.total_retries == 0
+
+
+@pytest.mark.parametrize("path", sorted((REALDATA / "settingMaxVal").glob("*.csv")), ids=lambda p: p.stem)
+def test_no_reading_of_the_real_arm_is_rejected_setting_max_val(path: Path) -> None:
+    # A motor under max acceleration and velocity settings (deg/s^2, deg/s),
+    # read every 12 ms; reduction 1, so joint units are motor radians.
+    lines = path.read_text().splitlines()
+    acc, vel = (float(line.split(":")[1]) for line in lines[:2])
+    rows = [tuple(float(c) for c in line.split(",")[:3]) for line in lines[3:] if line.strip()]
+    bus = _RecordingBus([deg for _, deg, _ in rows], [v / 6.0 for _, _, v in rows])
+    joint = Joint("m", 0x11, 1.0, -1000.0, 1000.0, bus, clock=ManualClock())
+    replay_readings(joint, bus, [t for t, _, _ in rows], math.radians(vel), math.radians(acc))
+    assert joint.stats.total_errors == 0
+
+
+# ------------------------------------------- at rest, with corrupt=0.05
+
+J3 = load_config().joint("j3")
+J4 = load_config().joint("j4")
+
+
+def wrong_positions_believed(params: JointConfig, start_q: float, target: float, seed: int) -> int:
+    """Of 1,000 positions read at rest at 25 Hz with corrupt=0.05, how many are believed and wrong.
+
+    Wrong: off from the emulated encoder by more than 0.1 degree (0.1 mm for the lift).
+    """
+    emu = build_emulated(params, start_q)
+    j = emu.joint
+    j.init()
+    j.enable(params.drive_current, params.hold_current)
+    j.home(params.homing.speed, params.homing.threshold, params.homing.current, timeout_s=120.0)
+    j.set_max_velocity(params.max_velocity)
+    j.set_max_acceleration(params.max_acceleration)
+    j.set_position(target)
+    for _ in range(400):
+        emu.advance(0.04)
+        j.get_flags()
+    emu.bus.faults = FaultPlan(corrupt=0.05, seed=seed)
+    emu.bus._rng = np.random.default_rng(seed)
+    within = 1e-4 if params.joint_type == "prismatic" else math.radians(0.1)
+    wrong = 0
+    for _ in range(1000):
+        emu.advance(0.04)
+        q = j.get_position()
+        j.get_velocity()
+        truth = math.radians(emu.firmware.core.angle_moved) / params.reduction + j.offset
+        wrong += abs(q - truth) > within
+    return wrong
+
+
+def test_few_wrong_positions_are_believed_at_rest_with_corrupt_5_percent() -> None:
+    # Seeds 1-3, each joint mid-range: 186 of 12,000 wrong positions were
+    # believed before the jump check (75, 43, 68 per seed), 43 after (15, 22, 6);
+    # the rest are flips worth less than the joint's reach in 40 ms.
+    poses = ((J1, 3.0, 1.0), (J2, 0.335, 0.17), (J3, 2.5, 1.0), (J4, 2.9, -1.0))
+    wrong = sum(wrong_positions_believed(p, s, t, seed) for seed in (1, 2, 3) for p, s, t in poses)
+    assert wrong <= 60

@@ -22,7 +22,7 @@ from rigs import J1, J2, EmulatedJoint, build_emulated
 from bioscara_gym.hardware.base_joint import ABORT_SETTLE_S
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
-from bioscara_gym.hardware.errors import CommError, NotHomedError
+from bioscara_gym.hardware.errors import CommError, NotEnabledError, NotHomedError, StalledError
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S, BrakeMode, Flag, Reg
@@ -346,3 +346,108 @@ def test_waits_never_sleep_backwards(scripted_bus: Any) -> None:
     joint.get_flags()
     joint.start_homing(0.03, 30, 15)
     assert clock.sleeps == [1.0]
+
+
+# ------------------------------------- a deadman trip leaves no motor turning
+
+
+def homed_and_enabled(params: Any, start_q: float) -> EmulatedJoint:
+    """An emulated joint homed (against ``max``) and enabled with its configured limits."""
+    emu = traced(params, start_q)
+    j = emu.joint
+    j.init()
+    j.enable(params.drive_current, params.hold_current)
+    j.home(params.homing.speed, params.homing.threshold, params.homing.current, timeout_s=60.0)
+    j.set_max_velocity(params.max_velocity)
+    j.set_max_acceleration(params.max_acceleration)
+    return emu
+
+
+@pytest.mark.parametrize(
+    ("params", "start_q", "command"),
+    [
+        pytest.param(J1, 3.0, lambda j: j.set_velocity(-0.5), id="j1-set_velocity"),
+        pytest.param(J2, 0.335, lambda j: j.set_velocity(-0.02), id="j2-set_velocity"),
+        pytest.param(J1, 3.0, lambda j: j.set_position(-2.0), id="j1-set_position"),
+    ],
+)
+def test_motion_after_a_deadman_trip_is_stopped_at_once(
+    params: Any, start_q: float, command: Callable[[Joint], None]
+) -> None:
+    # The issue's sequence: the host pauses 80 ms while the joint runs in
+    # velocity mode; the deadman trips (NOT_ENABLED, currents kept, no longer
+    # watching). The next motion command is still run by the firmware (only
+    # STALL blocks it): the driver must stop the joint before it raises.
+    emu = homed_and_enabled(params, start_q)
+    j = emu.joint
+    j.set_velocity(-params.max_velocity / 2)
+    emu.advance(0.3)
+    emu.advance(0.08)  # the host paused: the deadman trips
+    assert emu.firmware.flags & Flag.NOT_ENABLED
+    emu.advance(1.0)  # the deadman's own stop has run out
+    at_rest = emu.motor.position_deg
+    with pytest.raises(NotEnabledError, match="sent STOP"):
+        command(j)
+    emu.advance(3.0)
+    assert emu.motor.position_deg == pytest.approx(at_rest, abs=1.0)  # motor degrees: it did not move
+    assert emu.firmware.core.target_rpm == 0.0
+
+
+def test_no_motion_is_sent_after_a_not_enabled_reply_until_enabled_again() -> None:
+    emu = homed_and_enabled(J1, 3.0)
+    j = emu.joint
+    j.set_velocity(-0.5)
+    emu.advance(0.3)
+    emu.advance(0.08)
+    with pytest.raises(NotEnabledError):
+        j.set_velocity(-0.5)
+    sent = len(emu.bus.history)
+    for retry in (lambda: j.set_velocity(-0.5), lambda: j.set_position(0.0), lambda: j.move_steps(10)):
+        with pytest.raises(NotEnabledError, match="call enable"):
+            retry()
+    assert len(emu.bus.history) == sent
+    j.enable(J1.drive_current, J1.hold_current)
+    j.set_velocity(-0.5)
+    for _ in range(10):  # talking to it every 30 ms: the deadman stays quiet
+        emu.advance(0.03)
+        j.get_flags()
+    assert j.get_velocity() == pytest.approx(-0.5, rel=0.05)
+
+
+def test_a_later_reply_claiming_enabled_does_not_lift_the_refusal(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    # Only SETUP clears the firmware's NOT_ENABLED: a reply without it after
+    # one with it, and no enable() between, is a corrupted flags byte.
+    joint = make_j1()
+    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED), flags(NOT_ENABLED))
+    with pytest.raises(NotEnabledError):
+        joint.set_velocity(0.1)
+    assert scripted_bus.log[-1] == (0x11, b"\x29\x00", 1)  # the STOP after the refused motion
+    scripted_bus.queue(ack(READY))
+    assert joint.get_flags() == Flag(0)
+    scripted_bus.clear_log()
+    with pytest.raises(NotEnabledError, match="call enable"):
+        joint.set_velocity(0.1)
+    assert scripted_bus.log == []
+
+
+def test_a_stop_that_fails_after_a_refused_motion_says_to_cut_the_power(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(retries=0)
+    lost = OSError(121, "Remote I/O error")
+    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED), lost)
+    with pytest.raises(NotEnabledError, match=r"the STOP sent after it failed .* cut the power"):
+        joint.set_velocity(0.1)
+
+
+def test_motion_refused_by_a_stall_reply_is_stopped_too(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    # MOVESTEPS runs even while stalled (firmware source).
+    joint = make_j1()
+    scripted_bus.queue(flags(0x01), ack(0x01), ack(0x01), flags(0x01))
+    with pytest.raises(StalledError, match="sent STOP"):
+        joint.move_steps(100)
+    assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.MOVESTEPS, Reg.PING, Reg.PING, Reg.STOP]

@@ -269,6 +269,28 @@ def test_parse_ids() -> None:
         parse_ids("250-253")
 
 
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("0-300", r"IDs must be 0-252, got 300 \(in '0-300'\)"),  # said "got 253": the first one past
+        ("1-1000000000", r"got 1000000000 \(in '1-1000000000'\)"),  # was expanded first: 22.7 GB, killed
+        ("7,400", r"got 400 \(in '400'\)"),
+    ],
+)
+def test_parse_ids_checks_a_range_before_expanding_it(spec: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_ids(spec)
+
+
+def test_cli_emulate_refuses_a_huge_id_range_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from bioscara_gym.cli import main
+
+    assert main(["emulate", "dynamixel", "--ids", "1-1000000000", "--link", "/nonexistent/dxl"]) == 2
+    err = capsys.readouterr().err
+    expected = "--ids '1-1000000000': IDs must be 0-252, got 1000000000 (in '1-1000000000')"
+    assert err == f"bioscara emulate: error: {expected}\n"
+
+
 # ---------------------------------------------------- driver over the SDK
 
 
@@ -560,10 +582,21 @@ def test_cli_emulate_serves_until_sigterm_and_removes_the_link(tmp_path: Path) -
         assert "XL430 servos 1, 2" in proc.stdout.readline()
         port = RS485PortHandler(str(link))
         assert port.openPort()
-        assert sdk.PacketHandler(2.0).ping(port, 2)[1] == 0
+        # The SDK gives a reply about 34 ms (two 16 ms latency timers); on a loaded
+        # machine the emulator's process may not be scheduled that soon, and one
+        # such ping failed a full run once. A server that answers at all answers
+        # one of several pings within the deadline.
+        deadline = time.monotonic() + 20.0
+        results = []
+        while time.monotonic() < deadline:
+            results.append(sdk.PacketHandler(2.0).ping(port, 2)[1])
+            if results[-1] == 0:
+                break
+            time.sleep(0.1)
+        assert results[-1] == 0, f"no ping answered in 20 s: {results}"
         port.closePort()
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=10) == 0
+        assert proc.wait(timeout=30) == 0
     finally:
         if proc.poll() is None:
             proc.kill()

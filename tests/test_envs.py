@@ -703,3 +703,18 @@ def test_close_finalizes_the_arm_with_joints_disabled(backend: str) -> None:
         assert device & Flag.NOT_ENABLED, f"{name} is still enabled on the device"
     env.close()  # idempotent
     assert u.arm.state is Lifecycle.FINALIZED
+
+
+def test_latency_randomization_delays_each_action_by_the_drawn_steps(make_env: MakeEnv) -> None:
+    # No episode ran with latency on: a changed delay line went unnoticed.
+    env = make_env(REACH, control_mode="velocity", randomization={"latency_steps": 3})
+    u = env.unwrapped
+    seed = next(s for s in range(50) if (env.reset(seed=s), u._latency_steps)[1] == 2)
+    env.reset(seed=seed)
+    vmax = u.config.joint("j1").max_velocity
+    sent = []
+    for i in range(6):
+        env.step(np.array([0.1 * (i + 1), 0.0, 0.0, 0.0], dtype=np.float32))
+        sent.append(u.arm.commands["j1"])
+    # Two steps of holding (velocity 0), then each action two steps late.
+    assert sent == pytest.approx([0.0, 0.0, 0.1 * vmax, 0.2 * vmax, 0.3 * vmax, 0.4 * vmax])

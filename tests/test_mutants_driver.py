@@ -134,7 +134,7 @@ def test_homed_position_exactly_a_tenth_of_the_range_beyond_a_stop_is_accepted(
 ) -> None:
     # docs/protocol.md: a homed position beyond [min, max] by MORE than 10 % of the range is implausible.
     joint = exact_joint(scripted_bus, READY)
-    scripted_bus.queue(struct.pack("<f", degrees) + flags(READY))
+    scripted_bus.queue(struct.pack("<f", degrees) + flags(READY), struct.pack("<f", degrees) + flags(READY))
     assert joint.get_position() == position
     assert joint.stats.total_errors == 0
 
@@ -364,9 +364,8 @@ def test_position_is_0_when_the_offset_read_in_get_position_is_nan(scripted_bus:
     joint = Joint("j1", 0x11, 35.0, -J1_LIMIT, J1_LIMIT, scripted_bus, clock=ManualClock())
     scripted_bus.queue(ack(NOT_HOMED | NOT_ENABLED))
     joint.init()
-    scripted_bus.queue(
-        struct.pack("<f", 35.0) + flags(NOT_ENABLED), struct.pack("<f", float("nan")) + flags(NOT_ENABLED)
-    )
+    reading = struct.pack("<f", 35.0) + flags(NOT_ENABLED)
+    scripted_bus.queue(reading, reading, struct.pack("<f", float("nan")) + flags(NOT_ENABLED))
     assert joint.get_position() == 0.0
     assert joint.flags == NOT_HOMED | NOT_ENABLED
 
@@ -374,17 +373,23 @@ def test_position_is_0_when_the_offset_read_in_get_position_is_nan(scripted_bus:
 @pytest.mark.parametrize(
     ("reply", "error", "message"),
     [
-        (STALL, "StalledError", "j1: joint stalled; re-enable it to clear the stall"),
-        (NOT_ENABLED, "NotEnabledError", "j1: joint reports not enabled (deadman or disable); re-enable it"),
+        (STALL, "StalledError", "j1: joint stalled; sent STOP; re-enable it to clear the stall"),
+        (
+            NOT_ENABLED,
+            "NotEnabledError",
+            "j1: joint reports not enabled (deadman or disable), yet the firmware runs SETRPM anyway; "
+            "sent STOP; re-enable it",
+        ),
     ],
 )
 def test_motion_refused_in_the_reply_names_joint_register_and_cure(
     scripted_bus: Any, make_j1: Callable[..., Joint], reply: int, error: str, message: str
 ) -> None:
     # docs/arm.md: StalledError / NotEnabledError from the reply's flags. The
-    # newly set sticky flag is confirmed by a PING (docs/protocol.md).
+    # newly set sticky flag is confirmed by two PINGs (docs/protocol.md), and
+    # the joint is stopped: the firmware runs the SETRPM anyway.
     joint = make_j1()
-    scripted_bus.queue(flags(reply), ack(reply))
+    scripted_bus.queue(flags(reply), ack(reply), ack(reply), flags(reply))
     with pytest.raises(JointError) as err:
         joint.set_velocity(0.1)
     assert type(err.value).__name__ == error
@@ -581,9 +586,9 @@ def test_enable_that_leaves_the_joint_not_enabled_says_so(
     scripted_bus: Any, make_j1: Callable[..., Joint]
 ) -> None:
     # docs/arm.md: enable() raises NotEnabledError if the joint still reports
-    # not enabled; the newly set NOTENABLED is confirmed by a PING.
+    # not enabled; the newly set NOTENABLED is confirmed by two PINGs.
     joint = make_j1()
-    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED))
+    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED))
     with pytest.raises(NotEnabledError) as err:
         joint.enable(20, 10)
     assert str(err.value) == "j1: failed to enable; the joint still reports not enabled"
@@ -596,7 +601,7 @@ def test_post_homing_of_a_joint_that_did_not_home_says_so(
     # docs/arm.md: post_homing() raises NotHomedError if the joint did not home.
     joint = make_j1()
     joint.adopt_homing(0.1)
-    scripted_bus.queue(ack(NOT_HOMED), ack(NOT_HOMED))  # PING, and the PING confirming NOTHOMED
+    scripted_bus.queue(ack(NOT_HOMED), ack(NOT_HOMED), ack(NOT_HOMED))  # PING, and two confirming NOTHOMED
     with pytest.raises(NotHomedError) as err:
         joint.post_homing()
     assert str(err.value) == "j1: homing did not complete (aborted or failed)"
@@ -605,16 +610,17 @@ def test_post_homing_of_a_joint_that_did_not_home_says_so(
 def test_after_post_homing_positions_need_no_offset_read(
     scripted_bus: Any, make_j1: Callable[..., Joint]
 ) -> None:
-    # docs/arm.md: post_homing() stores the offset; get_position() is one
-    # transaction (ANGLEMOVED), q = deg2rad(deg)/reduction + offset.
+    # docs/arm.md: post_homing() stores the offset; get_position() reads
+    # ANGLEMOVED only (twice: the first reading after a homing is confirmed),
+    # q = deg2rad(deg)/reduction + offset.
     joint = make_j1()
     joint.adopt_homing(-0.1)  # homes to min
     scripted_bus.queue(ack(READY), flags(READY))  # PING, HOMEOFFSET := -3.04647
     joint.post_homing()
     scripted_bus.clear_log()
-    scripted_bus.queue(struct.pack("<f", 0.0) + flags(READY))
+    scripted_bus.queue(struct.pack("<f", 0.0) + flags(READY), struct.pack("<f", 0.0) + flags(READY))
     assert joint.get_position() == -J1_LIMIT
-    assert scripted_bus.writes() == [bytes([0x18])]  # ANGLEMOVED only
+    assert scripted_bus.writes() == [bytes([0x18])] * 2  # ANGLEMOVED only
 
 
 class LeapClock(ManualClock):
@@ -720,7 +726,7 @@ def test_use_before_init_and_motion_while_disabled_are_refused_by_name(
         joint.get_flags()
     assert str(err.value) == "j1: joint not initialized; call init() first"
     joint = make_j1()
-    scripted_bus.queue(ack(NOT_ENABLED), ack(NOT_ENABLED))  # PING, and the PING confirming NOTENABLED
+    scripted_bus.queue(ack(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED))  # PING, 2 confirming NOTENABLED
     joint.get_flags()
     with pytest.raises(NotEnabledError) as err2:
         joint.move_steps(10)

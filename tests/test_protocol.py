@@ -17,6 +17,7 @@ import math
 import os
 import struct
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -340,10 +341,14 @@ def test_get_position_reads_angle_moved_and_adds_offset(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", offset=0.5)
-    scripted_bus.queue(f32_reply(90.0, READY))
+    scripted_bus.queue(f32_reply(90.0, READY), f32_reply(90.0, READY))
     q = joint.get_position()
-    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)]
+    # the first reading after init() has nothing to compare with: a second one must agree (docs/protocol.md)
+    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)] * 2
     assert q == pytest.approx(math.radians(90.0) / 35.0 + 0.5, rel=1e-12)
+    scripted_bus.queue(f32_reply(90.0, READY))
+    joint.get_position()
+    assert scripted_bus.log == [(0x11, ANGLEMOVED, 5)] * 3  # later ones are compared with it
 
 
 def test_get_position_is_zero_while_not_homed(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:
@@ -357,7 +362,7 @@ def test_get_position_follows_the_reply_flags_not_the_previous_state(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", offset=0.5)
-    scripted_bus.queue(f32_reply(90.0, NOT_HOMED), ack(NOT_HOMED))  # NOTHOMED confirmed by a PING
+    scripted_bus.queue(f32_reply(90.0, NOT_HOMED), ack(NOT_HOMED), ack(NOT_HOMED))  # NOTHOMED confirmed twice
     assert joint.get_position() == 0.0
     assert not joint.is_homed()
 
@@ -404,10 +409,11 @@ def test_motion_raises_stalled_when_reply_says_stall(
     scripted_bus: Any, make_ready: Callable[..., Joint], command: Callable[[Joint], None]
 ) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(flags(STALL), ack(STALL))  # a new STALL is confirmed by a PING
+    # a new STALL is confirmed by two PINGs; the joint is then stopped (MOVESTEPS runs even when stalled)
+    scripted_bus.queue(flags(STALL), ack(STALL), ack(STALL), flags(STALL))
     with pytest.raises(StalledError, match="j1"):
         command(joint)
-    assert len(scripted_bus.log) == 2 and scripted_bus.log[1] == (0x11, PING, 2)
+    assert scripted_bus.log[1:] == [(0x11, PING, 2), (0x11, PING, 2), (0x11, bytes((0x29, 0)), 1)]
     assert joint.is_stalled()
 
 
@@ -415,10 +421,11 @@ def test_set_velocity_raises_not_enabled_when_reply_says_deadman_tripped(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED))  # a new NOTENABLED is confirmed by a PING
+    # a new NOTENABLED is confirmed by two PINGs; the firmware ran the SETRPM anyway, so STOP follows
+    scripted_bus.queue(flags(NOT_ENABLED), ack(NOT_ENABLED), ack(NOT_ENABLED), flags(NOT_ENABLED))
     with pytest.raises(NotEnabledError):
         joint.set_velocity(0.1)
-    assert len(scripted_bus.log) == 2
+    assert scripted_bus.log[1:] == [(0x11, PING, 2), (0x11, PING, 2), (0x11, bytes((0x29, 0)), 1)]
 
 
 @pytest.mark.parametrize(
@@ -628,9 +635,10 @@ def test_max_rate_sent_as_magnitude_in_motor_degrees(
 
 def test_get_flags_pings_and_returns_reply_flags(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED))  # the new NOTHOMED read twice
+    # the new NOTHOMED read twice more (registers.STICKY_CONFIRMATIONS)
+    scripted_bus.queue(ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED), ack(BUSY | NOT_HOMED))
     assert joint.get_flags() == Flag.BUSY | Flag.NOT_HOMED
-    assert scripted_bus.log == [(0x11, PING, 2), (0x11, PING, 2)]
+    assert scripted_bus.log == [(0x11, PING, 2)] * 3
     assert joint.is_busy()
     assert not joint.is_homed()
 
@@ -869,10 +877,11 @@ def test_malformed_read_reply_counts_as_failed_attempt(
 ) -> None:
     joint = make_ready("j1", offset=0.5)
     joint.stats.reset()
-    scripted_bus.queue(bad_reply, f32_reply(90.0, READY))
+    scripted_bus.queue(bad_reply, f32_reply(90.0, READY), f32_reply(90.0, READY))  # the last: confirmation
     assert joint.get_position() == pytest.approx(math.radians(90.0) / 35.0 + 0.5)
-    assert joint.stats.transactions == 2
+    assert joint.stats.transactions == 3
     assert joint.stats.errors == 1
+    assert joint.stats.retries == 1
 
 
 def test_only_malformed_replies_give_comm_error(scripted_bus: Any, make_ready: Callable[..., Joint]) -> None:
@@ -939,11 +948,34 @@ def test_smbus_open_without_permission_raises_comm_error_with_hint(monkeypatch: 
         SMBusI2C(1)
 
 
+def test_smbus_open_of_a_regular_file_names_the_device(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen: "[Errno 25] Inappropriate ioctl for device", without the path.
+    device = tmp_path / "i2c-1"
+    device.write_bytes(b"")
+    monkeypatch.setattr("bioscara_gym.hardware.bus.DEVICE_PATH", str(tmp_path / "i2c-{bus}"))
+    with pytest.raises(CommError, match=rf"^{device}: Inappropriate ioctl for device: not an I2C adapter"):
+        SMBusI2C(1)
+
+
+def test_smbus_transfer_error_names_the_device_and_address(fake_smbus: type[FakeSMBus]) -> None:
+    bus = SMBusI2C(1)
+
+    def refuse(*msgs: smbus2.i2c_msg) -> None:
+        raise OSError(25, "Inappropriate ioctl for device")
+
+    fake_smbus.instances[0].i2c_rdwr = refuse  # type: ignore[method-assign]
+    with pytest.raises(OSError, match=r"Inappropriate ioctl for device \(/dev/i2c-1, address 0x11\)") as info:
+        bus.transfer(0x11, PING, 2)
+    assert info.value.errno == 25
+
+
 def test_smbus_transfer_is_one_combined_write_then_read(fake_smbus: type[FakeSMBus]) -> None:
     bus = SMBusI2C(1)
     reply = bus.transfer(0x12, b"\x18", 5)
     (device,) = fake_smbus.instances
-    assert device.bus == 1
+    assert device.bus == "/dev/i2c-1"
     assert len(device.calls) == 1
     (write, read) = device.calls[0]
     assert write[:3] == (0x12, 0, 1)  # addr, flags (write), len

@@ -162,9 +162,9 @@ def test_a_trace_longer_than_the_driver_sends_fails(tmp_path: Path, capsys: pyte
     assert main(["ping", "--record", str(trace)]) == 0
     docs = lines(trace)
     longer = write_lines(tmp_path / "longer.jsonl", [*docs, {**docs[-1], "i": len(docs) - 1}])
-    result = replay(longer)
+    result = replay(longer, check_digests=False)  # the added line is made by hand: its digest is wrong
     assert result.sessions[-1].stopped_early
-    assert main(["replay", str(longer)]) == 1
+    assert main(["replay", "--unchecked", str(longer)]) == 1
     assert f"stopped after {len(docs) - 1} of {len(docs)} transactions" in capsys.readouterr().err
 
 
@@ -180,6 +180,45 @@ def test_a_recorded_error_is_raised_again_as_the_same_oserror() -> None:
             return
         assert bus.transfer(*tx.request) == tx.read
     pytest.fail("no recorded error")
+
+
+def test_a_different_read_length_is_a_mismatch_naming_both() -> None:
+    (session,) = read_trace(TRACES / "deploy_reach_expert.jsonl")
+    first = session.transactions[0]
+    bus = ReplayBus(session)
+    with pytest.raises(TraceMismatch) as caught:
+        bus.transfer(first.address, first.write, first.read_len + 1)
+    assert f"read {first.read_len}, sent" in str(caught.value)
+    assert str(caught.value).endswith(f"read {first.read_len + 1}")
+
+
+class _Failing:
+    """A bus whose every transfer raises ``OSError(errno, message)``."""
+
+    def __init__(self, errno: int, message: str) -> None:
+        self.errno, self.message = errno, message
+
+    def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
+        raise OSError(self.errno, self.message)
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_bus_error_is_recorded_with_its_errno_and_message_and_raised_unchanged(tmp_path: Path) -> None:
+    from bioscara_gym.hardware.clock import ManualClock
+    from bioscara_gym.hardware.recording import Recording, RecordingBus
+
+    recording = Recording(tmp_path / "t.jsonl", "x")
+    bus = RecordingBus(_Failing(121, "Remote I/O error"), recording, ManualClock(), "i2c", load_config())
+    with pytest.raises(OSError) as caught:
+        bus.transfer(0x12, b"\x18", 5)
+    assert (caught.value.errno, caught.value.strerror) == (121, "Remote I/O error")
+    bus.close()
+    (session,) = read_trace(tmp_path / "t.jsonl")
+    (tx,) = session.transactions
+    assert (tx.address, tx.write, tx.read_len, tx.read) == (0x12, b"\x18", 5, None)
+    assert (tx.errno, tx.message) == (121, "Remote I/O error")
 
 
 def test_after_a_mismatch_every_transfer_raises_it_again() -> None:
@@ -234,8 +273,8 @@ def test_an_i2c_trace_replays_on_the_replay_clock(tmp_path: Path) -> None:
 # --------------------------------------------------------------- bad input
 
 
-def _replay_error(path: Path, capsys: pytest.CaptureFixture) -> tuple[int, str]:
-    code = main(["replay", str(path)])
+def _replay_error(path: Path, capsys: pytest.CaptureFixture, *options: str) -> tuple[int, str]:
+    code = main(["replay", *options, str(path)])
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "Traceback" not in err
     return code, err
@@ -289,8 +328,54 @@ def test_a_trace_of_a_newer_format_version_is_refused(tmp_path: Path, capsys: py
 def test_a_monitor_session_is_refused_with_the_reason(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     docs = lines(TRACES / "console_session.jsonl")[:3]
     docs[0]["command"] = "monitor"
-    code, err = _replay_error(write_lines(tmp_path / "monitor.jsonl", docs), capsys)
+    code, err = _replay_error(write_lines(tmp_path / "monitor.jsonl", docs), capsys, "--unchecked")
     assert code == 1 and "wall clock" in err
+
+
+# ------------------------------------------------------------- tampering
+
+
+def test_a_changed_reply_byte_is_found_and_its_line_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # Seen: a changed reply byte still replayed as "2056 transactions matched": the
+    # driver sends the same bytes whatever most replies say.
+    docs = lines(TRACES / "eval_reach_expert.jsonl")
+    changed = next(i for i, d in enumerate(docs) if d["type"] == "tx" and d["write"] == "18" and i > 100)
+    reply = bytearray.fromhex(docs[changed]["read"])
+    reply[2] ^= 0x01
+    docs[changed]["read"] = reply.hex()
+    path = write_lines(tmp_path / "tampered.jsonl", docs)
+    code, err = _replay_error(path, capsys)
+    assert code == 2
+    where = f"tampered.jsonl line {changed + 1}"
+    assert err.startswith(f"bioscara replay: error: {where}: its digest does not match its contents")
+    with pytest.raises(TraceError, match=f"line {changed + 1}: its digest"):
+        read_trace(path)
+    assert read_trace(path, check_digests=False)  # --unchecked reads it
+
+
+def test_a_removed_line_is_found_at_the_line_after_it(tmp_path: Path) -> None:
+    docs = lines(TRACES / "eval_reach_expert.jsonl")
+    path = write_lines(tmp_path / "gap.jsonl", docs[:50] + docs[51:])
+    with pytest.raises(TraceError, match="line 51: its digest does not match its contents"):
+        read_trace(path)
+
+
+def test_a_hand_made_trace_needs_unchecked(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    trace = tmp_path / "ping.jsonl"
+    assert main(["ping", "--record", str(trace)]) == 0
+    capsys.readouterr()
+    stripped = [{k: v for k, v in d.items() if k != "digest"} for d in lines(trace)]
+    hand_made = write_lines(tmp_path / "hand.jsonl", stripped)
+    code, err = _replay_error(hand_made, capsys)
+    assert (code, err) == (
+        2,
+        "bioscara replay: error: hand.jsonl line 1: no digest (a trace of format version 1, or made by "
+        "hand); replay it with --unchecked if you trust it",
+    )
+    assert main(["replay", "--unchecked", str(hand_made)]) == 0
+    assert "transactions matched" in capsys.readouterr().out
 
 
 def test_read_trace_refuses_a_transaction_before_any_header(tmp_path: Path) -> None:

@@ -205,6 +205,31 @@ CASES = [
     pytest.param(
         new_run("--timesteps", "0", "--algo", "bc"), r"--timesteps 0: must be >= 1", id="bc-timesteps-zero"
     ),
+    # Seen: a 30-line traceback from gymnasium's seeding.
+    pytest.param(new_run("--seed", "-1"), r"--seed must be >= 0, got -1$", id="seed-negative"),
+    pytest.param(
+        new_run("--seed", "-1", "--algo", "dagger", "--env", "Bioscara-PickPlace"),
+        r"--seed must be >= 0, got -1$",
+        id="dagger-seed-negative",
+    ),
+    # SB3 takes these and trains on nothing (seen: batch_size 0 trained and saved a model).
+    pytest.param(
+        new_run(batch_size=0),
+        r"cfg\.yaml: Bioscara-Reach-v0\.batch_size is 0; expected a whole number >= 1 \(samples per gradient",
+        id="batch-size-zero",
+    ),
+    pytest.param(
+        new_run(buffer_size=-1),
+        r"Bioscara-Reach-v0\.buffer_size is -1; expected a whole number >= 1",
+        id="buffer-size-negative",
+    ),
+    pytest.param(
+        new_run(learning_starts=-5),
+        r"Bioscara-Reach-v0\.learning_starts is -5; expected a whole number >= 0",
+        id="learning-starts-negative",
+    ),
+    pytest.param(new_run(gamma=1.5), r"\.gamma is 1\.5; expected a number in \(0, 1\]", id="gamma"),
+    pytest.param(new_run(tau=0), r"\.tau is 0; expected a number in \(0, 1\]", id="tau-zero"),
 ]
 
 

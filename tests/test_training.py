@@ -239,6 +239,7 @@ class ResumedRun:
     config: Path
     exit_code: int
     loaded_replay_sizes: list[int]
+    stderr: str
 
 
 @pytest.fixture(scope="module")
@@ -289,10 +290,12 @@ def resumed_run(interrupted_run: InterruptedRun, tmp_path_factory: pytest.TempPa
         original(self, path, truncate_last_traj)
         sizes.append(self.replay_buffer.size())
 
+    stderr: list[str] = []
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(OffPolicyAlgorithm, "load_replay_buffer", spy)
+        mp.setattr("sys.stderr", _Recorder(stderr))
         rc = main(["train", "--resume", "--out", str(out), "--no-progress"])
-    return ResumedRun(out=out, config=interrupted_run.config, exit_code=rc, loaded_replay_sizes=sizes)
+    return ResumedRun(out, interrupted_run.config, rc, sizes, "".join(stderr))
 
 
 def test_interrupted_train_exits_130_with_one_line(interrupted_run: InterruptedRun) -> None:
@@ -313,6 +316,14 @@ def test_interrupted_train_leaves_a_checkpoint_and_its_replay_buffer(interrupted
 
 def test_interrupted_train_writes_no_final_model(interrupted_run: InterruptedRun) -> None:
     assert not (interrupted_run.out / "model.zip").exists()
+
+
+def test_resume_says_in_one_line_that_the_cut_episode_was_dropped(resumed_run: ResumedRun) -> None:
+    # Seen: stable-baselines3's raw 4-line HER warning, suggesting an option that would be wrong here.
+    assert resumed_run.stderr.strip() == (
+        "bioscara train: warning: the episode the checkpoint cut short was dropped from the replay "
+        "buffer (HER relabels whole episodes; training starts a new one)"
+    )
 
 
 def test_resume_trains_up_to_the_original_total(resumed_run: ResumedRun) -> None:
@@ -388,8 +399,10 @@ def test_resume_skips_a_truncated_newest_checkpoint_with_a_one_line_warning(
     err = capsys.readouterr().err
     assert rc == 0
     assert err.strip().splitlines() == [
+        "bioscara train: warning: the episode the checkpoint cut short was dropped from the replay "
+        "buffer (HER relabels whole episodes; training starts a new one)",
         f"bioscara train: warning: checkpoint {newest} cannot be loaded (BadZipFile: no data, policy.pth "
-        f"in it (truncated?)); resuming from {good.name} instead"
+        f"in it (truncated?)); resuming from {good.name} instead",
     ]
     assert saved_num_timesteps(out / "model.zip") == TOTAL
 
@@ -896,19 +909,48 @@ TRAIN_HINT = "bioscara train needs the [train] extra: pip install 'bioscara-gym[
     [
         (("torch",), ["train", "--timesteps", "10", "--out", "run"], TRAIN_HINT),
         (("stable_baselines3",), ["train", "--timesteps", "10", "--out", "run"], TRAIN_HINT),
-        (("torch",), ["eval", "--model", "run/model.zip", "--episodes", "1"], TRAIN_HINT),
-        (("torch",), ["export", "--model", "run/model.zip", "--onnx", "p.onnx"], TRAIN_HINT),
+        (
+            ("torch",),
+            ["eval", "--model", "run/model.zip", "--episodes", "1"],
+            TRAIN_HINT.replace("bioscara train", "eval --model"),
+        ),
+        (
+            ("torch",),
+            ["export", "--model", "run/model.zip", "--onnx", "p.onnx"],
+            TRAIN_HINT.replace("bioscara train", "bioscara export"),
+        ),
+        (  # seen: it named `bioscara train`
+            ("torch",),
+            ["deploy", "--model", "run/model.zip", "--backend", "mock"],
+            TRAIN_HINT.replace("bioscara train", "deploy --model"),
+        ),
         (
             ("onnxruntime",),
             ["deploy", "--onnx", "p.onnx", "--backend", "mock"],
             "deploy --onnx needs the [onnx] extra: pip install 'bioscara-gym[onnx]'",
         ),
     ],
-    ids=["train-no-torch", "train-no-sb3", "eval-no-torch", "export-no-torch", "deploy-onnx-no-ort"],
+    ids=[
+        "train-no-torch",
+        "train-no-sb3",
+        "eval-no-torch",
+        "export-no-torch",
+        "deploy-model-no-torch",
+        "deploy-onnx-no-ort",
+    ],
 )
 def test_a_missing_extra_is_one_line_naming_it(
     tmp_path: Path, blocked: tuple[str, ...], argv: list[str], hint: str
 ) -> None:
+    (tmp_path / "run").mkdir()
+    metadata = {  # enough for the metadata check deploy runs before it imports torch
+        "env_id": REACH,
+        "env_kwargs": {"control_mode": "cartesian", "control_freq": 25.0},
+        "observation_space": {},
+        "action_space": {},
+        "algo": "sac",
+    }
+    (tmp_path / "run" / "metadata.json").write_text(json.dumps(metadata))
     result = _cli_without(blocked, argv, tmp_path)
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip() == f"bioscara {argv[0]}: error: {hint}"

@@ -15,10 +15,10 @@ import numpy as np
 
 from bioscara_gym.errors import MetadataError, PolicyFileError
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.metadata import read_metadata
+from bioscara_gym.training.metadata import check_embedded_metadata, read_metadata
 
 with needs_train():
-    import torch  # noqa: F401 - stable-baselines3 needs it; missing, it names the extra
+    import torch
     from stable_baselines3 import PPO, SAC, TD3
     from stable_baselines3.common.base_class import BaseAlgorithm
 
@@ -30,8 +30,13 @@ MODEL_CLASSES: dict[str, type[BaseAlgorithm]] = {**ALGOS, "bc": SAC}
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
-def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
+def load_model(path: Path, require_embedded: bool = False) -> tuple[BaseAlgorithm, dict[str, Any]]:
     """Load a trained ``model.zip`` to act, with its metadata (the algorithm is in the metadata).
+
+    The ``metadata.json`` beside it must agree with the copy saved inside it
+    (:func:`~bioscara_gym.training.metadata.check_embedded_metadata`; with
+    ``require_embedded``, a model without a copy is refused too), and every
+    weight of its policy must be finite.
 
     ``algo.load`` without an env fails for a model trained with
     ``HerReplayBuffer`` (the default for the goal tasks) and would allocate
@@ -40,9 +45,11 @@ def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
 
     Raises:
         MetadataError: No, unreadable or incomplete metadata, or an ``algo``
-            it does not state or that is unknown.
+            it does not state or that is unknown, or that disagrees with the
+            model's own copy.
         PolicyFileError: No model file, or one stable-baselines3 cannot load
-            (truncated, not a model, saved by another algorithm).
+            (truncated, not a model, saved by another algorithm), or a policy
+            weight that is NaN or infinite.
     """
     path = Path(path)
     model_file = path / "model.zip" if path.is_dir() else path
@@ -63,7 +70,24 @@ def load_model(path: Path) -> tuple[BaseAlgorithm, dict[str, Any]]:
             f"cannot load {model_file} as the {name.upper()} model metadata.json says it is (truncated, "
             f"not a stable-baselines3 zip, or another algorithm's?): {type(e).__name__}: {_first_line(e)}"
         ) from e
+    check_embedded_metadata(metadata, model_file, required=require_embedded)
+    check_weights(model, model_file)
     return model, metadata
+
+
+def check_weights(model: BaseAlgorithm, model_file: Path) -> None:
+    """Refuse a policy with a NaN or infinite weight, naming the first such parameter.
+
+    Raises:
+        PolicyFileError: One line naming the file and the parameter.
+    """
+    for name, parameter in model.policy.named_parameters():
+        bad = int((~torch.isfinite(parameter)).sum())
+        if bad:
+            raise PolicyFileError(
+                f"{model_file}: policy weight {name} holds {bad} non-finite value(s) (NaN or inf) of "
+                f"{parameter.numel()}; the policy cannot act, retrain it"
+            )
 
 
 def _first_line(e: BaseException) -> str:

@@ -23,6 +23,7 @@ from typing import Any
 import gymnasium as gym
 
 from bioscara_gym.errors import CliError, HyperparamError, TrainingError
+from bioscara_gym.training.extras import needed_by
 
 
 def default_env_kwargs(env_id: str) -> dict[str, Any]:
@@ -54,7 +55,8 @@ def expert_factory(env: gym.Env) -> tuple[Any, Any]:
 
 def model_factory(model_path: Path) -> Any:
     """A factory of the trained model's deterministic policy (no per-episode state)."""
-    from bioscara_gym.training.algos import load_model, sb3_policy
+    with needed_by("collect --model"):
+        from bioscara_gym.training.algos import load_model, sb3_policy
 
     model, _ = load_model(model_path)
     policy = sb3_policy(model)
@@ -74,6 +76,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
         raise CliError("collect needs exactly one of --expert or --model PATH")
     if args.episodes <= 0:
         raise CliError(f"--episodes must be > 0, got {args.episodes}")
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
     try:
         if args.expert:
             env_id = resolve_env_id(args.env)

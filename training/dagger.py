@@ -59,7 +59,7 @@ from bioscara_gym.fsutil import atomic_write_bytes, atomic_write_text
 from bioscara_gym.training.demos import GOAL_KEYS, Demos, check_demos, load_demos
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.metadata import build_metadata, write_metadata
+from bioscara_gym.training.metadata import build_metadata, save_policy
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
 with needs_train():
@@ -704,11 +704,8 @@ def train_dagger(args: TrainArgs, env_id: str) -> TrainResult:
             raise TrainingInterrupted(signum, ckpt, out) from None
         progress.close()
         with guard.shielded():
-            model_path = out / "model.zip"
-            buffer = io.BytesIO()
-            model.save(buffer)
-            atomic_write_bytes(model_path, buffer.getvalue())
-            metadata_path = write_metadata(
+            model_path, metadata_path = save_policy(
+                model,
                 out,
                 build_metadata(
                     env,

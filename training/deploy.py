@@ -3,7 +3,9 @@
 Reads top to bottom, as a deployment runs:
 
 1. **check** the policy's metadata against the env it would drive (task,
-   spaces, control mode and rate); a mismatch is refused before anything is
+   spaces, control mode and rate) and against the copy inside the model file,
+   and run the policy once on a probe observation (NaN, infinity or a failure
+   inside the policy is refused); a mismatch is refused before anything is
    sent to the arm.
 2. **configure**: connect and ping every joint.
 3. **activate**: enable the joints, stall detection and limits.
@@ -24,7 +26,11 @@ Any stop (NaN action, stall, bus error, deadman, a run log that cannot be
 written, Ctrl-C/SIGTERM) ends in
 :func:`~bioscara_gym.hardware.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
 sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
-the arm is left disabled in every case. The run log is JSON Lines, one line
+in every case each joint is sent its disable (currents 0) whatever its flags
+say, and one it could not reach or whose disable was not acknowledged is
+named (``j2: no answer, still powered as far as we know: cut the power``):
+the flags are no proof, since the firmware's deadman sets NOT_ENABLED and
+keeps the currents. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
 
 =============  ======================================================================
@@ -39,22 +45,27 @@ written and flushed per record, so it is complete after Ctrl-C:
                bus (only when the cycle had any: per joint, retries and errors by kind that
                the driver recovered from or not); the cycle a safety stop cut short: action,
                flags, bus, ``stopped: true``
-``bus``        phase ``bring-up``, joints: retries and errors during configure/activate/home
+``bus``        phase (configure, activate, home, reset with its episode, deactivate, cleanup,
+               safe stop, shutdown), joints: that phase's retries and errors; with the
+               cycle records' they add up to the summary's totals
 ``episode``    episode, success, distance, steps, return, stalled
 ``stop``       reason, message, joint
 ``summary``    episodes, successes, cycles, period/jitter/overrun statistics, stop_reason,
                message, joint, final_state (per-joint flags after the stop, read from the
-               emulator where there is one), arm_disabled, not_confirmed_disabled,
+               emulator where there is one, with its drive and hold currents), arm_disabled
+               (every joint's own disable acknowledged), not_confirmed_disabled,
+               not_confirmed_warnings (one line per such joint: why, and to cut the power),
                bus (per joint: transactions, retries, errors by kind ``bus`` / ``malformed``
                / ``implausible``, as ``bioscara status`` counts them), gripper (width_m,
                state_file, saved_width_m: what was written, ``null`` if nothing), log_error,
-               exit_code
+               log_records_lost, exit_code
 =============  ======================================================================
 
 A record that cannot be written (disk full) stops the run like any safety
-stop (exit 3, arm disabled); the stop and summary records are then written
-if the disk lets them, and the printed summary says how many records are
-missing. A log that cannot be opened or take its header refuses the run.
+stop (exit 3, arm disabled); what of it reached the disk is cut off again, so
+every line stays a whole JSON record; the stop and summary records are then
+written if the disk lets them, and the printed summary names the records
+that are missing. A log that cannot be opened or take its header refuses the run.
 
 On ``mock`` and ``emulated`` time is simulated: ``period_s`` is simulated and
 the loop runs as fast as the host can unless ``--realtime`` paces it on the
@@ -95,6 +106,7 @@ from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
 from bioscara_gym.training.deploy_log import BusStats, LoopStats, RunLog
 from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
+from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import (
     PolicyShapes,
     check_metadata,
@@ -262,9 +274,11 @@ def load_policy(args: DeployArgs) -> LoadedPolicy:
             lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
         )
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
-    from bioscara_gym.training.algos import load_model, sb3_policy
+    with needed_by("deploy --model"):
+        from bioscara_gym.training.algos import load_model, sb3_policy
 
-    model, metadata = load_model(Path(args.model))
+    # What the policy was trained for is proven by its own copy, not by an editable file.
+    model, metadata = load_model(Path(args.model), require_embedded=True)
     sb3 = sb3_policy(model)
     shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {args.model}")
     return LoadedPolicy(lambda env: sb3, metadata, f"{metadata['algo'].upper()} {args.model}", shapes)
@@ -328,6 +342,20 @@ class Deployment:
             self._early_phases.append(record)
         else:
             self._log.write(record)
+            self._log_bus(name)
+
+    def _log_bus(self, phase: str, **where: Any) -> None:
+        """A ``bus`` record of the retries and errors since the last record that took them, if any.
+
+        Cycle records take their cycle's; this takes a phase's (configure,
+        activate, home, an episode's reset, deactivate, cleanup, the safe
+        stop, shutdown), so the records add up to the summary's totals.
+        """
+        if self._bus is None or self._log is None:
+            return
+        changes = self._bus.cycle()
+        if changes:
+            self._log.write({"type": "bus", "phase": phase, **where, "joints": changes})
 
     def _starting(self, name: str, detail: str) -> None:
         """Print that a phase starts (a failure in it is printed right after)."""
@@ -378,8 +406,9 @@ class Deployment:
                 check_policy_shapes(loaded.shapes, env)
         except MetadataError as e:
             raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
+        _probe_policy(loaded, env, self.args.seed)
         checked = "metadata and own inputs and outputs match" if loaded.shapes else "metadata matches"
-        self._phase("check", f"policy {checked} the env; nothing sent to the arm yet")
+        self._phase("check", f"policy {checked} the env, and acts finitely; nothing sent to the arm yet")
 
     def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
         """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet."""
@@ -512,9 +541,6 @@ class Deployment:
         """Run every episode behind the safety layer."""
         self._guard = DeadmanGuard(env.unwrapped.arm.backend)
         safety = SafetyLayer(env, self._guard)
-        recovered = self._bus.cycle()
-        if recovered:
-            self._log.write({"type": "bus", "phase": "bring-up", "joints": recovered})
         self._phase(
             "run",
             f"{self.args.episodes} episode(s) at {env.unwrapped.control_freq:g} Hz, log {self.log_path}",
@@ -525,6 +551,7 @@ class Deployment:
     def _run_episode(self, env: gym.Env, policy: Policy, safety: SafetyLayer, ep: int) -> None:
         """Reset, then one cycle after another until the episode ends."""
         obs, info = env.reset(seed=self.args.seed + ep)
+        self._log_bus("reset", episode=ep)
         if hasattr(policy, "reset"):
             policy.reset()
         self._guard.restart()
@@ -559,7 +586,7 @@ class Deployment:
         arm = env.unwrapped.arm
         t_clock = arm.backend.clock.now()
         t_wall, period, wall_period = clock.tick(t_clock)
-        raw = policy(obs)
+        raw = _act(policy, obs)
         where = {"cycle": self._counts["cycles"], "episode": ep, "step": step, "t": t_clock}
         try:
             result, check = safety.step(raw)
@@ -660,6 +687,7 @@ class Deployment:
         with self._signals.shielded():
             outcome = _classify(e)
             outcome.stop_report = safe_stop(arm)  # the arm first, then the words
+            self._log_bus("safe stop")
             self._gripper_width = outcome.stop_report.gripper_width_m
             self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(outcome.message)}")
             self._log.write(
@@ -679,6 +707,7 @@ class Deployment:
             self._guard.detach()
         if arm.state is not Lifecycle.FINALIZED:
             arm.shutdown()
+        self._log_bus("shutdown")
         self.summary = self._summarise(env, outcome)
         self._log.write({"type": "summary", **self.summary})
 
@@ -697,16 +726,21 @@ class Deployment:
             "message": outcome.message,
             "joint": outcome.joint,
             "final_state": state,
-            "arm_disabled": all(not s["enabled"] for s in state.values()),
+            # Safe only where the joint's own disable was acknowledged: the flags are no
+            # proof (a deadman trip sets NOT_ENABLED and keeps the currents). A completed
+            # run got here through deactivate(), which raises unless every disable went through.
+            "arm_disabled": not report.not_confirmed if report else True,
             "arm_state": arm.state.value,
             "problems": report.problems if report else [],
             "not_confirmed_disabled": report.not_confirmed if report else [],
+            "not_confirmed_warnings": report.warnings() if report else [],
             "gripper": {
                 "width_m": self._gripper_width,
                 "state_file": str(arm.gripper.state_file) if arm.gripper.state_file else None,
                 "saved_width_m": arm.gripper.saved_width_m,
             },
             "log_error": None if self._log.error is None else str(self._log.error),
+            "log_records_lost": list(self._log.lost),
             "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
@@ -722,15 +756,19 @@ class Deployment:
         raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
 
     def _disabled_line(self) -> str:
-        """Whether every joint is confirmed disabled, or which are not."""
+        """Which joints acknowledged their disable, and each one that did not, named."""
         s = self.summary
+        names = list(s["final_state"])
         if s["arm_disabled"]:
-            return "arm disabled: every joint reports not enabled; arm shut down, bus closed"
-        enabled = [n for n, st in s["final_state"].items() if st["enabled"]]
-        return (
-            f"[red]arm NOT confirmed disabled[/red]: {', '.join(enabled)} still enabled "
-            f"({escape('; '.join(s['problems'])) or 'no reply'}); cut the power"
-        )
+            return (
+                f"arm disabled: {', '.join(names)} acknowledged their disable (currents 0); "
+                "arm shut down, bus closed"
+            )
+        confirmed = [n for n in names if n not in s["not_confirmed_disabled"]]
+        lines = "; ".join(s["not_confirmed_warnings"])
+        done = f"confirmed disabled: {', '.join(confirmed)}" if confirmed else "no joint confirmed disabled"
+        done = f"; {done}"
+        return f"[red]arm NOT confirmed disabled[/red]: {escape(lines)}{done}"
 
     def _print_summary(self) -> None:
         """The summary as a table, and where the log is."""
@@ -769,11 +807,47 @@ class Deployment:
         self.console.print(table)
         self.console.print(f"log        {self.log_path}", markup=False)
         if self._log.error is not None:
+            lost = f": {', '.join(self._log.lost)}" if self._log.lost else ""
             self.console.print(
-                f"log incomplete: {self._log.dropped} record(s) not written "
-                f"({self._log.error.strerror or self._log.error})",
+                f"log incomplete: {self._log.dropped} record(s) not written{lost} "
+                f"({self._log.error.strerror or self._log.error}); every line in it is a whole record",
                 markup=False,
             )
+
+
+def _probe_policy(loaded: LoadedPolicy, env: gym.Env, seed: int) -> None:
+    """Run the policy once on an observation of the env's space, before the arm is touched.
+
+    The env's first real observation needs the arm homed, so the probe is an
+    observation drawn from the env's observation space with the run's seed: a
+    policy whose own numbers are broken (a NaN weight) gives NaN or infinity,
+    or fails inside its library, for any input.
+
+    Raises:
+        DeployError: One line naming the policy and what it gave.
+    """
+    space = env.observation_space
+    space.seed(seed)
+    probe = space.sample()
+    try:
+        action = np.asarray(loaded.make(env)(probe), dtype=np.float64)
+    except Exception as e:  # torch's distribution checks, onnxruntime: one line, not their traceback
+        raise DeployError(
+            f"refused: {loaded.description} fails on a probe observation ({type(e).__name__}: "
+            f"{_first_line(e)}); are its weights NaN or infinite? nothing was sent to the arm"
+        ) from e
+    if not np.all(np.isfinite(action)):
+        raise DeployError(
+            f"refused: {loaded.description} gives a non-finite action "
+            f"{np.array2string(action, precision=3, separator=', ')} on a probe observation; "
+            "nothing was sent to the arm"
+        )
+
+
+def _first_line(e: BaseException) -> str:
+    """The first line of an exception's message (torch's span several)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else "no message"
 
 
 def _check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
@@ -877,6 +951,21 @@ def _gripper_saved(gripper: BaseGripper) -> str:
     if gripper.saved_width_m is None:
         return f"not saved (the gripper was not enabled; {path} unchanged)"
     return f"saved to {path}"
+
+
+def _act(policy: Policy, obs: dict[str, np.ndarray]) -> Any:
+    """The policy's action; a failure inside the policy is a safety stop in one line.
+
+    Raises:
+        SafetyStop: ``nan_action``: the policy raised (e.g. torch refusing a
+            NaN mean); the arm has not seen this cycle's action.
+    """
+    try:
+        return policy(obs)
+    except Exception as e:
+        raise SafetyStop(
+            StopReason.NAN_ACTION, f"the policy failed to act ({type(e).__name__}: {_first_line(e)})"
+        ) from e
 
 
 def _floats(action: Any) -> np.ndarray:

@@ -1,14 +1,17 @@
 """What a deployment records: the JSON Lines run log, the loop's timing, the bus's errors.
 
-:class:`RunLog` writes one line per record and flushes it, so the log is
-complete after Ctrl-C; a record it cannot write (disk full) stops the run,
-and the stop and summary records are then written where they still can be.
+:class:`RunLog` writes one line per record straight to the file (no buffer),
+so the log is complete after Ctrl-C; a record it cannot write (disk full)
+stops the run, the part of it that reached the disk is cut off again (every
+line in the file stays a whole JSON record), the stop and summary records are
+then written where they still can be, and the records lost are named.
 :class:`LoopStats` gathers period, jitter, host work and overruns for the
 summary, :class:`BusStats` each joint's transactions, retries and errors.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -46,8 +49,24 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
+#: ``os.write``, looked up here so a test can fill the disk at the OS boundary.
+_os_write = os.write
+
+
+def describe_record(record: dict[str, Any]) -> str:
+    """A record in a few words, for the list of records lost: ``cycle 57``, ``episode 3``, ``summary``."""
+    kind = str(record.get("type", "record"))
+    for key in ("cycle", "episode", "phase"):
+        if kind in (key, "bus") and key in record:
+            return f"{kind} {record[key]}"
+    return kind
+
+
 class RunLog:
-    """JSON Lines, one ``write`` and flush per record, fsync'd every second and on close.
+    """JSON Lines, one unbuffered ``write`` per record, fsync'd every second and on close.
+
+    Every line in the file is a whole record: a write the disk takes only in
+    part is cut off again (``ftruncate`` to the last whole line).
 
     Args:
         path: The log file (parents created; an existing file is replaced).
@@ -55,17 +74,20 @@ class RunLog:
     Attributes:
         error: The first write that failed, if one did.
         dropped: Records not written because of it.
+        lost: Those records, each in a few words (:func:`describe_record`).
     """
 
     def __init__(self, path: Path) -> None:
         """Open ``path`` for writing."""
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._size = 0  # bytes of whole records in the file
         self._synced = time.monotonic()
         self.lines = 0
         self.error: OSError | None = None
         self.dropped = 0
+        self.lost: list[str] = []
 
     def write(self, record: dict[str, Any]) -> None:
         """Append one record as a line.
@@ -74,40 +96,53 @@ class RunLog:
             SafetyStop: The first record that cannot be written (``LOG_ERROR``):
                 a run that can no longer be recorded is stopped. Later records
                 (the stop, the summary) are tried and, if they fail too, counted
-                in :attr:`dropped`.
+                in :attr:`dropped` and named in :attr:`lost`.
         """
-        line = json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n"
+        data = (json.dumps(_jsonable(record), allow_nan=False, separators=(",", ":")) + "\n").encode()
         try:
-            self._f.write(line)
-            self._f.flush()
+            if self._fd is None:
+                raise OSError(errno.EBADF, "the run log is closed")
+            view = memoryview(data)
+            while view:
+                view = view[_os_write(self._fd, view) :]
             now = time.monotonic()
             if now - self._synced >= FSYNC_INTERVAL_S:
-                os.fsync(self._f.fileno())
+                os.fsync(self._fd)
                 self._synced = now
         except OSError as e:
+            self._cut_back()
             self.dropped += 1
+            self.lost.append(describe_record(record))
             if self.error is not None:
                 return
             self.error = e
             raise SafetyStop(
                 StopReason.LOG_ERROR, f"cannot write the run log {self.path}: {e.strerror or e}"
             ) from e
+        self._size += len(data)
         self.lines += 1
 
-    def close(self) -> None:
-        """Flush, fsync and close (after a failed write, as far as the file system lets it)."""
-        if self._f.closed:
+    def _cut_back(self) -> None:
+        """Remove the part of a record that reached the file before the write failed."""
+        if self._fd is None:
             return
         try:
-            self._f.flush()
-            os.fsync(self._f.fileno())
+            os.ftruncate(self._fd, self._size)
+            os.lseek(self._fd, self._size, os.SEEK_SET)
+        except OSError as e:  # the record may stay torn; the summary says the log is incomplete
+            self.error = self.error or e
+
+    def close(self) -> None:
+        """Fsync and close (after a failed write, as far as the file system lets it)."""
+        if self._fd is None:
+            return
+        fd, self._fd = self._fd, None
+        try:
+            os.fsync(fd)
         except OSError as e:
             self.error = self.error or e
         finally:
-            try:
-                self._f.close()
-            except OSError as e:  # the buffered tail could not be written either
-                self.error = self.error or e
+            os.close(fd)
 
 
 class BusStats:

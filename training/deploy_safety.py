@@ -120,8 +120,9 @@ class SafetyLayer:
         """Stop if the env reports a stall (it has already deactivated the arm)."""
         if info.get("stalled"):
             joint = info.get("stalled_joint")
+            who = joint or "a joint (the env did not say which)"
             raise SafetyStop(
-                StopReason.STALL, f"{joint} stalled (stall detection tripped); every joint stopped", joint
+                StopReason.STALL, f"{who} stalled (stall detection tripped); every joint stopped", joint
             )
 
     def _check_enabled(self) -> None:

@@ -17,6 +17,7 @@ import numpy as np
 
 from bioscara_gym.errors import MetadataError
 from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import PolicyShapes, check_metadata, check_policy_shapes, read_metadata
 
 Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
@@ -125,7 +126,8 @@ def evaluate_model(
     The video, if asked for, shows the first ``video_episodes`` episodes;
     ``backend_options`` go to the backend (e.g. ``record``, docs/traces.md).
     """
-    from bioscara_gym.training.algos import load_model, sb3_policy  # needs the [train] extra: fail early
+    with needed_by("eval --model"):  # needs the [train] extra: fail early
+        from bioscara_gym.training.algos import load_model, sb3_policy
 
     metadata = read_metadata(Path(model_path))
     overrides = {} if backend_options is None else {"backend_options": backend_options}

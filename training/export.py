@@ -36,7 +36,7 @@ import numpy as np
 from rich.console import Console
 
 from bioscara_gym.errors import ExportError, MetadataError
-from bioscara_gym.training.extras import needs_onnx, needs_train
+from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
 from bioscara_gym.training.metadata import PolicyShapes, validate_metadata
 
 #: metadata_props key holding the training metadata (JSON).
@@ -137,7 +137,7 @@ def export_onnx(
         ExportError: Unsupported observation space, or the check failed (nothing written).
         MetadataError: No metadata next to the model.
     """
-    with needs_train():
+    with needs_train("bioscara export"), needed_by("bioscara export"):
         import torch
 
         from bioscara_gym.training.algos import load_model

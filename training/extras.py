@@ -37,9 +37,23 @@ def needs_extra(what: str, extra: str) -> Iterator[None]:
         raise MissingExtraError(what, extra) from e
 
 
-def needs_train() -> contextlib.AbstractContextManager[None]:
+def needs_train(what: str = "bioscara train") -> contextlib.AbstractContextManager[None]:
     """Imports of torch and stable-baselines3 (``bioscara train``, SB3 models, export)."""
-    return needs_extra("bioscara train", "train")
+    return needs_extra(what, "train")
+
+
+@contextlib.contextmanager
+def needed_by(what: str) -> Iterator[None]:
+    """Name ``what`` (``deploy --model``) in a :class:`MissingExtraError` raised inside.
+
+    The modules that need an extra say so when they are imported, naming
+    the command they were written for; the command importing them is the
+    one the user ran.
+    """
+    try:
+        yield
+    except MissingExtraError as e:
+        raise MissingExtraError(what, e.extra) from e
 
 
 def needs_onnx(what: str = "deploy --onnx") -> contextlib.AbstractContextManager[None]:

@@ -309,12 +309,56 @@ def _number(value: Any) -> float | None:
     return None
 
 
+#: stable-baselines3 settings that count something and must be at least 1 (SB3 takes 0
+#: and trains on nothing: ``batch_size: 0`` trained and saved a model), with what they count.
+ALGO_COUNTS = {
+    "batch_size": "samples per gradient step",
+    "buffer_size": "transitions the replay buffer holds",
+    "n_steps": "env steps per rollout",
+    "n_epochs": "passes over each rollout",
+    "policy_delay": "critic updates per actor update",
+    "target_update_interval": "env steps between target updates",
+}
+
+
+def check_algo_counts(hp: Hyperparams, env_id: str) -> None:
+    """Refuse a count below 1, a negative ``learning_starts`` and a ``gamma`` or ``tau`` outside (0, 1].
+
+    Raises:
+        HyperparamError: One line naming the key, the file and what was expected.
+    """
+    where = f"config {hp.source}: {env_id}"
+    for key, what in ALGO_COUNTS.items():
+        if key in hp.algo_kwargs:
+            number = _number(hp.algo_kwargs[key])
+            if number is None or not math.isfinite(number) or number != int(number) or number < 1:
+                raise HyperparamError(
+                    f"{where}.{key} is {hp.algo_kwargs[key]!r}; expected a whole number >= 1 ({what})"
+                )
+    if "learning_starts" in hp.algo_kwargs:
+        number = _number(hp.algo_kwargs["learning_starts"])
+        if number is None or not math.isfinite(number) or number != int(number) or number < 0:
+            raise HyperparamError(
+                f"{where}.learning_starts is {hp.algo_kwargs['learning_starts']!r}; expected a whole number "
+                ">= 0 (env steps before learning starts)"
+            )
+    for key in ("gamma", "tau"):
+        if key in hp.algo_kwargs:
+            number = _number(hp.algo_kwargs[key])
+            if number is None or not 0 < number <= 1:
+                value = hp.algo_kwargs[key]
+                raise HyperparamError(f"{where}.{key} is {value!r}; expected a number in (0, 1]")
+
+
 def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
     """Refuse keys of ``hp.algo_kwargs`` that ``algo_cls`` does not take, naming key and file.
+
+    First the values :func:`check_algo_counts` checks.
 
     Raises:
         HyperparamError: An unknown key, with the closest known one if any.
     """
+    check_algo_counts(hp, env_id)
     parameters = inspect.signature(algo_cls).parameters
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         return

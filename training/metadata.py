@@ -3,14 +3,22 @@
 ``deploy`` and ``eval`` refuse a policy whose metadata does not match the env
 it would drive (another task, other observation or action spaces, another
 control mode or rate), before anything touches the arm.
+
+A copy of the metadata travels inside the model file too
+(:data:`EMBEDDED_NAME` in ``model.zip``, which stable-baselines3 ignores;
+the ONNX export keeps it in its metadata props): a ``metadata.json`` edited
+by hand, or one swapped in from another run, disagrees with the model's own
+copy and is refused (:func:`check_embedded_metadata`).
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import numbers
 import time
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,9 +29,13 @@ import numpy as np
 
 import bioscara_gym
 from bioscara_gym.errors import MetadataError, TrainingError
-from bioscara_gym.fsutil import atomic_write_text, read_json
+from bioscara_gym.fsutil import atomic_write_bytes, atomic_write_text, read_json
 
 METADATA_NAME = "metadata.json"
+#: The metadata's copy inside ``model.zip`` (stable-baselines3 reads only its own members).
+EMBEDDED_NAME = "bioscara_metadata.json"
+#: What a policy was trained for: the keys its two copies must agree on.
+TRAINED_FOR_KEYS = ("env_id", "env_kwargs", "observation_space", "action_space", "algo")
 #: Largest metadata file read, bytes (ours are a few kB).
 MAX_METADATA_BYTES = 1024 * 1024
 #: env kwargs that change what the policy's actions mean; they must match to deploy,
@@ -82,8 +94,97 @@ def build_metadata(env: gym.Env, env_id: str, env_kwargs: dict[str, Any], **extr
 def write_metadata(directory: Path, metadata: dict[str, Any]) -> Path:
     """Write ``metadata.json`` into ``directory`` atomically."""
     path = directory / METADATA_NAME
-    atomic_write_text(path, json.dumps(metadata, indent=2, sort_keys=True, default=str) + "\n")
+    atomic_write_text(path, _metadata_json(metadata))
     return path
+
+
+def _metadata_json(metadata: dict[str, Any]) -> str:
+    return json.dumps(metadata, indent=2, sort_keys=True, default=str) + "\n"
+
+
+def save_policy(model: Any, directory: Path, metadata: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``model.zip`` with a copy of ``metadata`` inside, then ``metadata.json``; each atomically.
+
+    Args:
+        model: Anything with stable-baselines3's ``save(file)``.
+        directory: Where both go (created if missing).
+        metadata: What :func:`build_metadata` returns.
+
+    Returns:
+        The model's path and the metadata's.
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    model.save(buffer)
+    with zipfile.ZipFile(buffer, "a") as archive:
+        archive.writestr(EMBEDDED_NAME, _metadata_json(metadata))
+    model_path = directory / "model.zip"
+    atomic_write_bytes(model_path, buffer.getvalue())
+    return model_path, write_metadata(directory, metadata)
+
+
+def read_embedded_metadata(model_file: Path) -> dict[str, Any] | None:
+    """The metadata saved inside ``model_file``, or ``None`` if it has none (saved by an older version).
+
+    Raises:
+        MetadataError: The copy is there but is not a JSON object.
+    """
+    try:
+        with zipfile.ZipFile(model_file) as archive:
+            if EMBEDDED_NAME not in archive.namelist():
+                return None
+            text = archive.read(EMBEDDED_NAME).decode("utf-8")
+        embedded = json.loads(text)
+    except (OSError, zipfile.BadZipFile, UnicodeDecodeError, ValueError) as e:
+        raise MetadataError(f"{model_file}: its copy of the training metadata cannot be read ({e})") from e
+    if not isinstance(embedded, dict):
+        raise MetadataError(f"{model_file}: its copy of the training metadata is not a JSON object")
+    return embedded
+
+
+def _difference(key: str, inside: Any, beside: Any) -> tuple[str, Any, Any]:
+    """The first place where two metadata values differ: dotted key and both values."""
+    if isinstance(inside, dict) and isinstance(beside, dict):
+        for sub in sorted(set(inside) | set(beside)):
+            if inside.get(sub) != beside.get(sub):
+                return _difference(f"{key}.{sub}", inside.get(sub), beside.get(sub))
+    return key, inside, beside
+
+
+def check_embedded_metadata(
+    sidecar: dict[str, Any], model_file: Path, required: bool = False
+) -> dict[str, Any] | None:
+    """Refuse a ``metadata.json`` that disagrees with the copy saved inside the model.
+
+    Args:
+        sidecar: The ``metadata.json`` beside ``model_file``, read.
+        model_file: The ``model.zip``.
+        required: Refuse a model with no copy inside too (``deploy``: what the
+            policy was trained for must be proven, not read from an editable file).
+
+    Returns:
+        The embedded copy (``None`` if there is none and it is not required).
+
+    Raises:
+        MetadataError: One line naming the first setting that differs, or the missing copy.
+    """
+    embedded = read_embedded_metadata(model_file)
+    if embedded is None:
+        if required:
+            raise MetadataError(
+                f"{model_file} carries no copy of its training metadata (saved by an older bioscara-gym), "
+                f"so {METADATA_NAME} beside it cannot be checked; retrain it to deploy it"
+            )
+        return None
+    for key in TRAINED_FOR_KEYS:
+        if embedded.get(key) != sidecar.get(key):
+            where, inside, beside = _difference(key, embedded.get(key), sidecar.get(key))
+            raise MetadataError(
+                f"{model_file.parent / METADATA_NAME} says {where} is {beside!r}, but {model_file} was "
+                f"trained with {inside!r} (its own copy of the metadata); was {METADATA_NAME} edited or "
+                "swapped? Refused"
+            )
+    return embedded
 
 
 def validate_metadata(metadata: Any, source: str) -> dict[str, Any]:

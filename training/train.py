@@ -40,7 +40,7 @@ from bioscara_gym.training.hyperparams import (
     default_config_path,
     load_hyperparams,
 )
-from bioscara_gym.training.metadata import build_metadata, resolve_env_id, write_metadata
+from bioscara_gym.training.metadata import build_metadata, resolve_env_id, save_policy
 from bioscara_gym.training.run import (
     CHECKPOINT_RE,
     STATE_NAME,
@@ -230,7 +230,7 @@ def load_checkpoint(algo_cls: type[BaseAlgorithm], directory: Path, env: Any) ->
             _check_checkpoint_zip(path)
             model = algo_cls.load(path, env=env, device="cpu")
             if isinstance(model, OffPolicyAlgorithm) and replay_path(path).exists():
-                model.load_replay_buffer(replay_path(path))
+                _load_replay_buffer(model, replay_path(path))
         except CHECKPOINT_ERRORS as e:
             failures.append((path, e))
             continue
@@ -245,6 +245,27 @@ def load_checkpoint(algo_cls: type[BaseAlgorithm], directory: Path, env: Any) ->
     newest, error = failures[0]
     more = f" nor the {len(found) - 1} older ones" if len(found) > 1 else ""
     raise TrainingError(f"cannot resume: checkpoint {newest} cannot be loaded ({_reason(error)}){more}")
+
+
+def _load_replay_buffer(model: OffPolicyAlgorithm, path: Path) -> None:
+    """Load a checkpoint's replay buffer; stable-baselines3's warnings become one line each.
+
+    HER's buffer drops the episode the checkpoint cut short (training
+    restarts the env, so it never ends); stable-baselines3 says so in a
+    four-line warning that suggests ``truncate_last_trajectory=False``, which
+    would be wrong here.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model.load_replay_buffer(path)
+    for warning in caught:
+        text = str(warning.message)
+        if "last trajectory in the replay buffer will be truncated" in text:
+            text = (
+                "the episode the checkpoint cut short was dropped from the replay buffer "
+                "(HER relabels whole episodes; training starts a new one)"
+            )
+        warnings.warn(" ".join(text.split()), CheckpointWarning, stacklevel=3)
 
 
 #: Members every stable-baselines3 model zip holds.
@@ -431,6 +452,8 @@ def train(args: TrainArgs) -> TrainResult:
     """
     env_id = resolve_env_id(args.env)
     check_timesteps(args.timesteps)
+    if args.seed < 0:
+        raise TrainingError(f"--seed must be >= 0, got {args.seed}")
     if args.algo == "bc":
         return train_bc(args, env_id, load_run_hyperparams(args, env_id))
     from bioscara_gym.training import dagger  # PickPlace's default, and --algo dagger
@@ -474,9 +497,8 @@ def train(args: TrainArgs) -> TrainResult:
             if env is not None:
                 env.close()
         with guard.shielded():  # a signal now would cut the final model in half
-            model_path = out / "model.zip"
-            _save_model(model, model_path)
-            metadata_path = write_metadata(
+            model_path, metadata_path = save_policy(
+                model,
                 out,
                 build_metadata(
                     eval_env,
@@ -568,12 +590,9 @@ def train_bc(args: TrainArgs, env_id: str, hp: Hyperparams) -> TrainResult:
             final = run_episodes(eval_env, act, hp.eval_episodes, seed=args.seed + EVAL_SEED_OFFSET)
         finally:
             eval_env.close()
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        model_path = out / "model.zip"
-        model.save(model_path)
-        metadata_path = write_metadata(
-            out,
+        model_path, metadata_path = save_policy(
+            model,
+            Path(args.out),
             build_metadata(
                 env,
                 env_id,

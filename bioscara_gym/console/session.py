@@ -51,6 +51,21 @@ CYCLE_S = 0.04
 GRIPPER_SETTLE_S = 0.3
 
 
+#: Attribute marking an error :meth:`Session.require` raised before any byte was sent.
+_REFUSED = "refused_before_traffic"
+
+
+def _refusal(error: JointError) -> JointError:
+    """Mark ``error`` as a refusal made before any traffic (see :meth:`Session._close`)."""
+    setattr(error, _REFUSED, True)
+    return error
+
+
+def _refused(error: BaseException) -> bool:
+    """Whether ``error`` is a refusal made before any traffic."""
+    return bool(getattr(error, _REFUSED, False))
+
+
 class Session:
     """One command's hold on the arm: backend, arm layer, state file.
 
@@ -164,14 +179,15 @@ class Session:
         """After an error the on-error transition; always save the state and release.
 
         A request refused for its arguments (:class:`InvalidArgumentError`:
-        an unknown joint, a position outside the limits) was refused before
-        any byte was sent, so it leaves the arm as it was: only something that
-        went wrong on the arm makes it safe.
+        an unknown joint, a position outside the limits) or for the state the
+        arm is in (:meth:`require`: a joint busy homing, not enabled, not
+        homed) was refused before any byte was sent, so it leaves the arm as
+        it was: only something that went wrong on the arm makes it safe.
         """
         if not self._opened:
             self._unlock()
             return
-        failed = exc is not None and not isinstance(exc, InvalidArgumentError)
+        failed = exc is not None and not isinstance(exc, InvalidArgumentError) and not _refused(exc)
         try:
             if failed:
                 self._on_error()
@@ -272,20 +288,25 @@ class Session:
         A joint the arm disabled at the end of its homing (the seed's
         stop_homing) is fine: claiming its command interface enables it again.
 
+        Nothing is sent: the refusal leaves the arm as it was (homings keep
+        running, nothing is disabled), so the message's advice holds.
+
         Raises:
             NotEnabledError, IncorrectStateError, NotHomedError: The joint
                 cannot take the command; the message names the command to run first.
         """
         joint = self.arm.joints[name]
         if self.arm.state is not Lifecycle.ACTIVE:
-            raise NotEnabledError(f"{name}: not enabled; run `bioscara enable {name}` first")
+            raise _refusal(NotEnabledError(f"{name}: not enabled; run `bioscara enable {name}` first"))
         if joint.is_busy():
-            raise IncorrectStateError(
-                f"{name}: busy (a homing is running); wait for it in `bioscara monitor` or abort it "
-                f"with `bioscara home {name} --abort`"
+            raise _refusal(
+                IncorrectStateError(
+                    f"{name}: busy (a homing is running); wait for it in `bioscara monitor` or abort it "
+                    f"with `bioscara home {name} --abort`"
+                )
             )
         if homed and not joint.is_homed():
-            raise NotHomedError(f"{name}: not homed; run `bioscara home {name}` first")
+            raise _refusal(NotHomedError(f"{name}: not homed; run `bioscara home {name}` first"))
 
     # ---------------------------------------------------------- operations
     def cycle(self, dt: float) -> dict[str, bool]:

@@ -341,6 +341,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Put the arm at ``pose``: teleported in simulation, driven on hardware."""
         if self.sim is not None:
             self.sim.set_joint_state(dict(zip(self.joint_names, pose, strict=True)))
+            for name in self.joint_names:  # no real joint jumps: the drivers must not take it for noise
+                self.arm.joints[name].forget_position()
             return
         self.arm.move_to(dict(zip(self.joint_names, map(float, pose), strict=True)), period_s=self.dt)
 

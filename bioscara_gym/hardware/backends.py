@@ -32,7 +32,7 @@ from pathlib import Path
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.bus import I2CBus, SMBusI2C
 from bioscara_gym.hardware.clock import Clock, DeadlineScheduler, ManualClock, WallClock
-from bioscara_gym.hardware.config import ArmConfig, load_config
+from bioscara_gym.hardware.config import ArmConfig, JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
 from bioscara_gym.hardware.errors import require_extra
 from bioscara_gym.hardware.firmware import JointFirmware
@@ -95,6 +95,22 @@ def mock_gripper(config: ArmConfig, state_file: str | Path | None = None) -> Moc
     )
 
 
+def _i2c_joint(j: JointConfig, bus: I2CBus, retries: int, clock: Clock) -> Joint:
+    """The I2C driver of joint ``j``, knowing its configured limits (for its position check)."""
+    return Joint(
+        j.name,
+        j.address,
+        j.reduction,
+        j.min,
+        j.max,
+        bus,
+        retries,
+        clock,
+        max_velocity=j.max_velocity,
+        max_acceleration=j.max_acceleration,
+    )
+
+
 class Backend:
     """Joints, gripper and clock of one arm.
 
@@ -146,6 +162,18 @@ class Backend:
         sim = self.sim
         if sim is not None:
             return Flag(sim.cores[name].flags)  # type: ignore[attr-defined]
+        return None
+
+    def device_currents(self, name: str) -> tuple[int, int] | None:
+        """Joint ``name``'s drive and hold current (percent) as its device holds them, or ``None``.
+
+        Only the firmware emulator behind a simulated arm can be looked
+        into; on hardware and on ``mock`` this is ``None``.
+        """
+        sim = self.sim
+        if sim is not None:
+            core = sim.cores[name]  # type: ignore[attr-defined]
+            return int(core.drive_current), int(core.hold_current)
         return None
 
     def comm_stats(self) -> dict[str, CommStats]:
@@ -256,10 +284,7 @@ class EmulatedBackend(Backend):
         )
         if wrap_bus is not None:
             self.bus = wrap_bus(self.bus, sim.clock)
-        joints = {
-            j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, sim.clock)
-            for j in config.joints
-        }
+        joints = {j.name: _i2c_joint(j, self.bus, retries, sim.clock) for j in config.joints}
         gripper = SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False))
         super().__init__(config, joints, gripper, sim.clock, sim, sim.schedule)
 
@@ -319,10 +344,7 @@ class I2CBackend(Backend):
         self.bus = bus if bus is not None else SMBusI2C(config.bus)
         if wrap_bus is not None:
             self.bus = wrap_bus(self.bus, clock)
-        joints = {
-            j.name: Joint(j.name, j.address, j.reduction, j.min, j.max, self.bus, retries, clock)
-            for j in config.joints
-        }
+        joints = {j.name: _i2c_joint(j, self.bus, retries, clock) for j in config.joints}
         g = config.gripper
         gripper = gripper or Gripper(
             g.reduction,

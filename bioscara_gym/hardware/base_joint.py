@@ -100,6 +100,10 @@ class BaseJoint(abc.ABC):
         self.offset = 0.0
         self._offset_known = False
         self._flags = int(POWER_UP_FLAGS)
+        # A reply said NOT_ENABLED and no enable() has succeeded since: motion
+        # is refused even if a later reply's flags claim otherwise (only SETUP
+        # clears the firmware's NOT_ENABLED, so such a reply is corrupted).
+        self._enable_needed = False
         self._current_b_cmd = Reg.NONE
         self._homing_offset = 0.0
         self._initialized = False
@@ -124,6 +128,14 @@ class BaseJoint(abc.ABC):
     def _query(self, reg: Reg) -> tuple[float | int, int]:
         """Read a register; return its payload value and the flags byte."""
 
+    def forget_position(self) -> None:  # noqa: B027 - optional hook
+        """Compare no later position reading with an earlier one (the bus driver's check, docs/protocol.md).
+
+        Called on ``init()`` and around a homing, where the encoder's zero
+        may change, and by a simulation that teleports the joint: the next
+        reading is then confirmed by a second one instead.
+        """
+
     def _open(self) -> None:  # noqa: B027 - optional hook
         """Acquire the connection (bus handle); called by :meth:`init`."""
 
@@ -137,7 +149,7 @@ class BaseJoint(abc.ABC):
 
     def _require_enabled(self) -> None:
         self._require_init()
-        if self._flags & FLAG_NOT_ENABLED:
+        if self._flags & FLAG_NOT_ENABLED or self._enable_needed:
             raise NotEnabledError("joint not enabled; call enable() first", joint=self.name)
 
     def _require_homed(self) -> None:
@@ -220,6 +232,8 @@ class BaseJoint(abc.ABC):
 
     def _accept_flags(self, flags: int) -> int:
         self._flags = flags | FLAG_NOT_HOMED if self._offset_lost else flags
+        if flags & FLAG_NOT_ENABLED:
+            self._enable_needed = True
         return self._flags
 
     def _send(self, reg: Reg, value: float | int) -> int:
@@ -285,18 +299,38 @@ class BaseJoint(abc.ABC):
             self._resending = False
 
     def _send_motion(self, reg: Reg, value: float | int) -> None:
-        """Send a motion command and raise if the reply says it was not taken."""
+        """Send a motion command; if the reply says it should not have run, stop the joint and raise.
+
+        The firmware refuses SETRPM and MOVETOANGLE only while stalled: after
+        its deadman tripped (NOT_ENABLED set, currents kept) it still runs
+        them, and no longer watches (docs/firmware.md, deadman); MOVESTEPS
+        runs even when stalled. So a reply showing NOT_ENABLED or STALL is
+        followed at once by a STOP of this joint, before the error is raised:
+        no motor is left turning unwatched. Later motion is refused before
+        any traffic until :meth:`enable` succeeds.
+        """
         flags = self._send(reg, value)
+        if not flags & (FLAG_STALL | FLAG_NOT_ENABLED):
+            return
+        stopped = self._stop_after_refusal()
         if flags & FLAG_STALL:
             raise StalledError(
-                "joint stalled; re-enable it to clear the stall", joint=self.name, register=reg
+                f"joint stalled; {stopped}; re-enable it to clear the stall", joint=self.name, register=reg
             )
-        if flags & FLAG_NOT_ENABLED:
-            raise NotEnabledError(
-                "joint reports not enabled (deadman or disable); re-enable it",
-                joint=self.name,
-                register=reg,
-            )
+        raise NotEnabledError(
+            f"joint reports not enabled (deadman or disable), yet the firmware runs {reg.name} "
+            f"anyway; {stopped}; re-enable it",
+            joint=self.name,
+            register=reg,
+        )
+
+    def _stop_after_refusal(self) -> str:
+        """STOP after a motion reply that says the motion should not run; the outcome in words."""
+        try:
+            self.stop()
+        except JointError as e:
+            return f"the STOP sent after it failed ({e}): the motor may still turn, cut the power"
+        return "sent STOP"
 
     def _check_percent(self, what: str, value: int) -> int:
         if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= CURRENT_MAX_PCT:
@@ -328,6 +362,8 @@ class BaseJoint(abc.ABC):
         """
         self._open()
         self._initialized = True
+        self._enable_needed = False  # a new session: the joint's own flags decide
+        self.forget_position()
         try:
             ack = self._get(Reg.PING)
             if ack != ACK:
@@ -415,6 +451,7 @@ class BaseJoint(abc.ABC):
             raise NotEnabledError(
                 "failed to enable; the joint still reports not enabled", joint=self.name, register=Reg.SETUP
             )
+        self._enable_needed = False
 
     def disable(self) -> None:
         """Stop, set hold and drive current to 0 and let the joint freewheel.
@@ -503,6 +540,7 @@ class BaseJoint(abc.ABC):
         # one: a host that dies in between leaves NaN, which init() reads as
         # "home again" rather than trusting the joint's homed flag.
         self._send(Reg.HOMEOFFSET, math.nan)
+        self.forget_position()
         self._offset_lost = False
         self._homing_offset = self.max if velocity > 0 else self.min
         self._send_blocking(Reg.HOME, pack_bytes(direction, int(abs(rpm)), sensitivity, current))
@@ -549,6 +587,7 @@ class BaseJoint(abc.ABC):
             )
         self._homing_offset = self.max if velocity > 0 else self.min
         self._current_b_cmd = Reg.HOME
+        self.forget_position()
         self._offset_lost = False
 
     def post_homing(self) -> None:
@@ -563,6 +602,7 @@ class BaseJoint(abc.ABC):
             raise NotHomedError("homing did not complete (aborted or failed)", joint=self.name)
         self.offset = self._homing_offset
         self._offset_known = True
+        self.forget_position()
         self._send(Reg.HOMEOFFSET, self.offset)
 
     def wait_while_busy(self, period_s: float = BUSY_POLL_S, timeout_s: float | None = None) -> None:

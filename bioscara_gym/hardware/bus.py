@@ -24,6 +24,10 @@ class I2CBus(Protocol):
         ...
 
 
+#: The Linux I2C adapter device of bus N (i2c-dev).
+DEVICE_PATH = "/dev/i2c-{bus}"
+
+
 class SMBusI2C:
     """The Linux I2C bus ``/dev/i2c-N`` through smbus2's ``i2c_rdwr``.
 
@@ -42,9 +46,9 @@ class SMBusI2C:
         """Open ``/dev/i2c-{bus}``."""
         from smbus2 import SMBus
 
-        path = f"/dev/i2c-{bus}"
+        path = self.path = DEVICE_PATH.format(bus=bus)
         try:
-            self._smbus = SMBus(bus)
+            self._smbus = SMBus(path)
         except FileNotFoundError as e:
             raise CommError(
                 f"{path} does not exist: enable I2C (Raspberry Pi: raspi-config > Interface "
@@ -55,6 +59,11 @@ class SMBusI2C:
                 f"no permission to open {path}: add your user to the 'i2c' group "
                 "(sudo usermod -aG i2c $USER, then log in again)"
             ) from e
+        except OSError as e:  # e.g. ENOTTY: the file is not an I2C adapter (a regular file)
+            raise CommError(
+                f"{path}: {e.strerror or e}: not an I2C adapter; check the bus number "
+                "(ls -l /dev/i2c-*) and that I2C is enabled"
+            ) from e
         self.bus = bus
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
@@ -63,7 +72,10 @@ class SMBusI2C:
 
         write = i2c_msg.write(address, data)
         read = i2c_msg.read(address, read_len)
-        self._smbus.i2c_rdwr(write, read)
+        try:
+            self._smbus.i2c_rdwr(write, read)
+        except OSError as e:  # the driver names joint and register; this names the device and address
+            raise OSError(e.errno, f"{e.strerror or e} ({self.path}, address {address:#04x})") from e
         return bytes(read)
 
     def close(self) -> None:

@@ -89,14 +89,18 @@ from bioscara_gym.hardware.i2c_timing import (
 )
 from bioscara_gym.hardware.registers import (
     CURRENT_MAX_PCT,
+    DRIVE_CURRENT_MIN_PCT,
     HOMING_RPM_MAX,
     HOMING_RPM_MIN,
+    HOMING_THRESHOLD_MIN,
     I2C_ADDRESS_MAX,
     I2C_ADDRESS_MIN,
     I2C_CLOCK_HZ,
+    MOTOR_ACCELERATION_MAX_DPS2,
+    MOTOR_RPM_MAX,
     SENSITIVITY_MAX,
 )
-from bioscara_gym.hardware.transmission import velocity_to_rpm
+from bioscara_gym.hardware.transmission import rate_to_degrees, velocity_to_rpm
 
 __all__ = [
     "GRIPPER_NAME",
@@ -262,8 +266,16 @@ class HomingConfig:
                 "homing.speed must be non-zero (its sign picks the end stop: + homes to max, - to min)"
             )
         _set(self, "speed", speed)
-        _integer(self.threshold, "homing.threshold", high=SENSITIVITY_MAX)
-        _integer(self.current, "homing.current", high=CURRENT_MAX_PCT, unit=" %")
+        threshold = _integer(self.threshold, "homing.threshold", high=SENSITIVITY_MAX)
+        if threshold < HOMING_THRESHOLD_MIN:
+            raise ConfigError(
+                f"homing.threshold {threshold} is below {HOMING_THRESHOLD_MIN}: a free joint's PID error "
+                "at rest reaches 17, so the homing would stop where the joint stands "
+                "(registers.HOMING_THRESHOLD_MIN)"
+            )
+        current = _integer(self.current, "homing.current", high=CURRENT_MAX_PCT, unit=" %")
+        if current < DRIVE_CURRENT_MIN_PCT:
+            raise ConfigError("homing.current 0 % gives the motor no torque: the homing would stop at once")
         _set(self, "acceleration", _positive(self.acceleration, "homing.acceleration"))
 
 
@@ -419,7 +431,11 @@ class JointConfig:
         )
         _integer(self.stall_threshold, "stall_threshold", high=SENSITIVITY_MAX)
         _integer(self.hold_current, "hold_current", high=CURRENT_MAX_PCT, unit=" %")
-        _integer(self.drive_current, "drive_current", high=CURRENT_MAX_PCT, unit=" %")
+        drive = _integer(self.drive_current, "drive_current", high=CURRENT_MAX_PCT, unit=" %")
+        if drive < DRIVE_CURRENT_MIN_PCT:
+            raise ConfigError("drive_current 0 % gives the motor no torque: the joint could not move")
+        if self.type == "i2c":
+            self._check_motor_limits(unit)
         if not isinstance(self.homing, HomingConfig):
             raise ConfigError(f"homing must be a HomingConfig, got {_type_name(self.homing)}")
         rpm = self.homing_rpm()
@@ -428,6 +444,23 @@ class JointConfig:
                 f"homing.speed {_fmt(self.homing.speed)}{unit}/s is {rpm:.2f} RPM at "
                 f"the motor; |RPM| must be strictly between {HOMING_RPM_MIN:g} "
                 f"and {HOMING_RPM_MAX:g}"
+            )
+
+    def _check_motor_limits(self, unit: str) -> None:
+        """Refuse a speed or acceleration limit the stepper motor cannot honour (registers.MOTOR_*)."""
+        rpm = abs(velocity_to_rpm(self.max_velocity, self.reduction))
+        if rpm > MOTOR_RPM_MAX * (1 + 1e-12):  # the bound itself, converted there and back, is accepted
+            raise ConfigError(
+                f"max_velocity {_fmt(self.max_velocity)}{unit}/s is {rpm:.4g} RPM at the motor; the motors "
+                f"were measured to 1639 RPM, so at most {MOTOR_RPM_MAX:g} RPM "
+                f"({_fmt(self.max_velocity * MOTOR_RPM_MAX / rpm)}{unit}/s)"
+            )
+        dps2 = abs(rate_to_degrees(self.max_acceleration, self.reduction))
+        if dps2 > MOTOR_ACCELERATION_MAX_DPS2 * (1 + 1e-12):
+            raise ConfigError(
+                f"max_acceleration {_fmt(self.max_acceleration)}{unit}/s² is {dps2:.4g} deg/s² at the motor; "
+                f"the joints lose their ramp above 23,400 deg/s², so at most {MOTOR_ACCELERATION_MAX_DPS2:g} "
+                f"({_fmt(self.max_acceleration * MOTOR_ACCELERATION_MAX_DPS2 / dps2)}{unit}/s²)"
             )
 
     def homing_rpm(self) -> float:

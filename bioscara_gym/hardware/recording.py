@@ -2,7 +2,9 @@
 
 A trace (``docs/traces.md``) is a JSON Lines file of one or more sessions.
 Each session is a ``header`` line, then one ``tx`` line per transaction, in
-the order the driver sent them::
+the order the driver sent them. Every line carries a ``digest`` of itself
+chained to the line before it in its session (:func:`line_digest`), so a
+changed byte, or a line removed, is found and named when the trace is read::
 
     {"type": "header", "format": "bioscara-bus-trace", "version": 1, "bioscara_gym": "0.1.0",
      "backend": "emulated", "config": {...}, "command": "deploy", "args": {...},
@@ -20,6 +22,7 @@ transaction that differs from the recording.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -34,8 +37,12 @@ from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.config import ArmConfig, config_to_dict
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
+#: Version 2 added the per-line ``digest``; version 1 traces have none.
 TRACE_FORMAT = "bioscara-bus-trace"
-TRACE_VERSION = 1
+TRACE_VERSION = 2
+#: Hex digits of a line's digest kept (64 bits of SHA-256: a changed line is
+#: found, not a forgery resisted: anyone can recompute a digest).
+DIGEST_HEX = 16
 #: Backends whose joints talk over an I2C bus, so they can be recorded.
 RECORDABLE_BACKENDS = ("i2c", "emulated")
 
@@ -65,6 +72,18 @@ class TraceMismatch(Exception):
         where = f"transaction {index}" + (f" (trace line {line})" if line is not None else "")
         expected_text = "the end of the trace" if expected is None else describe(expected.request)
         super().__init__(f"{where}: expected {expected_text}, sent {describe(sent)}")
+
+
+def line_digest(record: Mapping[str, Any], previous: str) -> str:
+    """The digest of one trace line: SHA-256 of the digest before it and the line's canonical JSON.
+
+    Args:
+        record: The line as data; its own ``digest`` key is left out.
+        previous: The digest of the line before it in its session (``""`` for the header).
+    """
+    body = {k: v for k, v in record.items() if k != "digest"}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256((previous + text).encode("utf-8")).hexdigest()[:DIGEST_HEX]
 
 
 def describe(request: tuple[int, bytes, int]) -> str:
@@ -141,6 +160,7 @@ class RecordingBus:
         self.clock = clock
         self.path = Path(recording.path)
         self.transactions = 0
+        self._previous = ""  # the last line's digest in this session
         try:
             self._file: IO[str] | None = self.path.open("a", encoding="utf-8")
         except OSError as e:
@@ -164,8 +184,10 @@ class RecordingBus:
     def _write(self, record: Mapping[str, Any]) -> None:
         if self._file is None:
             raise OSError(f"trace {self.path} is closed")
-        self._file.write(json.dumps(record) + "\n")
+        digest = line_digest(record, self._previous)
+        self._file.write(json.dumps({**record, "digest": digest}) + "\n")
         self._file.flush()
+        self._previous = digest
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
         """One transaction of the inner bus, recorded with its reply or its error."""
@@ -347,13 +369,35 @@ def _check_header(doc: Mapping[str, Any], where: str) -> None:
         raise TraceError(f"{where}: the header's 't0' must be a finite number of seconds, got {t0!r}")
 
 
-def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
+def _check_digest(doc: Mapping[str, Any], previous: str, where: str) -> str:
+    """The line's recorded digest, if it matches its contents; else :class:`TraceError`."""
+    digest = doc.get("digest")
+    if not isinstance(digest, str):
+        raise TraceError(
+            f"{where}: no digest (a trace of format version 1, or made by hand); "
+            "replay it with --unchecked if you trust it"
+        )
+    if digest != line_digest(doc, previous):
+        raise TraceError(
+            f"{where}: its digest does not match its contents: the line was changed after it was "
+            "recorded (or a line was removed just before it); replay it with --unchecked to use it anyway"
+        )
+    return digest
+
+
+def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list[TraceSession]:
     """Read and check a trace file: its sessions, in order.
+
+    Args:
+        path: The trace.
+        check_digests: Refuse a line whose digest is missing or does not
+            match (``False``: a hand-made or hand-edited trace, ``--unchecked``).
 
     Raises:
         TraceError: Missing or unreadable, a line that is not JSON or not a
             header or transaction, a header of another format or of a newer
-            version; the message names the file and line.
+            version, a line changed after recording; the message names the
+            file and line.
     """
     path = Path(path)
     name = path.name
@@ -364,6 +408,7 @@ def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
     except (OSError, UnicodeDecodeError) as e:
         raise TraceError(f"{path}: cannot be read ({e})") from e
     sessions: list[tuple[Mapping[str, Any], list[Transaction]]] = []
+    previous = ""
     for number, raw in enumerate(text.splitlines(), start=1):
         if not raw.strip():
             continue
@@ -380,12 +425,15 @@ def read_trace(path: str | os.PathLike[str]) -> list[TraceSession]:
         if kind == "header":
             _check_header(doc, where)
             sessions.append((doc, []))
+            previous = ""
         elif kind == "tx":
             if not sessions:
                 raise TraceError(f"{where}: a transaction before the first header")
             sessions[-1][1].append(_transaction(doc, number, where))
         else:
             raise TraceError(f"{where}: 'type' must be 'header' or 'tx', got {kind!r}")
+        if check_digests:
+            previous = _check_digest(doc, previous, where)
     if not sessions:
         raise TraceError(f"{name}: empty; a trace starts with a header line")
     return [TraceSession(header, tuple(txs)) for header, txs in sessions]

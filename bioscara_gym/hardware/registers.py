@@ -179,6 +179,33 @@ SENSITIVITY_MAX = 255
 HOMING_RPM_MIN = 1.0
 HOMING_RPM_MAX = 250.0
 
+# ---------------------------------- what a configuration may ask of a joint
+# Values the motor or the firmware cannot honour are refused when the
+# configuration is loaded (hardware/config.py), with these bounds.
+
+#: Lowest homing sensitivity: the homing stops at the first PID-error sample
+#: above it (firmware, polled every 1 ms), and the PID error of a free joint
+#: at rest reaches 17 (high_speed_stall_test/J3_UP_ramp.csv, ``data 0``); a
+#: lower threshold ends the homing where the joint stands: threshold 0
+#: "homed" j1 at once, believed 3.0465 rad, true 2.9246 (issue #24). The arm
+#: uses 25-50 (parameter file); 20 leaves room above the noise (our choice).
+HOMING_THRESHOLD_MIN = 20
+#: Lowest homing and drive current, percent: at 0 % the motor has no torque,
+#: so a homing "finds its stop" where it stands and a drive cannot move.
+DRIVE_CURRENT_MIN_PCT = 1
+#: Fastest motor speed a joint may be configured for, RPM. The fastest the
+#: real motors were measured to turn is 1639 RPM (maxAccel/j4_5: j4 at
+#: 14.3 rad/s, reduction 12, commanded 20 rad/s); 2000 RPM, 1.2 times that,
+#: is beyond what they can do (our choice). A limit above it (j4 at
+#: 1e6 rad/s was accepted) clamps nothing.
+MOTOR_RPM_MAX = 2000.0
+#: Largest motor acceleration a joint may be configured for, deg/s^2. The
+#: real joints lost their ramp above j1 3 rad/s^2 (6,000 deg/s^2 at the
+#: motor), j3 15 rad/s^2 (20,600) and j4 between 30 and 34 rad/s^2 (20,600 to
+#: 23,400; maxAccel/README.md); 30,000 deg/s^2 is 1.28 times the highest that
+#: failed (our choice).
+MOTOR_ACCELERATION_MAX_DPS2 = 30_000.0
+
 # --------------------------------------------------- firmware timings
 #: Main-loop period in seconds: stall detection and the deadman run once per
 #: 10 ms tick (firmware).
@@ -285,6 +312,13 @@ REPLY_FLAGS_SET: dict[Reg, int] = {
 #: does not set, is confirmed by reading the flags again (a PING): if the
 #: second reading lacks it, the first was corrupted (docs/protocol.md).
 STICKY_FLAGS = int(Flag.STALL | Flag.NOT_ENABLED | Flag.NOT_HOMED)
+#: Readings of the flags (PINGs) that must all show a newly set sticky flag
+#: before the driver believes it. With one, a flipped bit in the reply and the
+#: same bit flipped in its confirming PING ended a deploy on a false
+#: NOT_ENABLED at ``corrupt=0.05`` (issue #24); with two, a false flag needs
+#: three flips of the same bit in a row, while a real stall or deadman trip
+#: costs two PINGs once (our choice).
+STICKY_CONFIRMATIONS = 2
 
 #: See :data:`REPLY_FLAGS_SET`: flags the reply to a command must show clear.
 REPLY_FLAGS_CLEAR: dict[Reg, int] = {
@@ -315,3 +349,32 @@ POSITION_UNHOMED_EXTRA_DEG = 360.0
 #: and beyond what a NEMA17 hybrid stepper turns under its own power
 #: (15 000 full steps/s) (our choice).
 MAX_PLAUSIBLE_RPM = 4500.0
+
+# ------------------------------------- host: believing a position reading
+# A position read (ANGLEMOVED) of a homed joint is compared with the last one
+# the driver believed: a reading that implies a move faster than the joint can
+# make in the time between is read again before anyone sees it
+# (docs/protocol.md, "Positions are read again when they jump"). A flipped
+# mantissa or exponent bit that leaves the value within the end stops is
+# caught this way; the range checks above cannot see it.
+
+#: Factor on the joint's speed and acceleration limits (the ones the driver
+#: sent: SETMAXVELOCITY, SETMAXACCELERATION, or the configuration's) before a
+#: move counts as too fast. The real joints exceed their limits: j4 reached
+#: 14.3 rad/s, 1.43 times its configured 10 rad/s, when commanded 20
+#: (maxAccel/j4_5), and accelerated at up to 37 rad/s^2, 1.24 times the 30 set
+#: (maxAccel/j4_5, column qdd); 2 leaves room above both (our choice).
+PLAUSIBLE_SPEED_MARGIN = 2.0
+#: Motor degrees a reading may lie beyond the predicted reach: encoder noise,
+#: the rotor's lag and lurches behind its ramped set point, and the timing of
+#: the samples. Over every pair of successive readings in the real arm's
+#: recordings (maxAccel/, settingMaxVal/, tracking_error/), the largest lurch
+#: beyond the ramp the limits allow (with the margin above) is 3.9 motor
+#: degrees (maxAccel/j1_3: j1 at 3 rad/s^2, where it skips steps audibly);
+#: 5 degrees, under 3 full steps (our choice). A reading of j1 off by bit 13
+#: of its float (4 degrees at 4100) is then still believed: 0.11 degrees at
+#: the joint.
+PLAUSIBLE_JUMP_DEG = 5.0
+#: Readings at least this far apart in time give a speed the next bound may
+#: use (the firmware's main-loop period: closer readings see the same sample).
+PLAUSIBLE_SPEED_MIN_DT_S = TICK_S

@@ -10,10 +10,13 @@ piece                  what it does
                        the firmware's deadman (:data:`DEADMAN_S`, docs/firmware.md) raises
                        :class:`SafetyStop` (``deadman``) naming the joint
 :func:`safe_stop`      speed 0 to every joint, every joint disabled (currents 0,
-                       freewheel), the gripper disabled (its width saved to its state
-                       file), the arm shut down and the bus closed
+                       freewheel) whatever its flags say, the gripper disabled (its width
+                       saved to its state file), the arm shut down and the bus closed; a
+                       joint counts as safe only when its own disable was acknowledged,
+                       and each other joint is named with why (no answer, no valid answer)
 :func:`final_state`    each joint's flags after the stop, from the device side where the
-                       backend can see it (the firmware emulator, the mock device)
+                       backend can see it (the firmware emulator, the mock device), and its
+                       currents where the emulator holds them
 =====================  ==================================================================
 
 The policy-facing half (NaN check, action clamp) is
@@ -23,12 +26,12 @@ The policy-facing half (NaN check, action clamp) is
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend
-from bioscara_gym.hardware.errors import JointError, SafetyStop, StopReason
+from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StopReason
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
@@ -111,15 +114,30 @@ class SafeStopReport:
 
     Attributes:
         problems: Steps that failed (empty: every joint confirmed disabled).
-        not_confirmed: Joints whose disable did not go through (current maybe still on).
+        not_confirmed: Joints whose disable was not acknowledged (current maybe still on).
         gripper_width_m: The gripper's last width, m (``None`` if it was never initialized).
         gripper_saved: Whether the width went to the gripper's state file.
+        why_not_confirmed: Joint to why its disable was not acknowledged, in a few
+            words: ``no answer`` (the bus raised: NACK, no device), ``no valid
+            answer`` (replies came back malformed or implausible), or the error.
     """
 
     problems: list[str]
     not_confirmed: list[str]
     gripper_width_m: float | None
     gripper_saved: bool
+    why_not_confirmed: dict[str, str] = field(default_factory=dict)
+
+    def warnings(self) -> list[str]:
+        """One line per joint not confirmed disabled.
+
+        E.g. ``j2: no answer, still powered as far as we know: cut the power``.
+        """
+        return [
+            f"{name}: {self.why_not_confirmed.get(name, 'disable not acknowledged')}, "
+            "still powered as far as we know: cut the power"
+            for name in self.not_confirmed
+        ]
 
 
 def safe_stop(arm: Arm) -> SafeStopReport:
@@ -137,9 +155,10 @@ def safe_stop(arm: Arm) -> SafeStopReport:
     """
     gripper = arm.gripper
     was_enabled = gripper.is_enabled
-    problems = _reconnect_joints(arm)
+    why: dict[str, str] = {}
+    problems = _reconnect_joints(arm, why)
     problems += _stop_joints(arm)
-    disabled, failures = _disable_joints(arm)
+    disabled, failures = _disable_joints(arm, why)
     problems += failures + _disable_gripper(arm)
     not_confirmed = [n for n in arm.names if n not in disabled]
     width = float(gripper.get_position()) if gripper.is_initialized else None
@@ -148,10 +167,32 @@ def safe_stop(arm: Arm) -> SafeStopReport:
         arm.shutdown()
     except (JointError, OSError) as e:
         problems.append(f"shutdown: {e}")
-    return SafeStopReport(problems, not_confirmed, width, saved)
+    why = {n: why[n] for n in not_confirmed if n in why}
+    return SafeStopReport(problems, not_confirmed, width, saved, why)
 
 
-def _reconnect_joints(arm: Arm) -> list[str]:
+def _why(error: JointError) -> str:
+    """Why a joint's disable was not acknowledged, in a few words.
+
+    ``no answer`` when the bus itself raised for it (NACK, no device at the
+    address), ``no valid answer`` when replies came back but were malformed
+    or implausible (a joint that stopped sending reads 0xFF), else the error.
+    """
+    failures = getattr(error, "failures", None) or [("", error)]
+    causes = []
+    for _, e in failures:
+        cause: BaseException | None = e
+        while cause is not None and not isinstance(cause, OSError) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        causes.append(cause)
+    if all(isinstance(c, OSError) for c in causes):
+        return "no answer"
+    if all(isinstance(e, CommError) for _, e in failures):
+        return "no valid answer"
+    return f"disable not acknowledged ({error})"
+
+
+def _reconnect_joints(arm: Arm, why: dict[str, str]) -> list[str]:
     """Connect again the joints an on-error transition disconnected; the failures."""
     problems = []
     for name, joint in arm.joints.items():
@@ -159,6 +200,7 @@ def _reconnect_joints(arm: Arm) -> list[str]:
             try:
                 joint.init()
             except JointError as e:
+                why[name] = _why(e)
                 problems.append(f"{name}: not reachable, its current could not be cut: {e}")
     return problems
 
@@ -175,14 +217,15 @@ def _stop_joints(arm: Arm) -> list[str]:
     return problems
 
 
-def _disable_joints(arm: Arm) -> tuple[set[str], list[str]]:
-    """Disable every connected joint; the joints whose disable went through, and the failures."""
+def _disable_joints(arm: Arm, why: dict[str, str]) -> tuple[set[str], list[str]]:
+    """Disable every connected joint; the joints whose disable was acknowledged, and the failures."""
     disabled, problems = set(), []
     for name, joint in arm.joints.items():
         if joint.initialized:
             try:
                 joint.disable()
             except JointError as e:
+                why[name] = _why(e)
                 problems.append(f"{name}: disable failed: {e}")
             else:
                 disabled.add(name)
@@ -210,8 +253,11 @@ def flag_names(flags: int) -> str:
 def final_state(backend: Backend) -> dict[str, dict[str, Any]]:
     """Each joint's flags after the stop, from the device side where it can be seen.
 
-    ``sim`` and ``emulated``: the firmware emulator's flags; ``mock``: the
-    mock device's; ``i2c``: the flags of the joint's last reply.
+    ``sim`` and ``emulated``: the firmware emulator's flags and its drive and
+    hold currents (percent); ``mock``: the mock device's flags; ``i2c``: the
+    flags of the joint's last reply. The currents are ``None`` where the
+    device cannot be looked into. NOT_ENABLED alone does not mean safe: the
+    firmware's deadman sets it and keeps the currents (docs/firmware.md).
     """
     out: dict[str, dict[str, Any]] = {}
     for name, joint in backend.joints.items():
@@ -220,10 +266,13 @@ def final_state(backend: Backend) -> dict[str, dict[str, Any]]:
             flags, source = int(joint.flags), LAST_REPLY
         else:
             flags, source = int(device), FLAG_SOURCES.get(backend.name, "device")
+        currents = backend.device_currents(name)
         out[name] = {
             "flags": flags,
             "flag_names": flag_names(flags),
             "enabled": not flags & Flag.NOT_ENABLED,
+            "drive_current": None if currents is None else currents[0],
+            "hold_current": None if currents is None else currents[1],
             "source": source,
         }
     return out

@@ -22,6 +22,8 @@ from pathlib import Path
 from bioscara_gym.hardware.clock import WallClock
 from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
 
+#: Largest servo ID (protocol 2.0: 253 is reserved, 254 broadcast; the control table's ID item).
+MAX_ID = 252
 #: How often the server wakes up without traffic, s (to notice stop()).
 POLL_S = 0.05
 
@@ -41,12 +43,12 @@ def parse_ids(spec: str) -> list[int]:
             raise ValueError(f"--ids {spec!r}: {part!r} is not an ID or a range like 1-4") from e
         if lo > hi:
             raise ValueError(f"--ids {spec!r}: range {part!r} runs backwards")
+        for end in (lo, hi):  # checked before the range is expanded: 1-1000000000 is 22 GB of IDs
+            if not 0 <= end <= MAX_ID:
+                raise ValueError(f"--ids {spec!r}: IDs must be 0-{MAX_ID}, got {end} (in {part!r})")
         ids.update(range(lo, hi + 1))
     if not ids:
         raise ValueError(f"--ids {spec!r}: no IDs")
-    bad = [i for i in ids if not 0 <= i <= 252]
-    if bad:
-        raise ValueError(f"--ids {spec!r}: IDs must be 0-252, got {bad[0]}")
     return sorted(ids)
 
 
