@@ -35,6 +35,7 @@ from bioscara_gym.hardware.registers import (
     Reg,
 )
 from bioscara_gym.hardware.stats import CommStats
+from bioscara_gym.validation.recordings import DATA_DIR
 
 # docs/model.md: j1 reduction 35, limits +-3.04647 rad; j2 the lift.
 J1_LIMIT = 3.04647
@@ -565,7 +566,8 @@ def test_home_with_a_lost_reply_on_the_emulated_bus_homes_once() -> None:
 
 # ------------------------------------------- real readings are believed
 
-REALDATA = Path(__file__).parent / "data" / "realdata"
+#: The real arm's recordings, packaged with the validation (bioscara_gym/validation/data).
+REALDATA = DATA_DIR
 
 
 class _RecordingBus:
