@@ -408,7 +408,9 @@ def test_no_motion_is_sent_after_a_not_enabled_reply_until_enabled_again() -> No
     assert len(emu.bus.history) == sent
     j.enable(J1.drive_current, J1.hold_current)
     j.set_velocity(-0.5)
-    for _ in range(10):  # talking to it every 30 ms: the deadman stays quiet
+    # Talking to it every 30 ms (the deadman stays quiet) for 0.6 s: the ramp takes
+    # 0.25 s, the encoder's speed estimate settles in a few 53 ms time constants after.
+    for _ in range(20):
         emu.advance(0.03)
         j.get_flags()
     assert j.get_velocity() == pytest.approx(-0.5, rel=0.05)

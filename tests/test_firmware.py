@@ -826,3 +826,31 @@ def test_stall_detection_paused_while_a_blocking_command_runs(
         guarded_core.tick()
         fake_motor.set_error(100.0)
     assert not guarded_core.flags & Flag.STALL
+
+
+# ------------------------------------ what the arm's original driver found
+def test_signed_limits_of_the_original_driver_run_by_their_magnitude(firmware: JointFirmware) -> None:
+    # The arm's C++ driver sends j2's limits signed (its reduction is negative):
+    # SETMAXVELOCITY 1d 00 c0 28 c5 is -2700 deg/s. The library takes the magnitude
+    # (uStepper S32 setMaxVelocity: abs()), so a move runs at VMAX (uint32)(2700 x
+    # 238.507) = 643969: 2700.0 deg/s (ramping at SETMAXACCELERATION -18000: 17,999
+    # deg/s^2, reached within two passes).
+    enabled(firmware)
+    firmware.transfer(bytes.fromhex("1d00c028c5"), 1)
+    firmware.transfer(bytes([0x1B]) + struct.pack("<f", -18000.0), 1)
+    command(firmware, Reg.MOVESTEPS, 100_000)
+    run_passes(firmware, 20)
+    assert firmware.motor.rotor_velocity_dps == pytest.approx(2700.0, abs=0.01)
+
+
+def test_the_kinematic_stepper_runs_as_fast_as_the_configuration_asks_of_j3() -> None:
+    # The packaged configuration's j3 and j4 run at 6875 deg/s at the motor (5 rad/s x 24,
+    # 10 rad/s x 12); the real j4 reached 14.3 rad/s (maxAccel/j4_5: 9830 deg/s).
+    motor = KinematicStepper(0.0)
+    assert motor.max_speed_dps >= 9830.0
+    fw = JointFirmware(motor, ManualClock())
+    enabled(fw)
+    command(fw, Reg.SETMAXACCELERATION, 20_000.0)
+    command(fw, Reg.SETRPM, 6875.0 / 6.0)
+    run_passes(fw, 100)
+    assert motor.rotor_velocity_dps == pytest.approx(6875.0, rel=1e-3)

@@ -75,7 +75,8 @@ ESTIMATOR_KI = 1900.0
 #: steps with x 200/360 first. The chip runs the ramp in these units.
 AMAX_PER_DPS2 = 200 / 360.0 * 256 * 0.0220
 VMAX_PER_DPS = 200 / 360.0 * 256 * 1.677
-#: Register limits the library saturates at (``TMC5130::setAcceleration``, ``setVelocity``).
+#: Register limits the library checks (``TMC5130::setAcceleration``, ``setVelocity``): VMAX
+#: saturates; AMAX is a 16-bit field, so a larger value has already wrapped.
 AMAX_LIMIT = 0xFFFE
 VMAX_LIMIT = 0x7FFE00
 _U32_MAX = 0xFFFFFFFF
@@ -108,10 +109,12 @@ def _vmax_library_units(max_velocity_dps: float) -> float:
 def velocity_mode_acceleration(max_acceleration_dps2: float) -> float:
     """Acceleration the chip ramps a SETRPM with after SETMAXACCELERATION, motor deg/s².
 
-    ``setMaxAcceleration`` takes the magnitude and writes AMAX as
-    ``(uint32_t)``, saturated at 0xFFFE (about 20,900 deg/s²).
+    ``setMaxAcceleration`` takes the magnitude and passes ``(uint32_t)`` of it
+    to ``TMC5130::setAcceleration``, which stores it in a ``uint16_t`` field
+    before its check against 0xFFFE: the value wraps at 16 bits (as a move's
+    does), and only 0xFFFF becomes 0xFFFE.
     """
-    amax = min(_to_u32(_amax_library_units(max_acceleration_dps2)), AMAX_LIMIT)
+    amax = min(_to_u32(_amax_library_units(max_acceleration_dps2)) & 0xFFFF, AMAX_LIMIT)
     return amax / AMAX_PER_DPS2
 
 
