@@ -33,17 +33,21 @@ from pathlib import Path
 
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import SitlError
-from bioscara_gym.hardware.motor import Motor
+from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
 from bioscara_gym.hardware.registers import Flag, Reg
 from bioscara_gym.hardware.sitl.build import build_firmware, firmware_dir
 
-__all__ = ["BOOT_LIMIT_S", "STEP_S", "MotorBridge", "SitlFirmware", "SitlState"]
+__all__ = ["BOOT_LIMIT_S", "PULL_OUT_DEG", "STEP_S", "MotorBridge", "SitlFirmware", "SitlState"]
 
 #: One step of the chip: the library's 1 kHz closed-loop timer, seconds.
 STEP_S = 0.001
 _STEP_US = 1000
 #: How long ``setup()`` may take before the device counts as not booting, s.
 BOOT_LIMIT_S = 10.0
+#: Largest lead of the coils over the rotor a stepper holds: two full steps
+#: (half the electrical period, where the torque of a two-phase stepper
+#: reverses). Beyond it the rotor has lost steps (:class:`MotorBridge`).
+PULL_OUT_DEG = 2 * FULL_STEP_DEG
 #: Interface version the native runtime must report.
 _API_VERSION = 1
 
@@ -93,14 +97,25 @@ class MotorBridge:
     the current as its torque fraction, then advanced; its ``position_deg``
     is what the encoder reads.
 
+    The chip keeps turning the coils whatever the rotor does, and on the
+    real motor the rotor then loses steps: the coils never lead it by more
+    than :data:`PULL_OUT_DEG` (the motor's ``pid_error_deg``, the lag as the
+    real stepper would have it). Today's motor models let the lead grow
+    without bound (a held or slipping rotor), and would later run after it;
+    with ``step_loss`` the bridge ends such a lead where the real rotor
+    would have lost the steps (``hold_here``). A drive model that loses
+    steps itself (issue #23) makes that rule unnecessary.
+
     Args:
         motor: The motor model (e.g. ``KinematicStepper``, or the MuJoCo arm's
             ``MujocoMotor``, whose physics the arm steps itself).
+        step_loss: Apply the two-full-step limit of the coils' lead.
     """
 
-    def __init__(self, motor: Motor) -> None:
+    def __init__(self, motor: Motor, step_loss: bool = True) -> None:
         """Stand between the driver and ``motor``."""
         self.motor = motor
+        self.step_loss = step_loss
 
     def power_up(self) -> None:
         """The driver powers up: no current, the coils where the rotor is."""
@@ -116,8 +131,11 @@ class MotorBridge:
         self.motor.advance(dt)
 
     def encoder_deg(self) -> float:
-        """The rotor's angle as the encoder sees it, motor degrees."""
-        return self.motor.position_deg
+        """The rotor's angle as the encoder sees it, motor degrees (steps lost first, see above)."""
+        motor = self.motor
+        if self.step_loss and abs(motor.pid_error_deg) > PULL_OUT_DEG:
+            motor.hold_here()
+        return motor.position_deg
 
 
 class _Library:
@@ -182,6 +200,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.sitl_transfer.argtypes = [c.c_int64, c.c_char_p, c.c_int, c.c_char_p, c.c_int]
     lib.sitl_transfer.restype = c.c_int
     lib.sitl_address.restype = c.c_int
+    lib.sitl_loops.argtypes = [c.POINTER(c.c_int64)]
+    lib.sitl_loops.restype = c.c_uint64
     lib.sitl_capture_serial.argtypes = [c.c_int]
     lib.sitl_capture_serial.restype = None
     lib.sitl_read_serial.argtypes = [c.c_char_p, c.c_size_t]
@@ -283,6 +303,12 @@ class SitlFirmware:
             return Flag(reply.raw[1])
         finally:
             self._library.load(image)
+
+    def loop_passes(self) -> tuple[int, float]:
+        """How many ``loop()`` passes the firmware has begun, and the device time the latest began, s."""
+        began = ctypes.c_int64()
+        count = int(self._lib.sitl_loops(ctypes.byref(began)))
+        return count, began.value / 1e6
 
     def state(self) -> SitlState:
         """The stand-in chip's registers and the library's closed-loop state now."""

@@ -41,6 +41,8 @@ static void firmware_main(void) {
     setup();
     rt.booted = true;
     for (;;) {
+        rt.loops++;
+        rt.loop_us = rt.now_us;
         loop();
     }
 }
@@ -270,6 +272,12 @@ SITL_API int sitl_transfer(int64_t at_us, const uint8_t *data, int len, uint8_t 
     }
     rt.in_isr = false;
     return rt.fault[0] ? -1 : 0;
+}
+
+/* loop() passes begun since power-on; *began_us: when the latest began. */
+SITL_API uint64_t sitl_loops(int64_t *began_us) {
+    *began_us = rt.loop_us;
+    return rt.loops;
 }
 
 /* The I2C address the firmware joined the bus with (Wire.begin), or -1. */

@@ -36,6 +36,8 @@ struct Runtime {
     bool in_firmware;      /* running on the firmware's own stack */
     bool in_isr;           /* running an I2C event handler */
     bool timer_on;         /* the library's 1 kHz timer runs (after setup()) */
+    uint64_t loops;        /* loop() passes begun */
+    int64_t loop_us;       /* time the latest loop() pass began */
     ucontext_t host;       /* where the firmware yields to */
     ucontext_t firmware;   /* where the host resumes the firmware */
     /* I2C follower */
