@@ -297,6 +297,33 @@ def test_bare_read_runs_the_last_command_again(firmware: JointFirmware) -> None:
     assert firmware.motor.position_deg == pytest.approx(36.0, abs=1e-3)
 
 
+def test_bare_read_of_a_command_answers_the_previous_reply_before_the_flags(firmware: JointFirmware) -> None:
+    # requestEvent appends the flags at tx_length, which only receiveEvent (a write
+    # phase) and set_flags_for_blocking_handler set to 0 (joint.ino): a command's
+    # handler writes no value, so each bare read answers the last reply plus the flags.
+    assert firmware.transfer(bytes([Reg.SETUP, 20, 20, 0, 0]), 1) == bytes([Flag.NOT_HOMED])
+    assert firmware.transfer(b"", 3) == bytes([Flag.NOT_HOMED, Flag.NOT_HOMED, 0xFF])
+    assert firmware.transfer(b"", 3) == bytes([Flag.NOT_HOMED] * 3)
+
+
+def test_bare_read_of_an_answering_register_starts_the_reply_over(firmware: JointFirmware) -> None:
+    # writeValue sets tx_length to the value's size (joint.h).
+    assert firmware.transfer(bytes([Reg.PING]), 3) == b"O" + bytes([POWER_UP]) + b"\xff"
+    assert firmware.transfer(b"", 3) == b"O" + bytes([POWER_UP]) + b"\xff"
+
+
+def test_write_phase_starts_the_reply_over(firmware: JointFirmware) -> None:
+    # receiveEvent: ``tx_length = 0`` (joint.ino), so a command after a PING answers only the flags.
+    firmware.transfer(bytes([Reg.PING]), 2)
+    assert firmware.transfer(bytes([Reg.SETUP, 20, 20, 0, 0]), 2) == bytes([Flag.NOT_HOMED, 0xFF])
+
+
+def test_bare_read_of_a_blocking_register_answers_only_the_flags(firmware: JointFirmware) -> None:
+    # set_flags_for_blocking_handler: ``tx_length = 0`` (joint.ino).
+    firmware.transfer(bytes([0x30]), 1)  # an unknown register: blocking
+    assert firmware.transfer(b"", 2) == bytes([POWER_UP | Flag.BUSY, 0xFF])
+
+
 def test_write_without_read_phase_is_not_executed(firmware: JointFirmware) -> None:
     enabled(firmware)
     firmware.transfer(bytes([0x13, 0x0A, 0x00, 0x00, 0x00]), 0)  # MOVESTEPS 10, no read
