@@ -294,7 +294,7 @@ def test_bare_read_runs_the_last_command_again(firmware: JointFirmware) -> None:
     ticks(firmware, 100)
     firmware.transfer(b"", 1)  # no write phase: MOVESTEPS 10 once more
     ticks(firmware, 100)
-    assert firmware.motor.position_deg == pytest.approx(36.0, abs=1e-3)
+    assert firmware.motor.position_deg == pytest.approx(20 * 360 / 51200, abs=1e-6)  # 20 microsteps
 
 
 def test_bare_read_of_a_command_answers_the_previous_reply_before_the_flags(firmware: JointFirmware) -> None:
@@ -405,9 +405,9 @@ def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
 
 def test_movesteps_allowed_while_not_homed(firmware: JointFirmware) -> None:
     host_limits(enabled(firmware))
-    command(firmware, Reg.MOVESTEPS, -50)
+    command(firmware, Reg.MOVESTEPS, -12800)  # microsteps: a quarter turn
     ticks(firmware, 100)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-50 * 1.8, abs=1e-3)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-90.0, abs=1e-3)
 
 
 def test_movesteps_does_not_turn_an_unpowered_motor(firmware: JointFirmware) -> None:
@@ -472,9 +472,9 @@ def test_movetoangle_at_power_up_runs_at_no_more_than_18_deg_per_s() -> None:
 
 
 def test_movesteps_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
-    # MOVESTEPS 100 = 180 deg. After 100 passes (1 s): 0.99 + 90 x 0.18 = 17.19 deg.
+    # MOVESTEPS 25600 microsteps = 180 deg. After 100 passes (1 s): 0.99 + 90 x 0.18 = 17.19 deg.
     enabled(firmware)
-    command(firmware, Reg.MOVESTEPS, 100)
+    command(firmware, Reg.MOVESTEPS, 25600)
     run_passes(firmware, 100)
     assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.19, abs=1e-5)
 
