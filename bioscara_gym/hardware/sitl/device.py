@@ -200,7 +200,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.sitl_transfer.argtypes = [c.c_int64, c.c_char_p, c.c_int, c.c_char_p, c.c_int]
     lib.sitl_transfer.restype = c.c_int
     lib.sitl_address.restype = c.c_int
-    lib.sitl_loops.argtypes = [c.POINTER(c.c_int64)]
+    lib.sitl_loops.argtypes = [c.POINTER(c.c_int64), c.POINTER(c.c_int64), c.POINTER(c.c_uint32)]
     lib.sitl_loops.restype = c.c_uint64
     lib.sitl_capture_serial.argtypes = [c.c_int]
     lib.sitl_capture_serial.restype = None
@@ -304,11 +304,15 @@ class SitlFirmware:
         finally:
             self._library.load(image)
 
-    def loop_passes(self) -> tuple[int, float]:
-        """How many ``loop()`` passes the firmware has begun, and the device time the latest began, s."""
-        began = ctypes.c_int64()
-        count = int(self._lib.sitl_loops(ctypes.byref(began)))
-        return count, began.value / 1e6
+    def loop_passes(self) -> tuple[int, float, float, float]:
+        """The firmware's main loop: passes begun, the latest one's start, the current wait's end and length.
+
+        Returns:
+            ``(passes, began_s, wakes_s, wait_s)`` in device time.
+        """
+        began, wake, wait = ctypes.c_int64(), ctypes.c_int64(), ctypes.c_uint32()
+        count = int(self._lib.sitl_loops(ctypes.byref(began), ctypes.byref(wake), ctypes.byref(wait)))
+        return count, began.value / 1e6, wake.value / 1e6, wait.value / 1e3
 
     def state(self) -> SitlState:
         """The stand-in chip's registers and the library's closed-loop state now."""

@@ -63,6 +63,7 @@ void wait_ms(uint32_t ms) {
         return;
     }
     rt.wake_ms = now_ms() + ms;
+    rt.waiting_ms = ms;
     swapcontext(&rt.firmware, &rt.host);
     rt.spin = 0;
 }
@@ -274,9 +275,12 @@ SITL_API int sitl_transfer(int64_t at_us, const uint8_t *data, int len, uint8_t 
     return rt.fault[0] ? -1 : 0;
 }
 
-/* loop() passes begun since power-on; *began_us: when the latest began. */
-SITL_API uint64_t sitl_loops(int64_t *began_us) {
+/* loop() passes begun since power-on; *began_us: when the latest began;
+ * *wake_us and *wait_ms: when the firmware's current wait ends, and its length. */
+SITL_API uint64_t sitl_loops(int64_t *began_us, int64_t *wake_us, uint32_t *wait_ms) {
     *began_us = rt.loop_us;
+    *wake_us = (int64_t)rt.wake_ms * 1000;
+    *wait_ms = rt.waiting_ms;
     return rt.loops;
 }
 

@@ -30,6 +30,7 @@ struct Runtime {
     int64_t now_us;        /* device time of the last 1 ms step */
     int64_t isr_us;        /* time of the running I2C transaction */
     uint32_t wake_ms;      /* the firmware resumes at this millis() */
+    uint32_t waiting_ms;   /* length of the wait it is in */
     uint32_t spin;         /* core/library calls since the firmware last yielded */
     bool started;          /* the coroutine exists */
     bool booted;           /* setup() has returned */
