@@ -26,7 +26,7 @@ from bioscara_gym.hardware.backends import Backend, gripper_state_file, with_i2c
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
-from bioscara_gym.hardware.errors import SitlError
+from bioscara_gym.hardware.errors import SitlError, SitlHomingWarning
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.recording import BusWrapper
 from bioscara_gym.hardware.sim import ArmSim, SimGripper
@@ -180,10 +180,6 @@ class SitlArmSim(ArmSim):
 _reachable_homing = reachable_homing
 
 
-class SitlHomingWarning(UserWarning):
-    """The ``sitl`` backend homes with lower thresholds than configured (see :func:`reachable_homing`)."""
-
-
 class SitlBackend(Backend):
     """The real :class:`Joint` driver over an :class:`EmulatedI2CBus` into the firmware in the loop.
 
@@ -228,17 +224,18 @@ class SitlBackend(Backend):
     ) -> None:
         """Build the arm, one firmware per joint, the bus and the drivers."""
         config = with_i2c_clock(config, i2c_clock_hz)
+        notes: list[str] = []
         if reachable_homing:
             config, notes = _reachable_homing(config)
-            if notes:
-                warnings.warn(
-                    f"sitl: {'; '.join(notes)}: a held rotor shows no more under the library's closed "
-                    "loop until the motor model loses steps (docs/firmware.md, firmware in the loop)",
-                    SitlHomingWarning,
-                    stacklevel=2,
-                )
         faults = faults or FaultPlan()
         sim = SitlArmSim(config, firmware, serial=serial, **sim_kwargs)  # type: ignore[arg-type]
+        if notes:
+            warnings.warn(
+                f"sitl: {'; '.join(notes)}: a held rotor shows no more under the library's closed loop "
+                "until the motor model loses steps (docs/firmware.md, firmware in the loop)",
+                SitlHomingWarning,
+                stacklevel=3,
+            )
         sim.schedule.scale = faults.period_scale
         for j in config.joints:
             answers = sim.devices[j.name].address
