@@ -272,6 +272,13 @@ def test_power_cycle_starts_the_firmware_over(source: str) -> None:
     assert fw.transfer(bytes([Reg.HOMEOFFSET]), 5)[:4] == f32(0.0)
 
 
+def test_a_closed_device_answers_no_more(source: str) -> None:
+    fw = make(source)
+    fw.close()
+    with pytest.raises(OSError, match="closed"):
+        fw.transfer(bytes([Reg.PING]), 2)
+
+
 def test_looking_at_the_flags_does_not_feed_the_deadman(source: str) -> None:
     fw = make(source)
     command(fw, Reg.SETUP, bytes([20, 20, 0, 0]))

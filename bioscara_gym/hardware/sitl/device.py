@@ -25,6 +25,7 @@ restores it and runs ``setup()`` again); :meth:`SitlFirmware.snapshot` and
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import shutil
 import tempfile
@@ -269,6 +270,7 @@ class SitlFirmware:
         self._reply = ctypes.create_string_buffer(64)
         self._serial_chunks: list[str] = []
         self._offset_us = 0
+        self._closed = False
         self.power_cycle()
 
     # ------------------------------------------------------------------ state
@@ -296,6 +298,7 @@ class SitlFirmware:
         back (so nothing the handler does, such as feeding the deadman,
         stays).
         """
+        self._check_open()
         image = self._library.save()
         try:
             reply = ctypes.create_string_buffer(2)
@@ -331,8 +334,13 @@ class SitlFirmware:
         self._library.load(image)
 
     def close(self) -> None:
-        """Unload the firmware's copy (the device cannot be used afterwards)."""
+        """Unload the firmware's copy; the device answers no more transactions (an ``OSError``)."""
+        self._closed = True
         self._library.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise OSError(errno.ENODEV, f"{self.joint}: the firmware in the loop was closed")
 
     # ------------------------------------------------------------------- time
     def _device_us(self, t: float) -> int:
@@ -344,6 +352,7 @@ class SitlFirmware:
         The motor keeps its physical position; the encoder counts from there.
         The bus clock does not move while the firmware boots.
         """
+        self._check_open()
         if self.owns_ticks:
             self.update()
         lib = self._lib
@@ -367,6 +376,7 @@ class SitlFirmware:
         """Run the device's steps up to the clock's current time (when it owns its ticks)."""
         if not self.owns_ticks:
             return
+        self._check_open()
         target = self._device_us(self.clock.now())
         now_us = self._lib.sitl_now_us
         tick = self.tick
@@ -404,6 +414,7 @@ class SitlFirmware:
         is not empty), the read phase its ``requestEvent`` (when ``read_len``
         > 0); the reply is what the firmware wrote, padded with 0xFF.
         """
+        self._check_open()
         self.update()
         self.transactions += 1
         at = self._device_us(self.clock.now())
