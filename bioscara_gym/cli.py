@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
-from bioscara_gym.hardware.errors import JointError
+from bioscara_gym.hardware.errors import JointError, SitlError, SitlHomingWarning
 
 
 def _console() -> Console:
@@ -85,11 +85,15 @@ def _resume_command(args: argparse.Namespace) -> str:
     return command
 
 
+#: The package's own warnings, printed as one line (``bioscara CMD: warning: ...``).
+ONE_LINE_WARNINGS = (CheckpointWarning, SitlHomingWarning)
+
+
 def _one_line_warnings(command: str, err: Console, fallback: Callable[..., None]) -> Callable[..., None]:
     """A ``warnings.showwarning`` printing the package's own warnings as one line on stderr."""
 
     def show(message: Warning | str, category: type[Warning], *rest: object, **kwargs: object) -> None:
-        if issubclass(category, CheckpointWarning):
+        if issubclass(category, ONE_LINE_WARNINGS):
             err.print(f"bioscara {command}: warning: {message}")
         else:
             fallback(message, category, *rest, **kwargs)
@@ -153,15 +157,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def eval_backend_options(args: argparse.Namespace) -> dict[str, object] | None:
-    """The backend options of ``bioscara eval``: ``--record`` (a joint backend's bus), else none."""
-    if getattr(args, "record", None) is None:
-        return None
-    from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, Recording
+    """The backend options of ``bioscara eval``: ``--record`` (a bus to record), ``--firmware``; else none."""
+    options: dict[str, object] = {}
+    firmware = getattr(args, "firmware", None)
+    if firmware is not None and args.backend != "sitl":
+        raise CliError("--firmware needs --backend sitl (the firmware in the loop)")
+    if args.backend == "sitl":
+        options["firmware"] = firmware  # None: $BIOSCARA_FIRMWARE
+    if getattr(args, "record", None) is not None:
+        from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, Recording
 
-    if args.backend not in RECORDABLE_BACKENDS:
-        backend = args.backend or "sim"
-        raise CliError(f"--record needs --backend emulated (a bus to record); {backend} has none")
-    return {"record": Recording(args.record, "eval", args)}
+        if args.backend not in RECORDABLE_BACKENDS:
+            backend = args.backend or "sim"
+            raise CliError(f"--record needs --backend emulated (a bus to record); {backend} has none")
+        options["record"] = Recording(args.record, "eval", args)
+    return options or None
 
 
 # ---------------------------------------------------------------- parser
@@ -194,7 +204,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--expert", action="store_true", help="evaluate the scripted expert instead")
     p.add_argument("--env", default="Bioscara-Reach", help="env id for --expert")
     p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--backend", choices=("sim", "emulated", "mock"), help="default: as trained (sim)")
+    p.add_argument(
+        "--backend", choices=("sim", "emulated", "sitl", "mock"), help="default: as trained (sim)"
+    )
+    p.add_argument(
+        "--firmware",
+        type=Path,
+        metavar="DIR",
+        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
+    )
     p.add_argument("--video", type=Path, help="write an MP4 of the first --video-episodes episodes")
     p.add_argument("--video-episodes", type=int, default=3, help="episodes in the video (default 3)")
     p.add_argument("--json", type=Path, help="write the results as JSON")
@@ -228,6 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # One line per error whatever the width, and the text printed as is (no markup).
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
+    warnings.showwarning = _one_line_warnings(args.command, err, warnings.showwarning)
     try:
         return int(args.func(args) or 0)
     except CliError as e:
@@ -236,7 +255,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         err.print(f"bioscara {args.command}: interrupted")
         return EXIT_INTERRUPTED
-    except (ValueError, OSError, MissingExtraError, JointError) as e:
+    except (ValueError, OSError, MissingExtraError, JointError, SitlError) as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file

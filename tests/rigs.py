@@ -16,14 +16,17 @@ file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+import os
 import subprocess
 import sys
 import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -42,6 +45,9 @@ from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S, Flag, Reg
 from bioscara_gym.hardware.sim import ArmSim, SimJoint
+
+if TYPE_CHECKING:
+    from bioscara_gym.hardware.sitl import SitlFirmware
 
 #: Features a rig may have; tests that need one skip rigs without it.
 FEATURES = frozenset(
@@ -431,6 +437,110 @@ def emulated_mujoco_j2() -> JointRig:
     return _mujoco_rig("emulated_mujoco_j2", "emulated", "j2")
 
 
+# -------------------------------------------------------- firmware in the loop
+
+#: Why the SITL tests skip, and how to run them.
+SITL_SKIP_REASON = (
+    "firmware in the loop: set BIOSCARA_FIRMWARE to the joint firmware's folder "
+    "(Arduino/joint/ of a checkout of DALSA-Lab/bioscara); .ci/run does when ../shared/firmware/joint exists"
+)
+
+
+def sitl_source() -> str:
+    """The firmware's folder (``BIOSCARA_FIRMWARE``), else skip the test with :data:`SITL_SKIP_REASON`."""
+    from bioscara_gym.hardware.sitl.build import FIRMWARE_ENV
+
+    source = os.environ.get(FIRMWARE_ENV)
+    if not source:
+        pytest.skip(SITL_SKIP_REASON)
+    return source
+
+
+#: j1 and j2 for the SITL rigs: docs/model.md's, with homing and stall
+#: thresholds the kinematic motor can reach under the library's closed loop.
+#: The library moves the driver's position onto the encoder whenever they
+#: differ by 15 microsteps (1/256) or more, every millisecond, so the PID
+#: error of a rotor simply held still is one millisecond of the coils'
+#: travel, or at most 15 plus that: j1 homing at 10 RPM (8.6 microsteps a
+#: millisecond) peaks at 15-17, j2 at 45 RPM shows 38; held at 20 % of its
+#: max velocity j1 shows 57, j2 77. The arm's thresholds (30, 50; stall 60,
+#: 120) rely on the real rotor springing back when it loses steps, which
+#: the kinematic motor does not do (the drive model of issue #23 will).
+SITL_J1 = dataclasses.replace(J1, stall_threshold=3, homing=dataclasses.replace(J1.homing, threshold=12))
+SITL_J2 = dataclasses.replace(J2, stall_threshold=5, homing=dataclasses.replace(J2.homing, threshold=30))
+
+
+@dataclass
+class SitlJoint:
+    """The real :class:`Joint` driver over an emulated bus into the joint firmware built for the host."""
+
+    params: JointConfig
+    clock: ManualClock
+    motor: KinematicStepper
+    firmware: SitlFirmware
+    bus: EmulatedI2CBus
+    joint: Joint
+
+    def new_joint(self) -> Joint:
+        """A new driver object for the same device (as after a host restart)."""
+        p = self.params
+        return Joint(p.name, p.address, p.reduction, p.min, p.max, self.bus, clock=self.clock)
+
+    def advance(self, dt: float) -> None:
+        """Let ``dt`` seconds pass without traffic; the firmware runs."""
+        self.clock.sleep(dt)
+        self.bus.update()
+
+
+def build_sitl(params: JointConfig, start_q: float, source: str | None = None) -> SitlJoint:
+    """``Joint`` -> ``EmulatedI2CBus`` -> ``SitlFirmware`` -> ``KinematicStepper``, stops at the limits."""
+    from bioscara_gym.hardware.sitl import SitlFirmware
+
+    source = source or sitl_source()
+    stops = sorted((motor_degrees(params.min, params), motor_degrees(params.max, params)))
+    clock = ManualClock()
+    motor = KinematicStepper(motor_degrees(start_q, params), lower_stop_deg=stops[0], upper_stop_deg=stops[1])
+    firmware = SitlFirmware(source, params.name, motor, clock)
+    bus = EmulatedI2CBus({firmware.address: firmware}, clock=clock)
+    p = params
+    joint = Joint(p.name, p.address, p.reduction, p.min, p.max, bus, clock=clock)
+    return SitlJoint(params, clock, motor, firmware, bus, joint)
+
+
+def _sitl_rig(name: str, params: JointConfig, start_q: float) -> JointRig:
+    sitl = build_sitl(params, start_q)
+
+    def block() -> None:
+        sitl.motor.blocked = True
+
+    def unblock() -> None:
+        sitl.motor.blocked = False
+
+    return JointRig(
+        name=name,
+        joint=sitl.joint,
+        params=params,
+        clock=sitl.clock,
+        advance=sitl.advance,
+        device_flags=lambda: sitl.firmware.flags,
+        restart_host=sitl.new_joint,
+        features=frozenset({"stall", "deadman", "power_cycle", "host_restart", "physics"}),
+        block=block,
+        unblock=unblock,
+        power_cycle=sitl.firmware.power_cycle,
+    )
+
+
+def sitl_kinematic_j1() -> JointRig:
+    """j1 on the real firmware (SITL) behind the emulated bus, kinematic motor, at q = 2.9 rad."""
+    return _sitl_rig("sitl_kinematic_j1", SITL_J1, start_q=2.9)
+
+
+def sitl_kinematic_j2() -> JointRig:
+    """j2 on the real firmware (SITL) behind the emulated bus, kinematic motor, at q = 0.3 m."""
+    return _sitl_rig("sitl_kinematic_j2", SITL_J2, start_q=0.3)
+
+
 #: Every rig the conformance suite runs on, by id.
 RIG_FACTORIES: dict[str, Callable[[], JointRig]] = {
     "mock_j1": mock_j1,
@@ -440,6 +550,8 @@ RIG_FACTORIES: dict[str, Callable[[], JointRig]] = {
     "sim_j2": sim_j2,
     "emulated_mujoco_j1": emulated_mujoco_j1,
     "emulated_mujoco_j2": emulated_mujoco_j2,
+    "sitl_kinematic_j1": sitl_kinematic_j1,
+    "sitl_kinematic_j2": sitl_kinematic_j2,
 }
 
 

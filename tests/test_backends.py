@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from conftest import ARM_BACKENDS, ScriptedBus
+from rigs import sitl_source
 
 from bioscara_gym.hardware import backends
 from bioscara_gym.hardware.arm import Arm, Lifecycle
@@ -27,6 +29,7 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.errors import SitlHomingWarning
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -98,8 +101,14 @@ def reply(flags: Flag, fmt: str | None = None, value: float | int = 0) -> bytes:
 
 # ------------------------------------------------------------- make_backend
 
-JOINT_CLASSES = {"sim": SimJoint, "mock": MockJoint, "emulated": Joint, "i2c": Joint}
-GRIPPER_CLASSES = {"sim": SimGripper, "mock": MockGripper, "emulated": SimGripper, "i2c": Gripper}
+JOINT_CLASSES = {"sim": SimJoint, "mock": MockJoint, "emulated": Joint, "i2c": Joint, "sitl": Joint}
+GRIPPER_CLASSES = {
+    "sim": SimGripper,
+    "mock": MockGripper,
+    "emulated": SimGripper,
+    "i2c": Gripper,
+    "sitl": SimGripper,
+}
 
 
 @pytest.fixture(params=BACKENDS)
@@ -113,11 +122,15 @@ def any_backend(
     """Every backend by name; ``i2c`` over a scripted bus and a fake sysfs tree."""
     if request.param == "i2c":
         return make_arm_backend("i2c", bus=scripted_bus, sysfs_root=pwm_tree)
+    if request.param == "sitl":
+        with warnings.catch_warnings():  # the homing thresholds it lowers (tests/test_sitl.py)
+            warnings.simplefilter("ignore", SitlHomingWarning)
+            return make_arm_backend("sitl", firmware=sitl_source())
     return make_arm_backend(request.param)
 
 
-def test_backend_names_are_sim_mock_emulated_i2c() -> None:
-    assert BACKENDS == ("sim", "mock", "emulated", "i2c")
+def test_backend_names_are_sim_mock_emulated_i2c_sitl() -> None:
+    assert BACKENDS == ("sim", "mock", "emulated", "i2c", "sitl")
 
 
 def test_make_backend_builds_joints_j1_to_j4_and_a_gripper(any_backend: Backend) -> None:

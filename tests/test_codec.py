@@ -259,6 +259,7 @@ def test_rpm_to_velocity_known_value() -> None:
     assert rpm_to_velocity(60.0, 35.0) == pytest.approx(math.radians(60.0) / 35.0 * 6.0, rel=1e-15)
 
 
-def test_one_motor_turn_is_200_steps() -> None:
-    assert steps_to_degrees(200) == pytest.approx(360.0, rel=1e-15)
-    assert steps_to_degrees(1.0) == 1.8
+def test_one_motor_turn_is_51200_microsteps() -> None:
+    # The library's moveSteps counts 1/256 steps: 200 full steps of 256 a turn (UstepperS32.cpp).
+    assert steps_to_degrees(51200) == pytest.approx(360.0, rel=1e-15)
+    assert steps_to_degrees(256) == pytest.approx(1.8, rel=1e-15)

@@ -458,9 +458,9 @@ def test_move_steps_with_a_lost_reply_moves_the_emulated_motor_once() -> None:
     j.set_max_acceleration(2.0)  # 3: SETMAXACCELERATION
     start = emu.motor.position_deg
     with pytest.raises(CommError):
-        j.move_steps(100)  # 4: delivered, reply cut short
+        j.move_steps(25600)  # 4: delivered, reply cut short (microsteps: half a turn)
     emu.advance(2.0)
-    assert emu.motor.position_deg - start == pytest.approx(180.0, abs=0.5)  # 100 steps once, not twice
+    assert emu.motor.position_deg - start == pytest.approx(180.0, abs=0.5)  # half a turn once, not twice
 
 
 def test_lost_reply_of_home_that_started_counts_as_started(

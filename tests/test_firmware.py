@@ -302,7 +302,34 @@ def test_bare_read_runs_the_last_command_again(firmware: JointFirmware) -> None:
     ticks(firmware, 100)
     firmware.transfer(b"", 1)  # no write phase: MOVESTEPS 10 once more
     ticks(firmware, 100)
-    assert firmware.motor.position_deg == pytest.approx(36.0, abs=1e-3)
+    assert firmware.motor.position_deg == pytest.approx(20 * 360 / 51200, abs=1e-6)  # 20 microsteps
+
+
+def test_bare_read_of_a_command_answers_the_previous_reply_before_the_flags(firmware: JointFirmware) -> None:
+    # requestEvent appends the flags at tx_length, which only receiveEvent (a write
+    # phase) and set_flags_for_blocking_handler set to 0 (joint.ino): a command's
+    # handler writes no value, so each bare read answers the last reply plus the flags.
+    assert firmware.transfer(bytes([Reg.SETUP, 20, 20, 0, 0]), 1) == bytes([Flag.NOT_HOMED])
+    assert firmware.transfer(b"", 3) == bytes([Flag.NOT_HOMED, Flag.NOT_HOMED, 0xFF])
+    assert firmware.transfer(b"", 3) == bytes([Flag.NOT_HOMED] * 3)
+
+
+def test_bare_read_of_an_answering_register_starts_the_reply_over(firmware: JointFirmware) -> None:
+    # writeValue sets tx_length to the value's size (joint.h).
+    assert firmware.transfer(bytes([Reg.PING]), 3) == b"O" + bytes([POWER_UP]) + b"\xff"
+    assert firmware.transfer(b"", 3) == b"O" + bytes([POWER_UP]) + b"\xff"
+
+
+def test_write_phase_starts_the_reply_over(firmware: JointFirmware) -> None:
+    # receiveEvent: ``tx_length = 0`` (joint.ino), so a command after a PING answers only the flags.
+    firmware.transfer(bytes([Reg.PING]), 2)
+    assert firmware.transfer(bytes([Reg.SETUP, 20, 20, 0, 0]), 2) == bytes([Flag.NOT_HOMED, 0xFF])
+
+
+def test_bare_read_of_a_blocking_register_answers_only_the_flags(firmware: JointFirmware) -> None:
+    # set_flags_for_blocking_handler: ``tx_length = 0`` (joint.ino).
+    firmware.transfer(bytes([0x30]), 1)  # an unknown register: blocking
+    assert firmware.transfer(b"", 2) == bytes([POWER_UP | Flag.BUSY, 0xFF])
 
 
 def test_write_without_read_phase_is_not_executed(firmware: JointFirmware) -> None:
@@ -388,9 +415,9 @@ def test_movetoangle_is_absolute_from_the_encoder_zero() -> None:
 
 def test_movesteps_allowed_while_not_homed(firmware: JointFirmware) -> None:
     host_limits(enabled(firmware))
-    command(firmware, Reg.MOVESTEPS, -50)
+    command(firmware, Reg.MOVESTEPS, -12800)  # microsteps: a quarter turn
     ticks(firmware, 100)
-    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-50 * 1.8, abs=1e-3)
+    assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(-90.0, abs=1e-3)
 
 
 def test_movesteps_does_not_turn_an_unpowered_motor(firmware: JointFirmware) -> None:
@@ -465,9 +492,9 @@ def test_movetoangle_at_power_up_runs_at_no_more_than_18_deg_per_s() -> None:
 
 
 def test_movesteps_at_power_up_runs_at_no_more_than_18_deg_per_s(firmware: JointFirmware) -> None:
-    # MOVESTEPS 100 = 180 deg, at VMAX 17.999 deg/s as above: 17.188 deg after 100 passes.
+    # MOVESTEPS 25600 microsteps = 180 deg, at VMAX 17.999 deg/s as above: 17.188 deg after 100 passes.
     enabled(firmware)
-    command(firmware, Reg.MOVESTEPS, 100)
+    command(firmware, Reg.MOVESTEPS, 25600)
     run_passes(firmware, 100)
     assert query(firmware, Reg.ANGLEMOVED)[0] == pytest.approx(17.188, abs=2e-3)
 

@@ -28,7 +28,7 @@ SETRPM_MINUS_100 = bytes([0x11, 0x00, 0x00, 0xC8, 0xC2])  # -100.0 RPM
 SETRPM_0 = bytes([0x11, 0x00, 0x00, 0x00, 0x00])
 MOVETOANGLE_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0x42])  # 90.0 deg
 MOVETOANGLE_MINUS_90 = bytes([0x15, 0x00, 0x00, 0xB4, 0xC2])  # -90.0 deg
-MOVESTEPS_MINUS_10 = bytes([0x13, 0xF6, 0xFF, 0xFF, 0xFF])  # -10 full steps
+MOVESTEPS_MINUS_10 = bytes([0x13]) + struct.pack("<i", -2560)  # -10 full steps, in microsteps
 ENABLESTALLGUARD_6 = bytes([0x1E, 6])
 STOP = bytes([0x29, 0])
 #: HOME: direction, 10 RPM, sensitivity 30, current 15 %.

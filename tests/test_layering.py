@@ -238,6 +238,8 @@ def test_wheel_holds_one_top_level_package(tmp_path: Path) -> None:
         "bioscara_gym/training/train.py",
         "bioscara_gym/training/configs/sac.yaml",
         "bioscara_gym/assets/scene.xml",
+        "bioscara_gym/hardware/sitl/native/include/UstepperS32.h",
+        "bioscara_gym/hardware/sitl/native/src/runtime.cpp",
         "bioscara_gym/hardware/default_config.yaml",
     ):
         assert member in names

@@ -410,12 +410,12 @@ def test_motor_time_runs_one_tick_a_pass_also_when_a_homing_ends_mid_pass(stop_d
 
 
 def test_position_move_ends_idle_at_the_hold_current() -> None:
-    # SETUP drive 30 %, hold 10 %; MOVESTEPS 10 (18 deg) runs at the drive
-    # current and, arrived, the motor idles at the hold current.
+    # SETUP drive 30 %, hold 10 %; MOVESTEPS 2560 microsteps (10 full steps,
+    # 18 deg) runs at the drive current and, arrived, idles at the hold current.
     fw = make()
     send(fw, bytes([0x10, 30, 10, 0, 0]))
     host_limits(fw)
-    send(fw, bytes([0x13, 10, 0, 0, 0]))  # MOVESTEPS 10
+    send(fw, bytes([0x13]) + struct.pack("<i", 2560))  # MOVESTEPS 2560 microsteps
     ticks(fw)
     assert fw.motor.torque_fraction == 0.3
     for _ in range(100):
@@ -426,7 +426,7 @@ def test_position_move_ends_idle_at_the_hold_current() -> None:
 
 
 def track_move(limit_reg: int, limit: float, steps: int, passes: int) -> list[float]:
-    """SETUP, one limit, MOVESTEPS ``steps``; the motor position (deg) after each pass."""
+    """SETUP, one limit, MOVESTEPS ``steps`` microsteps; the motor position (deg) after each pass."""
     fw = make(-3600.0, 3600.0)
     send(fw, SETUP_20_20)
     send(fw, bytes([limit_reg]) + struct.pack("<f", limit))
@@ -440,17 +440,17 @@ def track_move(limit_reg: int, limit: float, steps: int, passes: int) -> list[fl
 
 
 def test_position_move_brakes_in_time_and_passes_its_target_by_less_than_a_step() -> None:
-    # 180 deg/s^2 (the power-up MAXACCEL, docs/firmware.md), 10 steps = 18 deg.
+    # 180 deg/s^2 (the power-up MAXACCEL, docs/firmware.md), 2560 microsteps = 18 deg.
     # Braking from sqrt(2 a d), the 10 ms ramp passes the target by 0.29 deg
     # (an emulator artefact), well under one full step (1.8 deg).
-    path = track_move(0x1B, 180.0, 10, 300)
+    path = track_move(0x1B, 180.0, 2560, 300)
     assert max(path) < 18.0 + 1.8
     assert path[-1] == pytest.approx(18.0)
 
 
 def test_position_move_keeps_to_the_max_velocity() -> None:
-    # 18 deg/s (the power-up MAXVEL): 100 steps = 180 deg take 10 s; after 1 s at most 18 deg.
-    path = track_move(0x1D, 18.0, 100, 100)
+    # 18 deg/s (the power-up MAXVEL): 25600 microsteps = 180 deg take 10 s; after 1 s at most 18 deg.
+    path = track_move(0x1D, 18.0, 25600, 100)
     assert path[-1] <= 18.0 + 1e-9
     assert max(b - a for a, b in itertools.pairwise(path)) <= 0.18 + 1e-9  # deg per 10 ms pass
 

@@ -100,7 +100,7 @@ from bioscara_gym.errors import DeployError, MetadataError, TrainingError
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StopReason
+from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, SitlError, StopReason
 from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
@@ -116,8 +116,9 @@ from bioscara_gym.training.metadata import (
 )
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
-#: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``).
-DEPLOY_BACKENDS = ("i2c", "emulated", "mock")
+#: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``); ``sitl`` runs the
+#: firmware's own source behind the emulated bus (``--firmware DIR``).
+DEPLOY_BACKENDS = ("i2c", "emulated", "sitl", "mock")
 #: Overrun warnings printed before they are only counted.
 OVERRUN_WARNINGS = 5
 #: Exit codes: refused before touching the arm, stopped by the safety layer.
@@ -142,7 +143,8 @@ class DeployArgs:
         onnx: An ONNX policy from ``bioscara export`` (runs without torch).
         expert: Run the scripted expert of ``env`` instead of a policy.
         env: Env id for ``expert``; with a policy, must match its metadata.
-        backend: ``i2c`` (the arm), ``emulated`` (real driver, emulated bus) or ``mock``.
+        backend: ``i2c`` (the arm), ``emulated`` (real driver, emulated bus), ``sitl``
+            (the same with the joint firmware's own source behind the bus) or ``mock``.
         bus: I2C bus number (``/dev/i2c-N``); default the config's.
         config: Arm configuration YAML; default the packaged one.
         episodes: Episodes to run.
@@ -154,6 +156,8 @@ class DeployArgs:
         state_file: Gripper state file; default the backend's (on the arm) or
             ``gripper.json`` beside the log (simulated backends).
         record: Bus trace: every I2C transaction as a JSON line (docs/traces.md).
+        firmware: The joint firmware's folder for ``sitl`` (``Arduino/joint/``);
+            default ``$BIOSCARA_FIRMWARE``.
     """
 
     model: Path | None = None
@@ -171,6 +175,7 @@ class DeployArgs:
     realtime: bool = False
     state_file: Path | None = None
     record: Path | None = None
+    firmware: Path | None = None
 
 
 @dataclass
@@ -430,7 +435,7 @@ class Deployment:
             kwargs["control_freq"] = float(args.rate)
         try:
             return gym.make(env_id, **kwargs)
-        except (gym.error.Error, ValueError, TypeError) as e:
+        except (gym.error.Error, ValueError, TypeError, SitlError) as e:
             raise DeployError(f"cannot make env {env_id!r}: {e}") from e
 
     def _backend_options(self) -> dict[str, Any]:
@@ -445,6 +450,8 @@ class Deployment:
             from bioscara_gym.hardware.recording import Recording
 
             options["record"] = Recording(args.record, "deploy", args)
+        if args.backend == "sitl":
+            options["firmware"] = args.firmware  # None: $BIOSCARA_FIRMWARE
         return options
 
     def _run(self, env: gym.Env, policy: Policy, description: str) -> dict[str, Any]:
@@ -932,9 +939,13 @@ def _check_args(args: DeployArgs) -> None:
             check_control_freq(args.rate, "--rate")
         except ValueError as e:
             raise DeployError(str(e)) from e
+    if args.firmware is not None and args.backend != "sitl":
+        raise DeployError("--firmware needs --backend sitl (the firmware in the loop)")
     if args.faults:
-        if args.backend != "emulated":
-            raise DeployError("--faults needs --backend emulated (faults are injected by the emulated bus)")
+        if args.backend not in ("emulated", "sitl"):
+            raise DeployError(
+                "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)"
+            )
         try:
             FaultPlan.parse(args.faults)
         except ValueError as e:
@@ -1031,6 +1042,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--expert", action="store_true", help="run the scripted expert of --env")
     p.add_argument("--env", help="env id (for --expert; with a policy it must match the metadata)")
     p.add_argument("--backend", choices=DEPLOY_BACKENDS, default="emulated", help="default: emulated")
+    p.add_argument(
+        "--firmware",
+        type=Path,
+        metavar="DIR",
+        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
+    )
     p.add_argument("--bus", type=int, help="I2C bus number, /dev/i2c-N (default: the config's)")
     p.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
     p.add_argument("--episodes", type=int, default=1)

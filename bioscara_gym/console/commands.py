@@ -492,6 +492,12 @@ def _common(parser: argparse.ArgumentParser) -> None:
         "--backend", choices=ALL_BACKENDS, default="emulated", help="arm backend (default: emulated)"
     )
     parser.add_argument(
+        "--firmware",
+        type=Path,
+        metavar="DIR",
+        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
+    )
+    parser.add_argument(
         "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
     )
     parser.add_argument(

@@ -133,6 +133,8 @@ class Session:
     def _backend_options(self) -> dict[str, object]:
         """The options' backend options, and ``--record`` with the state file this command starts from."""
         options = dict(self.options.backend_options)
+        if self.options.backend == "sitl":
+            options.setdefault("firmware", self.options.firmware)  # None: $BIOSCARA_FIRMWARE
         record, path = self.options.record, self.options.state
         if record is not None:
             context: dict[str, object] = {}

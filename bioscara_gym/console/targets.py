@@ -29,6 +29,7 @@ class ConsoleOptions:
         bus: I2C bus number overriding the configuration's.
         state: State file for the simulated backends, ``None`` for none.
         record: ``--record``: the bus trace to append this command's session to.
+        firmware: ``--firmware``: the joint firmware's folder for the ``sitl`` backend.
         backend_options: More options for the backend (a replay's bus and clock).
     """
 
@@ -37,6 +38,7 @@ class ConsoleOptions:
     bus: int | None = None
     state: Path | None = None
     record: Recording | None = None
+    firmware: Path | None = None
     backend_options: Mapping[str, object] = field(default_factory=dict)
 
     @classmethod
@@ -49,6 +51,7 @@ class ConsoleOptions:
             bus=args.bus,
             state=args.state,
             record=None if record is None else Recording(record, getattr(args, "command", ""), args),
+            firmware=getattr(args, "firmware", None),
             backend_options=getattr(args, "backend_options", None) or {},
         )
 
@@ -61,6 +64,8 @@ class ConsoleOptions:
         backend = self.backend
         if backend not in ALL_BACKENDS:
             raise ConsoleUsageError(f"unknown backend {backend!r}; expected one of {', '.join(ALL_BACKENDS)}")
+        if self.firmware is not None and backend != "sitl":
+            raise ConsoleUsageError("--firmware needs --backend sitl (the firmware in the loop)")
         if self.state is not None and backend not in PERSISTENT_BACKENDS:
             reason = (
                 "mock state does not persist" if backend == "mock" else "the real arm keeps its own state"

@@ -6,6 +6,9 @@
 ``emulated`` the real :class:`Joint` driver over :class:`EmulatedI2CBus`,
              whose :class:`JointFirmware` devices drive the MuJoCo arm
 ``i2c``      real :class:`Joint` s over :class:`SMBusI2C`, sysfs PWM gripper
+``sitl``     as ``emulated``, each device the joint firmware's own source
+             built for the host (``bioscara_gym.hardware.sitl``; needs a
+             C++ compiler and ``firmware=DIR`` or ``BIOSCARA_FIRMWARE``)
 ``dynamixel`` :class:`DynamixelJoint` s on a serial port (``dynamixel-sdk``),
              and ``dynamixel-emulated``: the same over emulated XL430 servos
              (``bioscara_gym.hardware.dynamixel.backend``, docs/dynamixel.md)
@@ -43,7 +46,10 @@ from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, BusWrapper, Rec
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
-BACKENDS = ("sim", "mock", "emulated", "i2c")
+BACKENDS = ("sim", "mock", "emulated", "i2c", "sitl")
+#: Backends of this package built from a module of their own, imported when made:
+#: the firmware in the loop needs MuJoCo and, the first time, a C++ compiler.
+LAZY_BACKENDS = {"sitl": "bioscara_gym.hardware.sitl.arm:SitlBackend"}
 #: Backends of optional subpackages, name to ``module:class``, imported when built
 #: (as ``EXTRA_COMMAND_MODULES`` in ``cli.py``): an arm of Dynamixel servos (docs/dynamixel.md).
 EXTRA_BACKENDS = {
@@ -373,8 +379,9 @@ def make_backend(
         name: One of :data:`ALL_BACKENDS`.
         config: An :class:`ArmConfig`, a YAML path, or ``None`` for the
             packaged default.
-        **options: Backend-specific options (e.g. ``faults`` for ``emulated``,
-            ``initial_qpos`` for the simulated ones, ``state_file``), and
+        **options: Backend-specific options (e.g. ``faults`` for ``emulated``
+            and ``sitl``, ``firmware`` for ``sitl``, ``initial_qpos`` for the
+            simulated ones, ``state_file``), and
             ``record``: a :class:`~.recording.Recording` (or a path) to write
             every bus transaction to (``i2c`` and ``emulated``; docs/traces.md).
 
@@ -389,8 +396,11 @@ def make_backend(
         "emulated": EmulatedBackend,
         "i2c": I2CBackend,
     }
-    if name in EXTRA_BACKENDS:
-        module, _, cls = EXTRA_BACKENDS[name].partition(":")
+    lazy = LAZY_BACKENDS.get(name) or EXTRA_BACKENDS.get(name)
+    if lazy is not None:
+        if name in LAZY_BACKENDS:
+            require_extra("mujoco", f"the {name} backend", "sim")
+        module, _, cls = lazy.partition(":")
         classes[name] = getattr(importlib.import_module(module), cls)
     if name not in classes:
         raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")

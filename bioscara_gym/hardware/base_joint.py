@@ -688,7 +688,7 @@ class BaseJoint(abc.ABC):
         self._send_motion(Reg.SETRPM, velocity_to_rpm(vel, self.reduction))
 
     def move_steps(self, steps: int) -> None:
-        """Move ``steps`` full motor steps; allowed while not homed.
+        """Move ``steps`` motor microsteps (1/256 of a full step, 51,200 a turn); allowed while not homed.
 
         Raises:
             NotEnabledError: The joint is not enabled.

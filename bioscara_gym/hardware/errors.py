@@ -239,3 +239,17 @@ class SafetyStop(Exception):
         super().__init__(message)
         self.reason = reason
         self.joint = joint
+
+
+class SitlHomingWarning(UserWarning):
+    """The ``sitl`` backend homes with lower thresholds than configured, and says which."""
+
+
+class SitlError(RuntimeError):
+    """The joint firmware cannot run in the loop.
+
+    No firmware source was given, no C++ compiler is found, the firmware
+    does not build (the message is the compiler's first error, naming the
+    file), or the stand-in saw the firmware do what the chip could not (a
+    wait inside an interrupt handler).
+    """

@@ -53,6 +53,7 @@ from bioscara_gym.hardware.registers import (
     FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
     FLAG_STALL,
+    FLAGS_SIZE,
     HOMING_POLL_S,
     HOMING_SETTLE_S,
     MAX_PAYLOAD,
@@ -739,6 +740,8 @@ class JointFirmware:
         self._reg = 0  # ``uint8_t reg = 0``: a bare read at power-up runs register 0x00
         self._rx_buf = bytearray(MAX_PAYLOAD)
         self._rx_length = 0
+        self._tx_buf = bytearray(MAX_PAYLOAD + FLAGS_SIZE)  # ``tx_buf[MAX_BUFFER + RFLAGS_SIZE]``
+        self._tx_length = 0
 
     @property
     def motor(self) -> Motor:
@@ -774,8 +777,11 @@ class JointFirmware:
         (``requestEvent``) runs the stored register's handler on it and
         answers its value (if any) and the flags. No read phase (``read_len``
         0): nothing is executed. No write phase (empty ``data``): the last
-        register runs again on the buffer as it stands. Like an Arduino Wire
-        slave, a longer read is padded with 0xFF and a shorter one is cut.
+        register runs again on the buffer as it stands, and since only the
+        write phase (and a blocking command) starts the reply buffer over, a
+        register that answers no value answers the previous reply before the
+        flags. Like an Arduino Wire slave, a longer read is padded with 0xFF
+        and a shorter one is cut.
 
         Args:
             data: Bytes the master wrote; ``data[0]`` is the register.
@@ -792,26 +798,40 @@ class JointFirmware:
             payload = data[1:]
             self._rx_buf[: len(payload[:MAX_PAYLOAD])] = payload[:MAX_PAYLOAD]
             self._rx_length = len(payload)
+            self._tx_length = 0  # receiveEvent: ``tx_length = 0``
         if read_len <= 0:
             return b""
-        tx = self._request(now)
-        reply = tx + bytes((self.core.flags,))
+        self._request(now)
+        # ``tx_buf[tx_length++] = state``: past the 5-byte buffer (bare reads of a
+        # command, again and again) the firmware overwrites what follows it; the
+        # emulator answers as if the buffer went on.
+        if self._tx_length >= len(self._tx_buf):
+            self._tx_buf.extend(bytes(self._tx_length + 1 - len(self._tx_buf)))
+        self._tx_buf[self._tx_length] = self.core.flags
+        self._tx_length += 1
+        reply = bytes(self._tx_buf[: self._tx_length])
         if read_len <= len(reply):
             return reply[:read_len]
         return reply + b"\xff" * (read_len - len(reply))
 
-    def _request(self, now: float) -> bytes:
-        """``requestEvent``: the stored register's handler; returns the value bytes it answers."""
+    def _request(self, now: float) -> None:
+        """``requestEvent``: the stored register's handler; a value it answers goes to the reply buffer."""
         core, reg = self.core, self._reg
         if reg in _ANSWERING:
-            return codec.encode(Reg(reg), core.read(reg, now))
-        if reg == Reg.HOMEOFFSET and not self._rx_length:
-            return codec.encode(Reg.HOMEOFFSET, core.read(reg, now))
-        if reg == Reg.GETDRIVERRPM:
+            self._answer(codec.encode(Reg(reg), core.read(reg, now)))
+        elif reg == Reg.HOMEOFFSET and not self._rx_length:
+            self._answer(codec.encode(Reg.HOMEOFFSET, core.read(reg, now)))
+        elif reg == Reg.GETDRIVERRPM:
             core.touch(now)
-            return b""
-        core.write(reg, self._read_value(reg), now)
-        return b""
+        else:
+            core.write(reg, self._read_value(reg), now)
+            if reg == Reg.HOME or reg not in NON_BLOCKING_REGISTERS:
+                self._tx_length = 0  # set_flags_for_blocking_handler: ``tx_length = 0``
+
+    def _answer(self, value: bytes) -> None:
+        """``writeValue``: the reply buffer starts over with ``value``."""
+        self._tx_buf[: len(value)] = value
+        self._tx_length = len(value)
 
     def _read_value(self, reg: int) -> float | int:
         """The value the firmware's handler ``memcpy``'s out of the receive buffer."""

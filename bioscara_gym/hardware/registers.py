@@ -105,7 +105,7 @@ PAYLOAD_FORMAT: dict[Reg, str] = {
     Reg.PING: "<B",  # 'O' (ACK)
     Reg.SETUP: "<I",  # byte0 drive current %, byte1 hold current %
     Reg.SETRPM: "<f",  # motor RPM
-    Reg.MOVESTEPS: "<i",  # full steps
+    Reg.MOVESTEPS: "<i",  # microsteps, 1/256 full step (the library's moveSteps)
     Reg.MOVETOANGLE: "<f",  # motor degrees, absolute
     Reg.ANGLEMOVED: "<f",  # motor degrees since the encoder was zeroed
     Reg.SETCURRENT: "<B",  # drive current %

@@ -48,6 +48,12 @@ def rate_to_degrees(value: float, reduction: float) -> float:
     return math.degrees(reduction * value)
 
 
+#: MOVESTEPS counts microsteps: the firmware passes its int32 to the uStepper
+#: library's ``moveSteps(microsteps)``, which adds it to the driver's position
+#: (1/256 of a full step, 51,200 a turn; UstepperS32.cpp, TMC5130 XACTUAL).
+MICROSTEPS_PER_FULL_STEP = 256
+
+
 def steps_to_degrees(steps: float) -> float:
-    """MOVESTEPS full steps to motor degrees (1.8 degrees a step, 200 a turn)."""
-    return steps * FULL_STEP_DEG
+    """MOVESTEPS microsteps to motor degrees (1/256 of a 1.8-degree full step, 51,200 a turn)."""
+    return steps * FULL_STEP_DEG / MICROSTEPS_PER_FULL_STEP
