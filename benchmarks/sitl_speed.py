@@ -18,7 +18,6 @@ import argparse
 import os
 import sys
 import time
-import warnings
 
 import gymnasium as gym
 from rich.console import Console
@@ -26,7 +25,6 @@ from rich.table import Table
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.experts import expert_for
-from bioscara_gym.hardware.errors import SitlHomingWarning
 from bioscara_gym.hardware.sitl.build import FIRMWARE_ENV
 from bioscara_gym.training.evaluate import run_episodes
 
@@ -57,7 +55,6 @@ def main(argv: list[str] | None = None) -> int:
     if not firmware:
         con.print(f"sitl_speed: skipped, no firmware (pass --firmware DIR or set {FIRMWARE_ENV})")
         return 0
-    warnings.simplefilter("ignore", SitlHomingWarning)
     rows = {}
     for backend, options in (("emulated", {}), ("sitl", {"firmware": firmware})):
         rows[backend] = measure(backend, args.episodes, args.seed, options)

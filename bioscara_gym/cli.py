@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
-from bioscara_gym.hardware.errors import JointError, SitlError, SitlHomingWarning
+from bioscara_gym.hardware.errors import JointError, SitlError
 
 
 def _console() -> Console:
@@ -86,7 +86,7 @@ def _resume_command(args: argparse.Namespace) -> str:
 
 
 #: The package's own warnings, printed as one line (``bioscara CMD: warning: ...``).
-ONE_LINE_WARNINGS = (CheckpointWarning, SitlHomingWarning)
+ONE_LINE_WARNINGS = (CheckpointWarning,)
 
 
 def _one_line_warnings(command: str, err: Console, fallback: Callable[..., None]) -> Callable[..., None]:

@@ -16,7 +16,6 @@ file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 import os
@@ -456,20 +455,6 @@ def sitl_source() -> str:
     return source
 
 
-#: j1 and j2 for the SITL rigs: docs/model.md's, with homing and stall
-#: thresholds the kinematic motor can reach under the library's closed loop.
-#: The library moves the driver's position onto the encoder whenever they
-#: differ by 15 microsteps (1/256) or more, every millisecond, so the PID
-#: error of a rotor simply held still is one millisecond of the coils'
-#: travel, or at most 15 plus that: j1 homing at 10 RPM (8.6 microsteps a
-#: millisecond) peaks at 15-17, j2 at 45 RPM shows 38; held at 20 % of its
-#: max velocity j1 shows 57, j2 77. The arm's thresholds (30, 50; stall 60,
-#: 120) rely on the real rotor springing back when it loses steps, which
-#: the kinematic motor does not do (the drive model of issue #23 will).
-SITL_J1 = dataclasses.replace(J1, stall_threshold=3, homing=dataclasses.replace(J1.homing, threshold=12))
-SITL_J2 = dataclasses.replace(J2, stall_threshold=5, homing=dataclasses.replace(J2.homing, threshold=30))
-
-
 @dataclass
 class SitlJoint:
     """The real :class:`Joint` driver over an emulated bus into the joint firmware built for the host."""
@@ -533,12 +518,12 @@ def _sitl_rig(name: str, params: JointConfig, start_q: float) -> JointRig:
 
 def sitl_kinematic_j1() -> JointRig:
     """j1 on the real firmware (SITL) behind the emulated bus, kinematic motor, at q = 2.9 rad."""
-    return _sitl_rig("sitl_kinematic_j1", SITL_J1, start_q=2.9)
+    return _sitl_rig("sitl_kinematic_j1", J1, start_q=2.9)
 
 
 def sitl_kinematic_j2() -> JointRig:
     """j2 on the real firmware (SITL) behind the emulated bus, kinematic motor, at q = 0.3 m."""
-    return _sitl_rig("sitl_kinematic_j2", SITL_J2, start_q=0.3)
+    return _sitl_rig("sitl_kinematic_j2", J2, start_q=0.3)
 
 
 #: Every rig the conformance suite runs on, by id.

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import struct
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,7 +28,6 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.errors import SitlHomingWarning
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -123,9 +121,7 @@ def any_backend(
     if request.param == "i2c":
         return make_arm_backend("i2c", bus=scripted_bus, sysfs_root=pwm_tree)
     if request.param == "sitl":
-        with warnings.catch_warnings():  # the homing thresholds it lowers (tests/test_sitl.py)
-            warnings.simplefilter("ignore", SitlHomingWarning)
-            return make_arm_backend("sitl", firmware=sitl_source())
+        return make_arm_backend("sitl", firmware=sitl_source())
     return make_arm_backend(request.param)
 
 

@@ -15,7 +15,7 @@ from rigs import FakeMotor
 
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, FirmwareCore, JointFirmware, StallRule
-from bioscara_gym.hardware.motor import KinematicStepper
+from bioscara_gym.hardware.motor import POLE_PITCH_DEG, KinematicStepper
 
 STALL, BUSY, NOT_HOMED, NOT_ENABLED = 0x01, 0x02, 0x04, 0x08
 
@@ -53,6 +53,11 @@ def make(lower: float = -720.0, upper: float = 360.0, *, cancel_pending: bool = 
 
 #: Bytes a register answers before the flags: PING 'O', ANGLEMOVED and GETENCODERRPM a float.
 ANSWER_LENGTH = {0x0F: 1, 0x18: 4, 0x2C: 4}
+
+
+def at_stop(position_deg: float, stop_deg: float) -> bool:
+    """Where homing leaves the rotor: thrown back off its stop by its first pole slip, under a pole pitch."""
+    return abs(position_deg - stop_deg) < POLE_PITCH_DEG
 
 
 def send(fw: JointFirmware, data: bytes) -> int:
@@ -167,13 +172,14 @@ def test_movetoangle_runs_while_not_homed() -> None:
 def test_movetoangle_moves_the_joint_after_the_deadman_tripped() -> None:
     fw = make()
     home(fw)
+    zero = fw.motor.position_deg
     host_limits(fw)
     send(fw, SETRPM_MINUS_10)
     ticks(fw, 10)  # silence: the deadman trips, the currents stay on
     assert send(fw, PING) & NOT_ENABLED
     send(fw, MOVETOANGLE_MINUS_90)
     talk(fw, 200)
-    assert fw.motor.position_deg == pytest.approx(360.0 - 90.0, abs=1e-3)
+    assert fw.motor.position_deg == pytest.approx(zero - 90.0, abs=1e-3)
 
 
 def test_setrpm_without_payload_runs_the_stored_value_again() -> None:
@@ -187,6 +193,24 @@ def test_setrpm_without_payload_runs_the_stored_value_again() -> None:
     talk(fw, 100)
     # VMAX int(60 x 238.507) = 14310: 59.998 deg/s; the encoder's estimate settled after 1 s.
     assert _f32(fw.transfer(GETENCODERRPM, 5)[:4]) == pytest.approx(-59.998 / 6.0, abs=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("payload", "speed_dps"),
+    [
+        # +inf: the Cortex-M4 saturates, VMAX stops at 0x7FFE00 = 8,388,096 / 238.507 (the SITL firmware)
+        (bytes([0x00, 0x00, 0x80, 0x7F]), 35_169.0),
+        (bytes([0x00, 0x00, 0x80, 0xFF]), -35_169.0),  # -inf
+        (bytes([0x00, 0x00, 0xC0, 0x7F]), 0.0),  # NaN converts to 0
+    ],
+)
+def test_setrpm_of_a_non_finite_value_runs_as_the_chip_converts_it(payload: bytes, speed_dps: float) -> None:
+    fw = make()
+    home(fw)
+    send(fw, bytes([0x1B]) + struct.pack("<f", 20_000.0))  # under the 16-bit AMAX's top, 20,945
+    send(fw, bytes([0x11]) + payload)
+    talk(fw, 200)  # 1.8 s to the top speed; the field runs on past the end stop
+    assert fw.motor.field_velocity_dps == pytest.approx(speed_dps, abs=1.0)
 
 
 # ---------------------------------------------------------------- deadman
@@ -302,7 +326,7 @@ def test_homing_energises_a_joint_that_was_never_enabled() -> None:
         if not send(fw, PING) & BUSY:
             break
         ticks(fw)
-    assert fw.motor.position_deg == 360.0
+    assert at_stop(fw.motor.position_deg, 360.0)
 
 
 def test_homing_stops_a_running_motor_before_its_wait() -> None:
@@ -325,7 +349,7 @@ def test_homing_stops_a_running_motor_before_its_wait() -> None:
 def test_homing_direction_byte_nonzero_is_positive(payload: bytes, stop: float) -> None:
     fw = make(lower=-240.0, upper=360.0)
     home(fw, payload)
-    assert fw.motor.position_deg == stop
+    assert at_stop(fw.motor.position_deg, stop)
 
 
 class SoftStopMotor:
@@ -389,7 +413,7 @@ def test_homing_that_ends_on_any_millisecond_of_a_tick_completes(start_deg: floa
     motor = NoZeroStepMotor(start_deg, upper_stop_deg=360.0)
     fw = JointFirmware(motor, ManualClock())
     home(fw)
-    assert motor.position_deg == 360.0
+    assert at_stop(motor.position_deg, 360.0)
 
 
 def test_stop_during_homing_ends_it_aborted() -> None:
@@ -463,7 +487,7 @@ def test_transaction_after_the_loop_took_home_does_not_cancel_it() -> None:
     send(fw, HOME_PLUS)
     ticks(fw, 1)
     talk(fw, 1000)
-    assert fw.motor.position_deg == 360.0
+    assert at_stop(fw.motor.position_deg, 360.0)
     assert send(fw, PING) == 0
 
 
@@ -490,7 +514,7 @@ def test_cancellation_can_be_switched_off() -> None:
     send(fw, HOME_PLUS)
     send(fw, PING)
     talk(fw, 1000)
-    assert fw.motor.position_deg == 360.0
+    assert at_stop(fw.motor.position_deg, 360.0)
 
 
 # ------------------------------------------------------------ stall detector
@@ -587,6 +611,8 @@ def test_the_recorded_builds_spike_limit_detects_the_same_block_within_50_ms() -
 
 
 def test_a_rotor_blocked_at_85_microsteps_a_pass_is_detected() -> None:
-    # -100 RPM (600 deg/s): 85 microsteps a pass, above the threshold 60, below the limit.
+    # -100 RPM (600 deg/s): 85 microsteps a pass, above the threshold 60, below the
+    # limit. The low-pass alone would cross 60 after 0.12 s; the pole slips' spikes
+    # are dropped and the rotor's swing back lowers the passes between them.
     tripped = _blocked_at(-100.0, FIRMWARE_STALL_RULE)
-    assert tripped is not None and tripped <= 0.2
+    assert tripped is not None and 0.12 < tripped <= 0.5

@@ -152,12 +152,12 @@ def test_joint_firmware_powers_up_at_the_clock_time() -> None:
 # firmware does not check them; the emulator ignores a value that is not
 # finite and positive (our guard, firmware.py) and keeps the previous limit.
 def move_for_1_s(limit_reg: int, limit: float) -> float:
-    """SETUP, the limit, MOVESTEPS 1000 (1800 deg), 1 s of ticks fed by a GETDRIVERRPM each; degrees moved."""
+    """SETUP, the limit, MOVESTEPS 256,000 (1000 steps, 1800 deg), 1 s of ticks fed each; degrees moved."""
     motor = KinematicStepper(0.0)
     core = FirmwareCore(motor, 0.0)
     core.write(0x10, 0x1414, 0.0)  # SETUP 20 %, 20 %
     core.write(limit_reg, limit, 0.0)
-    core.write(0x13, 1000, 0.0)  # MOVESTEPS 1000
+    core.write(0x13, 256_000, 0.0)  # MOVESTEPS counts 1/256 steps
     for _ in range(100):
         core.tick()
         core.touch(core.time)  # the deadman stays fed
@@ -370,9 +370,9 @@ def test_homing_towards_the_lower_stop_runs_at_minus_the_speed() -> None:
     assert struct.unpack("<f", reply[:4])[0] == pytest.approx(-59.998 / 6.0, abs=1e-4)
 
 
-@pytest.mark.parametrize("payload", [bytes([0x00, 0x00, 0x80, 0x7F]), bytes([0x00, 0x00, 0xC0, 0x7F])])
-def test_setrpm_not_finite_runs_as_zero(payload: bytes) -> None:
-    # Emulator choice (firmware.py, _set_rpm): an infinite or NaN RPM runs as 0.
+@pytest.mark.parametrize("payload", [bytes([0x00, 0x00, 0xC0, 0x7F]), bytes([0x01, 0x00, 0xC0, 0xFF])])
+def test_setrpm_nan_runs_as_zero(payload: bytes) -> None:
+    # The Cortex-M4 converts a NaN to 0 (±inf: tests/test_firmware_rules.py).
     fw = make()
     send(fw, SETUP_20_20)
     send(fw, bytes([0x11]) + payload)

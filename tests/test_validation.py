@@ -17,6 +17,8 @@ import pytest
 
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.hardware import load_config
+from bioscara_gym.hardware.drive import KICK_ACCEL
+from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE
 from bioscara_gym.validation import validate
 from bioscara_gym.validation.experiments import max_accel, rw, setting_max_val, stall, tracking
 from bioscara_gym.validation.recordings import (
@@ -109,6 +111,48 @@ def test_a_blocked_j4_trips_within_50_ms_of_the_real_one() -> None:
     trips = [r for r in rows if r.quantity == "stall trip time"]
     assert len(trips) == 1 and trips[0].passed, rows
     assert not [r for r in rows if r.quantity == "false stall trips"]
+
+
+def test_the_real_blocks_are_the_passes_between_block_and_trip() -> None:
+    events = stall.block_events(find_recordings().stall_signal)
+    assert [(e.name, round(e.set_speed, 2), len(e.speed)) for e in events] == [
+        ("j4_LOW_SPEED_STALL_adaptive_stall_threshold_two_levels at 1.13 s", 5.7, 9),
+        ("j4_STALL_adaptive_stall_threshold at 29.08 s", 25.8, 3),
+    ]
+    # the files' rows: measured speed 3.52 -0.59 ..., raw 196 20 ... 272 / 420 275 236
+    assert events[0].speed[:2].tolist() == [3.52, -0.59] and events[0].raw[-1] == 272
+    assert events[1].raw.tolist() == [420, 275, 236]
+    # their builds' low-pass: filtered 19.19 -> 54.55 on 196 is a fifth of the
+    # way (tau 0.05 s); 18.34 -> 58.5 on 420 a tenth (the packaged 0.1 s)
+    assert [e.rule.tau_s for e in events] == [0.05, 0.1]
+
+
+def test_the_packaged_firmware_would_not_have_flagged_the_real_blocks() -> None:
+    # The older builds that recorded them tripped at the last logged pass; the
+    # packaged source's spike filter (a rise of over 100 keeps the last value)
+    # drops the pole slips' spikes, and what is left stays under 60.
+    for event in stall.block_events(find_recordings().stall_signal):
+        for rule, trips in ((event.rule, True), (FIRMWARE_STALL_RULE, False)):
+            last, x = 20.0, 20.0  # a free-running j4's filtered error before the block (~19-25)
+            tripped = False
+            for raw in event.raw:
+                last, x = rule.filter(float(raw), last, x)
+                tripped |= x > 10 * event.sensitivity
+            assert tripped is trips, (event.name, rule)
+
+
+def test_the_swing_after_a_block_is_judged_against_the_real_one() -> None:
+    event = stall.block_events(find_recordings().stall_signal)[1]  # j4 at 25.8 rad/s
+    rows = stall.compare_block(event, stall.replay_block(event, CONFIG))
+    assert [r.quantity for r in rows] == [
+        "measured speed after the block: RMS error",
+        "raw |PID error| after the block: median",
+        "raw |PID error| after the block: largest",
+    ]
+    assert all(r.passed for r in rows), rows
+    # a rotor thrown back a hundredth as hard: its measured speed falls too slowly
+    stiff = CONFIG.with_drives(kick_accel=KICK_ACCEL / 100)
+    assert stall.compare_block(event, stall.replay_block(event, stiff))[0].error > 3 * rows[0].error
 
 
 def test_the_position_controller_lags_as_the_readme_says() -> None:

@@ -647,6 +647,13 @@ class ArmConfig:
         """The joint names in order (the gripper is not a joint)."""
         return tuple(joint.name for joint in self.joints)
 
+    def with_drives(self, **values: object) -> ArmConfig:
+        """A copy whose every joint's drive has these values (``DriveParams`` fields, ``noise``)."""
+        joints = tuple(
+            dataclasses.replace(j, drive=dataclasses.replace(j.drive, **values)) for j in self.joints
+        )
+        return dataclasses.replace(self, joints=joints)
+
     def joint(self, name: str) -> JointConfig:
         """Return the configuration of one joint.
 
@@ -794,9 +801,11 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
         try:
             if top.get("pid_noise") is not None:
                 noise = noise_from_dict(dict(_mapping(top["pid_noise"], "pid_noise")))
-            timing = timing_from_dict(dict(_mapping(top["bus_timing"], "bus_timing"))) if top.get(
-                "bus_timing"
-            ) is not None else WIRE_ONLY
+            timing = (
+                timing_from_dict(dict(_mapping(top["bus_timing"], "bus_timing")))
+                if top.get("bus_timing") is not None
+                else WIRE_ONLY
+            )
         except ValueError as e:
             raise ConfigError(str(e)) from None
         joints = tuple(_joint_from_dict(item, i, noise) for i, item in enumerate(joints_data))

@@ -123,10 +123,11 @@ def velocity_mode_speed(rpm: float) -> float:
 
     ``setRPM`` writes VMAX itself (the library's ``rpmToVelocity``, which
     agrees with VELOCITYCONVERSION to 0.04 %), saturated at 0x7FFE00; it
-    does not clamp to the limit SETMAXVELOCITY set. A non-finite RPM runs as 0
-    (our choice; the C conversion is undefined there).
+    does not clamp to the limit SETMAXVELOCITY set. The Cortex-M4's
+    conversion makes a NaN 0 and ±inf the top speed (the firmware in the
+    loop runs them so).
     """
-    if not math.isfinite(rpm):
+    if math.isnan(rpm):
         return 0.0
     vmax = min(_to_u32(abs(rpm) * 6.0 * VMAX_PER_DPS), VMAX_LIMIT)
     return math.copysign(vmax / VMAX_PER_DPS, rpm)
@@ -264,6 +265,14 @@ class PidNoiseProfile:
 HALF_NORMAL_MEDIAN = 0.6744897501960817
 
 
+#: The pole-slip swing fitted to the real blocks (``bioscara calibrate``,
+#: ``high_speed_stall_test/``: j4 at 20 % current held at 5.7 and 25.8 motor
+#: rad/s; docs/validation.md): the default of every drive.
+KICK_ACCEL = 2.6e5
+KICK_TIME_S = 0.0066
+KICK_PERIOD_S = 0.28
+
+
 @dataclass(frozen=True)
 class DriveParams:
     """A joint's motor and drive as the recordings identify them (motor side).
@@ -289,17 +298,22 @@ class DriveParams:
             fraction of the pull-out torque at its speed.
         pullin_speed: A slipping rotor locks back onto the field once their
             speeds differ by less than this, rad/s (ideal: at once).
-        kick_usteps: The PID error spike of one pole slip, 1/256 microsteps:
-            the rotor thrown back towards the field's previous pole within
-            one closed-loop pass. The default is one full step (256): a
-            blocked rotor then trips homing (thresholds 25-50) at its first
-            pole slip, two full steps after it stopped.
-        kick_time_s: How long the thrown-back rotor's swing shows in the PID
-            error: the swing decays with this time constant, s.
-        kick_period_s: Period of the swing, s: the rotor swings back and
-            forth about its stop, so the error it adds changes sign and the
-            firmware's 10 ms samples of a blocked rotor range from a few
-            microsteps to hundreds, as the real ones do.
+        kick_accel: The field's torque over the rotor's own inertia at full
+            current, rad/s²: a slipping rotor is thrown back at each pole
+            slip, the load staying behind the transmission's give. The
+            field's torque reverses for the half electrical period the lead
+            takes to cross its last two full steps, so the kick is that
+            torque's mean (2/π of it) over that time, and at most the speed
+            it gains falling through those two steps: slow slips kick hard
+            (a blocked rotor trips homing at its first pole slip), fast ones
+            barely (the torque averages out).
+        kick_time_s: The thrown-back rotor swings about its mean path; the
+            swing decays with this time constant, s.
+        kick_period_s: Period of the swing, s. The encoder sees the swing
+            (ANGLEMOVED, the speed estimate, the PID error): the firmware's
+            10 ms samples of a blocked rotor's error range from a few
+            microsteps to hundreds, and its measured speed drops faster
+            than the rotor's mean, as the real ones do.
         noise: PID error jitter of a following rotor, or None.
         noise_scale: Factor on the profile's medians (per joint).
     """
@@ -311,9 +325,9 @@ class DriveParams:
     friction_viscous: float = 0.0
     slip_fraction: float = 0.0
     pullin_speed: float = math.inf
-    kick_usteps: float = 256.0
-    kick_time_s: float = 0.005
-    kick_period_s: float = 0.01
+    kick_accel: float = KICK_ACCEL
+    kick_time_s: float = KICK_TIME_S
+    kick_period_s: float = KICK_PERIOD_S
     noise: PidNoiseProfile | None = None
     noise_scale: float = 1.0
 

@@ -241,10 +241,6 @@ class SafetyStop(Exception):
         self.joint = joint
 
 
-class SitlHomingWarning(UserWarning):
-    """The ``sitl`` backend homes with lower thresholds than configured, and says which."""
-
-
 class SitlError(RuntimeError):
     """The joint firmware cannot run in the loop.
 

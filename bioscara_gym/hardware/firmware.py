@@ -164,6 +164,16 @@ class StallRule:
     band: tuple[float, float] = STALL_MID_SPEED_BAND
     band_offset: float = STALL_MID_SPEED_OFFSET
 
+    def filter(self, raw: float, last: float, state: float) -> tuple[float, float]:
+        """One pass of ``loop()``'s filter: |PID error| ``raw`` after ``last``, low-pass at ``state``.
+
+        Returns the value after the one-sided spike filter (a rise of more
+        than ``spike_limit`` keeps ``last``) and the low-pass's new state.
+        """
+        u = last if raw - last > self.spike_limit else raw
+        gain = TICK_S / self.tau_s
+        return u, (1.0 - gain) * state + gain * u
+
     def threshold(self, omega_rad_s: float, sensitivity: int) -> float:
         """Speed-adaptive threshold at measured motor speed ``omega_rad_s`` (``stall.h``)."""
         offset = self.per_sensitivity * sensitivity
@@ -380,7 +390,7 @@ class FirmwareCore:
     def _set_rpm(self, rpm: float) -> None:
         """``stepper.setRPM``: velocity mode at VMAX := |rpm| (never clamped to the max velocity)."""
         self.mode = Mode.VELOCITY
-        self.target_rpm = float(rpm) if math.isfinite(rpm) else 0.0
+        self.target_rpm = 0.0 if math.isnan(rpm) else float(rpm)  # ±inf: the top speed
         self.vmax = abs(velocity_mode_speed(self.target_rpm))
 
     def _start_move(self, target_deg: float) -> None:
@@ -613,11 +623,9 @@ class FirmwareCore:
 
     def _detect_stall(self) -> None:
         rule = self.stall_rule
-        raw = u = abs(self.pid_error)
-        if u - self._filter_last > rule.spike_limit:
-            u = self._filter_last  # one-sided spike filter: keep the last (filtered) value
-        gain = TICK_S / rule.tau_s
-        x = self._filter_x = (1.0 - gain) * self._filter_x + gain * u
+        raw = abs(self.pid_error)
+        u, x = rule.filter(raw, self._filter_last, self._filter_x)
+        self._filter_x = x
         omega = self.encoder_rpm / STALL_RPM_PER_RAD_S
         threshold = rule.threshold(omega, self.stall_sensitivity)
         stalled = x > threshold

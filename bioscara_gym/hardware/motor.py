@@ -170,8 +170,10 @@ class KinematicStepper:
         self._lag_deg = 0.0
         self._synced = True
         self._slip_deg = 0.0  # field minus rotor while slipping
-        self._kick = 0.0  # amplitude of the rotor's swing after its last pole slip, microsteps
-        self._kick_s = 0.0  # time since that pole slip
+        # The rotor's swing about its mean path after a pole slip (a damped
+        # oscillation the encoder sees): offset, deg, and its rate, deg/s.
+        self._swing_deg = 0.0
+        self._swing_dps = 0.0
         self._loop = ClosedLoop(self._position)
         self._estimator = VelocityEstimator()
         self._estimator.reset(self._position * _COUNTS_PER_DEG)
@@ -190,8 +192,13 @@ class KinematicStepper:
 
     @property
     def position_deg(self) -> float:
-        """Encoder (rotor), absolute motor degrees."""
-        return self._position
+        """Encoder (rotor, its swing after a pole slip included), absolute motor degrees."""
+        return self._position + self._swing_deg
+
+    @property
+    def swing_deg(self) -> float:
+        """The rotor's swing after a pole slip, deg: how far the encoder reads from its mean place."""
+        return self._swing_deg
 
     @property
     def field_velocity_dps(self) -> float:
@@ -283,7 +290,13 @@ class KinematicStepper:
         self._torque_fraction = torque_fraction
 
     def hold_here(self) -> None:
-        """Stop hard: the field, the counter and the step rate onto the rotor (released, following)."""
+        """Stop hard: the field, the counter and the step rate onto the rotor (released, following).
+
+        The field at its full strength holds the rotor where the encoder
+        reads it: a swing after a pole slip ends there.
+        """
+        self._position = self._clamp(self._position + self._swing_deg)
+        self._swing_deg = self._swing_dps = 0.0
         self._field = self._position
         self._loop.xactual_deg = self._position
         self._command_dps = 0.0
@@ -298,6 +311,7 @@ class KinematicStepper:
 
     def place(self, position_deg: float) -> None:
         """Put the rotor at ``position_deg`` by hand, at rest (the operator moves a disabled joint)."""
+        self._swing_deg = self._swing_dps = 0.0
         self._position = self._clamp(float(position_deg))
         self.hold_here()
         self._estimator.reset(self._position * _COUNTS_PER_DEG)
@@ -319,7 +333,9 @@ class KinematicStepper:
         it. Returns False (nothing done) when anything else may happen: a
         slip, a stop, a pole slip's swing, an acceleration that ends mid-way.
         """
-        if not self._synced or self._kick or self.blocked or self._held or self._torque_fraction <= 0.0:
+        if not self._synced or self._swing_deg or self._swing_dps or self.blocked or self._held:
+            return False
+        if self._torque_fraction <= 0.0:
             return False
         dt = n * h
         left = self._accel_left_s
@@ -369,6 +385,8 @@ class KinematicStepper:
         """One closed-loop period: field, rotor, PID error, speed estimate."""
         if self._torque_fraction <= 0.0:
             # Unpowered: the rotor stays where it is; the chip's steps go nowhere.
+            self._position = self._clamp(self._position + self._swing_deg)
+            self._swing_deg = self._swing_dps = 0.0
             self._field = self._loop.xactual_deg = self._position
             self._rotor_dps = 0.0
             self._synced = True
@@ -386,18 +404,40 @@ class KinematicStepper:
             self._follow(v_field, accel, h)
         else:
             self._slip(v_field, accel, h)
-        error = self._loop.step(advance, self._position)
-        if self._kick >= 1.0:
-            # The thrown-back rotor swings about its stop and settles (kick_time_s).
-            drive = self.drive
-            self._kick_s += h
-            decay = math.exp(-self._kick_s / drive.kick_time_s) if drive.kick_time_s > 0 else 0.0
-            swing = self._kick * decay * math.cos(2.0 * math.pi * self._kick_s / drive.kick_period_s)
-            error += math.copysign(swing, error) if error else swing
-            if decay * self._kick < 1.0:
-                self._kick = 0.0
-        self._pid_error = error
-        self._estimator.update(self._position * _COUNTS_PER_DEG)
+        if self._swing_deg or self._swing_dps:
+            self._swing(h)
+        encoder = self.position_deg
+        self._pid_error = self._loop.step(advance, encoder)
+        self._estimator.update(encoder * _COUNTS_PER_DEG)
+
+    def _swing(self, h: float) -> None:
+        """Advance the swing after a pole slip by ``h`` s: a damped oscillation, solved exactly.
+
+        It decays with ``kick_time_s`` at period ``kick_period_s``; once it
+        is under a microstep it ends (the mean path is the rotor's place).
+        """
+        drive = self.drive
+        x, v = self._swing_deg, self._swing_dps
+        if drive.kick_time_s <= 0.0:
+            self._swing_deg = self._swing_dps = 0.0
+            return
+        a = 1.0 / drive.kick_time_s
+        w = 2.0 * math.pi / drive.kick_period_s if drive.kick_period_s > 0 else 0.0
+        decay = math.exp(-a * h)
+        if w > 0.0:
+            c, s = math.cos(w * h), math.sin(w * h)
+            b = (v + a * x) / w
+            x_new = decay * (x * c + b * s)
+            v_new = decay * ((-a * x + w * b) * c - (a * b + w * x) * s)
+            amplitude = math.hypot(x_new, (v_new + a * x_new) / w)
+        else:  # critically damped: x(t) = (x + (v + a x) t) e^{-at}
+            b = v + a * x
+            x_new = decay * (x + b * h)
+            v_new = decay * (b - a * (x + b * h))
+            amplitude = abs(x_new) + abs(v_new) * drive.kick_time_s
+        if amplitude * USTEPS_PER_DEG < 1.0:
+            x_new = v_new = 0.0
+        self._swing_deg, self._swing_dps = x_new, v_new
 
     def _needed(self, v_dps: float, accel: float) -> float:
         """Acceleration the motor must supply to move the rotor so, rad/s²."""
@@ -455,18 +495,31 @@ class KinematicStepper:
         self._slip_deg = self._field - self._position
         laps = _pole_slips(self._slip_deg) - _pole_slips(before)
         if laps > 0:
+            # The field passed a pole the rotor did not: it throws the rotor
+            # back, away from the field (kick_accel).
             self.pole_slips += laps
-            residual = (
-                self._kick * math.exp(-self._kick_s / drive.kick_time_s) if drive.kick_time_s > 0 else 0.0
-            )
-            self._kick = residual + drive.kick_usteps
-            self._kick_s = 0.0
+            self._swing_dps -= math.copysign(self._kick_dps(v_field), self._slip_deg)
         if self._can_lock(v_field, accel):
             self.resyncs += 1
             self._synced = True
             self._field = self._position
             self._rotor_dps = v_field
             self._slip_deg = 0.0
+
+    def _kick_dps(self, v_field: float) -> float:
+        """The speed one pole slip throws the rotor back with, deg/s (``DriveParams.kick_accel``).
+
+        The reversed torque acts while the lead crosses half an electrical
+        period (two full steps) at the slip speed: its mean, 2/π of the
+        peak, over that time; at most the speed gained falling through the
+        two steps under it.
+        """
+        accel = self.drive.kick_accel * self._torque_fraction * (2.0 / math.pi)  # mean, rad/s²
+        half_period = 0.5 * POLE_PITCH_DEG * _RAD
+        slip = abs(v_field - self._rotor_dps) * _RAD
+        falling = math.sqrt(2.0 * accel * half_period)
+        kick = falling if slip * falling <= accel * half_period else accel * half_period / slip
+        return kick * _DEG
 
     def _can_lock(self, v_field: float, accel: float) -> bool:
         """Whether the slipping rotor locks back onto the field now.

@@ -50,7 +50,7 @@ class MujocoMotor:
     joint (an end stop, an obstacle: a constraint force against the drive
     of more than :data:`HELD_FRACTION` of its force at this current), the
     rotor is held with it, slips, and its pole slips show in the PID error
-    as the real one's do. ANGLEMOVED reads MuJoCo's joint.
+    as the real one's do. ANGLEMOVED reads MuJoCo's joint plus the rotor's swing.
 
     Args:
         model: The compiled model.
@@ -84,8 +84,8 @@ class MujocoMotor:
         self._force100 = float(model.actuator_forcerange[self._act_id, 1])
         self._fraction = -1.0
         self._kv = 0.0
-        self.stepper = KinematicStepper(self.position_deg, drive=drive, rng=rng)
-        self._tick_start = self.stepper.position_deg
+        self.stepper = KinematicStepper(self._joint_deg(), drive=drive, rng=rng)
+        self._tick_start = self._rotor_mean_deg()
         self._tick_s = 0.0
         self._range = tuple(float(x) for x in model.jnt_range[jid])  # the end stops, joint units
         self._hold_push = 0.0  # fraction of the drive's force a held rotor presses with
@@ -98,8 +98,21 @@ class MujocoMotor:
 
     @property
     def position_deg(self) -> float:
-        """Joint position, motor degrees."""
-        return self._deg_per_unit * self._data.qpos[self._qadr]
+        """The encoder on the motor's shaft, motor degrees: the joint's place plus the rotor's swing.
+
+        After a pole slip the rotor swings against the transmission's give
+        while the joint stays (:attr:`KinematicStepper.swing_deg`); MuJoCo
+        moves the joint after the rotor's mean place.
+        """
+        return self._joint_deg() + self.stepper.swing_deg
+
+    def _joint_deg(self) -> float:
+        """Where MuJoCo has the joint, motor degrees."""
+        return self._deg_per_unit * float(self._data.qpos[self._qadr])
+
+    def _rotor_mean_deg(self) -> float:
+        """The drive's rotor without its swing, motor degrees: what MuJoCo's joint follows."""
+        return self.stepper.position_deg - self.stepper.swing_deg
 
     @property
     def velocity_dps(self) -> float:
@@ -132,17 +145,17 @@ class MujocoMotor:
             self.hold_here()
 
     def hold_here(self) -> None:
-        """Stop hard where the joint is: the drive's rotor, field and counter onto it."""
-        self.stepper.place(self.position_deg)
+        """Stop hard where the joint is: the drive's rotor, field and counter onto it (a swing ends)."""
+        self.stepper.place(self._joint_deg())
         self._data.act[self._actadr] = self._data.qpos[self._qadr]
         self._data.ctrl[self._act_id] = 0.0
-        self._tick_start = self.stepper.position_deg
+        self._tick_start = self._rotor_mean_deg()
         self._tick_s = 0.0
 
     def advance(self, dt: float) -> None:
         """Run the drive for ``dt`` s; MuJoCo follows its rotor over the next physics steps."""
         if self._tick_s == 0.0:
-            self._tick_start = self.stepper.position_deg
+            self._tick_start = self._rotor_mean_deg()
         self.stepper.advance(dt)
         self._tick_s += dt
 
@@ -166,7 +179,7 @@ class MujocoMotor:
             return
         start = self._tick_start / self._deg_per_unit
         velocity = (
-            (self.stepper.position_deg - self._tick_start) / self._deg_per_unit / elapsed if elapsed else 0.0
+            (self._rotor_mean_deg() - self._tick_start) / self._deg_per_unit / elapsed if elapsed else 0.0
         )
         self._data.act[self._actadr] = start
         self._data.ctrl[self._act_id] = velocity
@@ -194,10 +207,10 @@ class MujocoMotor:
         driven = stepper.field_velocity_dps * drive * self._deg_per_unit > 0.0
         if pressing and driven:
             self._hold_push = min(1.0, 2.0 * fraction)
-            stepper.hold_rotor(self.position_deg)
+            stepper.hold_rotor(self._joint_deg())
         elif stepper.held:
             stepper.release_rotor()
-        self._tick_start = stepper.position_deg
+        self._tick_start = self._rotor_mean_deg()
 
     def snapshot(self) -> dict[str, object]:
         """The drive's state, for :meth:`restore`."""
@@ -206,7 +219,7 @@ class MujocoMotor:
     def restore(self, state: dict[str, object]) -> None:
         """Return the drive to a :meth:`snapshot`; the actuator follows the joint."""
         self.stepper.restore(state)
-        self._tick_start = self.stepper.position_deg
+        self._tick_start = self._rotor_mean_deg()
         self._tick_s = 0.0
 
 

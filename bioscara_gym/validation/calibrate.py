@@ -13,6 +13,9 @@ recordings (every other value is the input configuration's):
 * :func:`fit_pid_noise`: the PID error of a following rotor, median by speed
   band while the set speed rises and while it falls, from the free-running
   rows of ``high_speed_stall_test/``.
+* :func:`fit_pole_slip_swing`: how hard a pole slip throws the rotor back
+  and how its swing dies away, shared by every drive, from the blocks in
+  ``high_speed_stall_test/`` (the passes between the block and the trip).
 * :func:`fit_drive`: per joint, the pull-out acceleration, its fall with
   speed, friction, the slipping rotor's torque and the pull-in range, by
   differential evolution (scipy) on the ``maxAccel/`` replays: position and
@@ -34,6 +37,7 @@ from bioscara_gym.hardware.drive import DriveParams, PidNoiseProfile
 from bioscara_gym.hardware.i2c_timing import TransactionTiming, wire_time_s
 from bioscara_gym.hardware.registers import Reg
 from bioscara_gym.validation.experiments import max_accel
+from bioscara_gym.validation.experiments.stall import BlockEvent, block_cost, block_events, replay_block
 from bioscara_gym.validation.recordings import (
     HandlerTimes,
     MaxAccelRun,
@@ -49,6 +53,7 @@ __all__ = [
     "fit_bus_timing",
     "fit_drive",
     "fit_pid_noise",
+    "fit_pole_slip_swing",
     "fit_program_overhead",
 ]
 
@@ -169,6 +174,47 @@ def fit_pid_noise(signals: Sequence[StallSignal]) -> PidNoiseProfile:
         return tuple(filled)
 
     return PidNoiseProfile(knots, medians(1), medians(-1))
+
+
+# ------------------------------------------------------------ pole-slip swing
+#: Where the swing's fit starts: (kick_accel rad/s², kick_time_s, kick_period_s).
+#: Two starts, a short sharp swing and a slow one (the cost has both valleys).
+SWING_STARTS = ((1.5e5, 0.01, 0.04), (5e4, 0.05, 0.1))
+
+
+def fit_pole_slip_swing(
+    config: ArmConfig, events: Sequence[BlockEvent], maxfev: int = 150
+) -> tuple[float, float, float]:
+    """Fit the swing of a pole slip (``kick_accel``, ``kick_time_s``, ``kick_period_s``) to the real blocks.
+
+    Each :class:`~.experiments.stall.BlockEvent` is replayed
+    (:func:`~.experiments.stall.replay_block`) with one candidate on every
+    drive; the cost sums :func:`~.experiments.stall.block_cost` over them
+    (measured speed RMS plus the raw error's median and largest value).
+    Nelder-Mead in log space from each of :data:`SWING_STARTS`; the best.
+
+    Raises:
+        ValueError: No block to fit to.
+    """
+    from scipy.optimize import minimize
+
+    if not events:
+        raise ValueError("high_speed_stall_test holds no block that ended in a trip to fit the swing to")
+
+    def cost(x: np.ndarray) -> float:
+        accel, tau, period = (float(10**v) for v in x)
+        c = config.with_drives(kick_accel=accel, kick_time_s=tau, kick_period_s=period)
+        return sum(sum(block_cost(e, *replay_block(e, c))) for e in events)
+
+    best = min(
+        (
+            minimize(cost, np.log10(start), method="Nelder-Mead", options={"maxfev": maxfev, "xatol": 0.01})
+            for start in SWING_STARTS
+        ),
+        key=lambda r: r.fun,
+    )
+    accel, tau, period = (float(10**v) for v in best.x)
+    return accel, tau, period
 
 
 # --------------------------------------------------------------------- drive
@@ -372,10 +418,11 @@ def calibrate(
     config = dataclasses.replace(config, bus_timing=timing)
     noise = fit_pid_noise(rec.stall_signal) if rec.stall_signal else None
     if noise is not None:
-        joints = tuple(
-            dataclasses.replace(j, drive=dataclasses.replace(j.drive, noise=noise)) for j in config.joints
-        )
-        config = dataclasses.replace(config, joints=joints)
+        config = config.with_drives(noise=noise)
+    events = block_events(rec.stall_signal) if rec.stall_signal else []
+    if events:
+        accel, tau, period = fit_pole_slip_swing(config, events)
+        config = config.with_drives(kick_accel=accel, kick_time_s=tau, kick_period_s=period)
     limits = README_LIMITS if rec.root.resolve() == _packaged_root() else ()
     before, after = {}, {}
     for joint in sorted({r.joint for r in rec.max_accel} | {lim.joint for lim in limits}):

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -26,48 +25,14 @@ from bioscara_gym.hardware.backends import Backend, gripper_state_file, with_i2c
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
-from bioscara_gym.hardware.errors import SitlError, SitlHomingWarning
+from bioscara_gym.hardware.errors import SitlError
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.recording import BusWrapper
 from bioscara_gym.hardware.sim import ArmSim, SimGripper
 from bioscara_gym.hardware.sitl.build import JOINTS, firmware_dir
 from bioscara_gym.hardware.sitl.device import STEP_S, SitlFirmware
 
-__all__ = ["CLOSED_LOOP_THRESHOLD", "SitlArmSim", "SitlBackend", "SitlHomingWarning", "reachable_homing"]
-
-#: The firmware's control threshold (``setControlThreshold(15)``): the library
-#: moves the driver's position onto the encoder at an error of this many
-#: microsteps or more, every millisecond.
-CLOSED_LOOP_THRESHOLD = 15
-#: Microsteps a turn (200 full steps of 256).
-_MICROSTEPS_PER_TURN = 51200
-
-
-def reachable_homing(config: ArmConfig) -> tuple[ArmConfig, list[str]]:
-    """``config`` with each homing threshold lowered to what a held rotor shows under the closed loop.
-
-    The library's closed loop moves the driver's position onto the encoder
-    whenever they differ by :data:`CLOSED_LOOP_THRESHOLD` microsteps or
-    more, so a rotor simply held by its end stop shows at most one
-    millisecond of the coils' travel, or just under 15 plus that: the
-    homing trips only below ``max(14, microsteps a millisecond - 2)``. The
-    arm's thresholds (25-50) rely on the real rotor springing back when it
-    loses steps against the stop, which today's motor models do not do (the
-    drive model of issue #23 will). Returns the configuration and one line
-    per joint whose threshold was lowered.
-    """
-    import dataclasses
-
-    joints, notes = [], []
-    for j in config.joints:
-        rpm = abs(math.degrees(j.reduction * j.homing.speed) / 6.0)
-        per_ms = rpm * _MICROSTEPS_PER_TURN / 60_000.0
-        reachable = max(CLOSED_LOOP_THRESHOLD - 1, math.floor(per_ms) - 2)
-        if j.homing.threshold > reachable:
-            notes.append(f"{j.name} homes with threshold {reachable} (configured {j.homing.threshold})")
-            j = dataclasses.replace(j, homing=dataclasses.replace(j.homing, threshold=reachable))
-        joints.append(j)
-    return dataclasses.replace(config, joints=tuple(joints)), notes
+__all__ = ["SitlArmSim", "SitlBackend"]
 
 
 class SitlArmSim(ArmSim):
@@ -164,20 +129,23 @@ class SitlArmSim(ArmSim):
         self._pending += dt
         m, d = self.model, self.data
         devices = list(self.devices.values())
+        motors = list(self.motors.values())
         while self._pending >= STEP_S - 1e-9:
             self._pending -= STEP_S
             for device in devices:
-                device.tick_begin()
+                device.tick_begin()  # the coils' motion over this ms to the drive
+            for motor in motors:
+                motor.advance(STEP_S)  # the drive runs ahead of physics
+                motor.begin_physics()
             mujoco.mj_step(m, d)
+            for motor in motors:
+                motor.end_physics()
             for device in devices:
                 device.tick_end()
 
     def read_serial(self) -> dict[str, str]:
         """Each joint's serial output since the last call (``serial=True``)."""
         return {name: device.read_serial() for name, device in self.devices.items()}
-
-
-_reachable_homing = reachable_homing
 
 
 class SitlBackend(Backend):
@@ -198,9 +166,6 @@ class SitlBackend(Backend):
         wrap_bus: Puts the bus behind another (``record=``).
         i2c_clock_hz: Bus clock, Hz; default the configuration's.
         serial: Keep the firmware's serial output (``backend.sim.read_serial()``).
-        reachable_homing: Home with the thresholds :func:`reachable_homing`
-            gives (a warning names each joint), so that the arm homes on
-            today's motor models; ``False`` keeps the configured ones.
         sim_kwargs: Passed to :class:`SitlArmSim` (``initial_qpos``, ``model_path``).
 
     Raises:
@@ -219,23 +184,12 @@ class SitlBackend(Backend):
         wrap_bus: BusWrapper | None = None,
         i2c_clock_hz: float | None = None,
         serial: bool = False,
-        reachable_homing: bool = True,
         **sim_kwargs: object,
     ) -> None:
         """Build the arm, one firmware per joint, the bus and the drivers."""
         config = with_i2c_clock(config, i2c_clock_hz)
-        notes: list[str] = []
-        if reachable_homing:
-            config, notes = _reachable_homing(config)
         faults = faults or FaultPlan()
         sim = SitlArmSim(config, firmware, serial=serial, **sim_kwargs)  # type: ignore[arg-type]
-        if notes:
-            warnings.warn(
-                f"sitl: {'; '.join(notes)}: a held rotor shows no more under the library's closed loop "
-                "until the motor model loses steps (docs/firmware.md, firmware in the loop)",
-                SitlHomingWarning,
-                stacklevel=3,
-            )
         sim.schedule.scale = faults.period_scale
         for j in config.joints:
             answers = sim.devices[j.name].address

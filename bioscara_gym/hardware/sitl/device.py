@@ -34,21 +34,17 @@ from pathlib import Path
 
 from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import SitlError
-from bioscara_gym.hardware.motor import FULL_STEP_DEG, Motor
+from bioscara_gym.hardware.motor import Motor
 from bioscara_gym.hardware.registers import Flag, Reg
 from bioscara_gym.hardware.sitl.build import build_firmware, firmware_dir
 
-__all__ = ["BOOT_LIMIT_S", "PULL_OUT_DEG", "STEP_S", "MotorBridge", "SitlFirmware", "SitlState"]
+__all__ = ["BOOT_LIMIT_S", "STEP_S", "MotorBridge", "SitlFirmware", "SitlState"]
 
 #: One step of the chip: the library's 1 kHz closed-loop timer, seconds.
 STEP_S = 0.001
 _STEP_US = 1000
 #: How long ``setup()`` may take before the device counts as not booting, s.
 BOOT_LIMIT_S = 10.0
-#: Largest lead of the coils over the rotor a stepper holds: two full steps
-#: (half the electrical period, where the torque of a two-phase stepper
-#: reverses). Beyond it the rotor has lost steps (:class:`MotorBridge`).
-PULL_OUT_DEG = 2 * FULL_STEP_DEG
 #: Interface version the native runtime must report.
 _API_VERSION = 1
 
@@ -96,27 +92,18 @@ class MotorBridge:
     protocol. Each 1 ms step the driver's ramp generator turns the coils by
     some angle at some current; the motor is commanded that angle's rate and
     the current as its torque fraction, then advanced; its ``position_deg``
-    is what the encoder reads.
-
-    The chip keeps turning the coils whatever the rotor does, and on the
-    real motor the rotor then loses steps: the coils never lead it by more
-    than :data:`PULL_OUT_DEG` (the motor's ``pid_error_deg``, the lag as the
-    real stepper would have it). Today's motor models let the lead grow
-    without bound (a held or slipping rotor), and would later run after it;
-    with ``step_loss`` the bridge ends such a lead where the real rotor
-    would have lost the steps (``hold_here``). A drive model that loses
-    steps itself (issue #23) makes that rule unnecessary.
+    is what the encoder reads. The chip keeps turning the coils whatever
+    the rotor does; the drive model decides whether the rotor keeps up or
+    loses steps (:mod:`bioscara_gym.hardware.drive`).
 
     Args:
         motor: The motor model (e.g. ``KinematicStepper``, or the MuJoCo arm's
             ``MujocoMotor``, whose physics the arm steps itself).
-        step_loss: Apply the two-full-step limit of the coils' lead.
     """
 
-    def __init__(self, motor: Motor, step_loss: bool = True) -> None:
+    def __init__(self, motor: Motor) -> None:
         """Stand between the driver and ``motor``."""
         self.motor = motor
-        self.step_loss = step_loss
 
     def power_up(self) -> None:
         """The driver powers up: no current, the coils where the rotor is."""
@@ -132,11 +119,8 @@ class MotorBridge:
         self.motor.advance(dt)
 
     def encoder_deg(self) -> float:
-        """The rotor's angle as the encoder sees it, motor degrees (steps lost first, see above)."""
-        motor = self.motor
-        if self.step_loss and abs(motor.pid_error_deg) > PULL_OUT_DEG:
-            motor.hold_here()
-        return motor.position_deg
+        """The rotor's angle as the encoder sees it, motor degrees."""
+        return self.motor.position_deg
 
 
 class _Library:

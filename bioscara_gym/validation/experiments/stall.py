@@ -36,7 +36,7 @@ import numpy as np
 
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, StallRule
-from bioscara_gym.hardware.registers import FLAG_STALL, STALL_RPM_PER_RAD_S
+from bioscara_gym.hardware.registers import FLAG_STALL, STALL_RPM_PER_RAD_S, TICK_S
 from bioscara_gym.validation.recordings import StallSignal
 from bioscara_gym.validation.report import Row
 from bioscara_gym.validation.rig import JointRig
@@ -70,7 +70,8 @@ def stall_rule_of(sig: StallSignal) -> tuple[StallRule, int]:
     """The stall detector of the build that wrote ``sig``, and the sensitivity it ran at.
 
     Read off the file: the threshold at standstill is 10 x the sensitivity;
-    its slope per rad/s from the passes below 11 rad/s; the band is where the
+    its slope per rad/s from the passes below 11 rad/s; the low-pass's time
+    constant from its steps (:func:`_low_pass_tau`); the band is where the
     threshold stands above the line, and the offset by how much. A file
     whose filter let a jump of more than 100 through (the packaged source's
     limit) comes from a build with a larger one: :data:`OLD_SPIKE_LIMIT`,
@@ -103,9 +104,30 @@ def stall_rule_of(sig: StallSignal) -> tuple[StallRule, int]:
     if removed.any() and float(np.min(jumps[removed])) <= limit:
         limit = float(np.min(jumps[removed])) - 1.0
     rule = dataclasses.replace(
-        FIRMWARE_STALL_RULE, spike_limit=limit, slope=slope, band=band_edges, band_offset=round(offset, 1)
+        FIRMWARE_STALL_RULE,
+        spike_limit=limit,
+        tau_s=_low_pass_tau(sig),
+        slope=slope,
+        band=band_edges,
+        band_offset=round(offset, 1),
     )
     return rule, int(base_sens)
+
+
+def _low_pass_tau(sig: StallSignal) -> float:
+    """The build's low-pass time constant: each pass moves the filtered value ``Ts/tau`` of the way.
+
+    Read off the passes whose input differs from the last filtered value by
+    more than 20 (the print's two decimals leave the ratio exact enough);
+    the packaged source's 0.1 s where there are fewer than 5.
+    """
+    step = sig.filtered[1:] - sig.filtered[:-1]
+    pull = sig.despiked[1:] - sig.filtered[:-1]
+    usable = np.abs(pull) > 20.0
+    if usable.sum() < 5:
+        return FIRMWARE_STALL_RULE.tau_s
+    gain = float(np.median(step[usable] / pull[usable]))
+    return round(TICK_S / gain, 3)  # the filter's sample time: Lowpass lp(1, 0.01, 0.1)
 
 
 def segments(sig: StallSignal) -> list[slice]:
@@ -351,12 +373,173 @@ def _sg_file(sig: StallSignal) -> bool:
 
 
 def run_all(signals: list[StallSignal], config: ArmConfig) -> tuple[list[Row], dict[str, StallReplay]]:
-    """Replay and compare every file."""
+    """Replay and compare every file, then each block on its own (:func:`compare_block`)."""
     rows, sims = [], {}
     for sig in signals:
         sim = sims[sig.name] = replay(sig, config)
         rows += compare(sig, sim)
+    for event in block_events(signals):
+        rows += compare_block(event, replay_block(event, config))
     return rows, sims
+
+
+# ------------------------------------------------------------- the block itself
+#: Bounds of the passes after a block: the measured speed's RMS error as a
+#: fraction of the speed the joint ran at, and the raw error's median and
+#: largest value within a factor.
+BLOCK_SPEED_BOUND_PCT = 25.0
+BLOCK_RAW_FACTOR = 1.5
+
+
+@dataclass(frozen=True)
+class BlockEvent:
+    """The passes between the operator's block and the stall trip, as the firmware printed them.
+
+    Attributes:
+        name: ``<file> at <t> s``.
+        joint: The joint.
+        rule: The build's stall detector.
+        sensitivity: The sensitivity it ran at.
+        set_speed: The set speed when the joint was blocked, motor rad/s.
+        speed: Measured speed of each pass after the block, motor rad/s.
+        raw: Raw |PID error| of each of those passes, 1/256 microsteps.
+    """
+
+    name: str
+    joint: str
+    rule: StallRule
+    sensitivity: int
+    set_speed: float
+    speed: np.ndarray
+    raw: np.ndarray
+
+
+def block_events(signals: list[StallSignal]) -> list[BlockEvent]:
+    """Every block that ended in a trip (:func:`block_time`), from the pass after it to the trip."""
+    events = []
+    for sig in signals:
+        rule, sensitivity = stall_rule_of(sig)
+        for seg in segments(sig):
+            blocked_at = block_time(sig, seg)
+            if blocked_at is None:
+                continue
+            t = sig.t[seg]
+            first = int(np.searchsorted(t, blocked_at, side="right"))
+            trip = int(np.nonzero(sig.stalled[seg])[0][0])
+            if trip < first:
+                continue
+            events.append(
+                BlockEvent(
+                    f"{sig.name} at {blocked_at - sig.t[0]:.2f} s",
+                    sig.joint,
+                    rule,
+                    sensitivity,
+                    float(sig.set_speed[seg][first - 1]),
+                    sig.speed[seg][first : trip + 1].copy(),
+                    sig.raw[seg][first : trip + 1].copy(),
+                )
+            )
+    return events
+
+
+def replay_block(event: BlockEvent, config: ArmConfig, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Run the joint at the event's speed, block it, and log as many passes as the real one printed.
+
+    The program's set-up (:data:`PROGRAM_LIMITS`, :data:`PROGRAM_CURRENT`),
+    the host talking every 20 ms; the rotor is blocked at a loop pass and
+    the passes after it are compared (measured speed, raw |PID error|).
+    Returns them; fewer than the real ones if the simulated joint tripped
+    sooner.
+    """
+    params = config.joint(event.joint)
+    rig = JointRig(config, event.joint, stall_rule=event.rule, seed=seed, end_stops=False)
+    joint = rig.joint
+    joint.enable(PROGRAM_CURRENT, PROGRAM_CURRENT)
+    accel, velocity = PROGRAM_LIMITS.get(event.joint, (params.max_acceleration, params.max_velocity))
+    joint.set_max_acceleration(accel)
+    joint.set_max_velocity(velocity)
+    joint.enable_stallguard(event.sensitivity)
+    target = event.set_speed / params.reduction
+
+    def run(seconds: float) -> None:
+        end = rig.now + seconds
+        while rig.now < end - 1e-9 and not rig.flags & FLAG_STALL:
+            joint.set_velocity(target)
+            joint.get_velocity()
+            rig.sleep(min(0.02, end - rig.now))
+
+    run(0.6)  # up to speed, the speed estimate settled
+    core = rig.firmware.core
+    core.stall_log = log = []
+    rig.motor.blocked = True
+    blocked_at = rig.now
+    run(0.0101 * (len(event.speed) + 2))
+    rig.sleep(0.0101)  # the trip's own pass
+    # The pass that ran the tick the rotor was blocked in still shows the free rotor.
+    after = [row for row in log if row[0] > blocked_at][1 : len(event.speed) + 1]
+    return np.array([row[4] for row in after]), np.array([row[1] for row in after])
+
+
+def block_cost(event: BlockEvent, speed: np.ndarray, raw: np.ndarray) -> tuple[float, float, float]:
+    """How far a replayed block is from the real one.
+
+    Returns the measured speed's RMS error over the real passes as a
+    fraction of the set speed (a trip before the real one counts each
+    missing pass as an error of the whole set speed), and the log ratios
+    of the raw error's median and largest value (+10 microsteps, so the
+    noise floor's 3 against 5 is not a large ratio).
+    """
+    n = len(event.speed)
+    errors = np.full(n, abs(event.set_speed))
+    k = min(n, len(speed))
+    errors[:k] = speed[:k] - event.speed[:k]
+    rms = float(np.sqrt(np.mean(errors**2))) / abs(event.set_speed)
+    if not len(raw):
+        return rms, math.inf, math.inf
+    median = abs(math.log((float(np.median(raw)) + 10.0) / (float(np.median(event.raw)) + 10.0)))
+    peak = abs(math.log((float(np.max(raw)) + 10.0) / (float(np.max(event.raw)) + 10.0)))
+    return rms, median, peak
+
+
+def compare_block(event: BlockEvent, replayed: tuple[np.ndarray, np.ndarray]) -> list[Row]:
+    """The measured speed and the raw error after a block, simulated against real."""
+    speed, raw = replayed
+    rms, median, peak = block_cost(event, speed, raw)
+    name = f"high_speed_stall_test/{event.name}"
+    bound = math.log(BLOCK_RAW_FACTOR)
+    rows = [
+        Row(
+            name,
+            "measured speed after the block: RMS error",
+            f"{len(event.speed)} passes",
+            f"{len(speed)} passes",
+            100.0 * rms,
+            BLOCK_SPEED_BOUND_PCT,
+            "",
+            "% of set speed",
+            100.0 * rms <= BLOCK_SPEED_BOUND_PCT,
+            f"real {' '.join(f'{v:.1f}' for v in event.speed)}; sim {' '.join(f'{v:.1f}' for v in speed)}",
+        )
+    ]
+    if len(raw):
+        for label, real_v, sim_v, err in (
+            ("median", float(np.median(event.raw)), float(np.median(raw)), median),
+            ("largest", float(np.max(event.raw)), float(np.max(raw)), peak),
+        ):
+            rows.append(
+                Row(
+                    name,
+                    f"raw |PID error| after the block: {label}",
+                    real_v,
+                    sim_v,
+                    math.exp(err),
+                    BLOCK_RAW_FACTOR,
+                    "",
+                    "x",
+                    err <= bound,
+                )
+            )
+    return rows
 
 
 def threshold_speed(rpm: float) -> float:
