@@ -33,6 +33,7 @@ TARGETS = {
         lambda q: q.startswith("stall trip"),
     ),
     "no false stall trips": ("high_speed_stall_test/", lambda q: q == "false stall trips"),
+    "after a block: measured speed, raw error": ("high_speed_stall_test/", lambda q: "after the block" in q),
     "tracking steady-state error within 25 % of the README": ("tracking_error/", lambda q: "README" in q),
     "tracking steady-state error vs the recording": ("tracking_error/", lambda q: "recording" in q),
     "mean transaction time within 15 %": ("RW_test/", lambda q: q.startswith("mean")),
