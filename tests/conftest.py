@@ -380,6 +380,7 @@ def homing_run(request: pytest.FixtureRequest) -> HomingRun:
     qadr = sim.model.joint(name).qposadr[0]
     start, t0 = float(sim.data.qpos[qadr]), backend.clock.now()
     times, qpos = [], []
+    joint.set_max_acceleration(j.homing.acceleration)  # as the arm layer (and the seed) home
     joint.start_homing(j.homing.speed, j.homing.threshold, j.homing.current)
     while joint.get_flags() & Flag.BUSY:
         times.append(backend.clock.now() - t0)

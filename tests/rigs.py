@@ -805,6 +805,10 @@ class FakeMotor:
     def pid_error_deg(self) -> float:
         return self.setpoint_deg - self.position_deg
 
+    @property
+    def pid_jitter_usteps(self) -> float:
+        return 0.0
+
     def set_error(self, microsteps: float) -> None:
         """Make the PID error (set point - encoder) ``microsteps``."""
         self.setpoint_deg = self.position_deg + microsteps / MICROSTEPS_PER_DEG

@@ -82,6 +82,10 @@ class FollowingMotor:
     def pid_error_deg(self) -> float:
         return 0.0
 
+    @property
+    def pid_jitter_usteps(self) -> float:
+        return 0.0
+
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
         self._velocity = velocity_dps
 

@@ -115,9 +115,11 @@ def ready(rig: JointRig) -> None:
 
 
 def home(rig: JointRig, sign: int = 1) -> None:
-    """Home with the joint's parameters; ``sign`` +1 homes to ``max``, -1 to ``min``."""
+    """Home as the arm layer does (at the homing acceleration, then the max); +1 to ``max``, -1 to ``min``."""
     h = rig.params.homing
+    rig.joint.set_max_acceleration(h.acceleration)
     rig.joint.home(sign * abs(h.speed), h.threshold, h.current)
+    rig.joint.set_max_acceleration(rig.params.max_acceleration)
 
 
 def start_near_end_stop(rig: JointRig, sign: int) -> None:
@@ -379,6 +381,7 @@ def _start_homing_then_stop(rig: JointRig) -> None:
     needs_homing(rig)
     ready(rig)
     h = rig.params.homing
+    rig.joint.set_max_acceleration(h.acceleration)
     rig.joint.start_homing(h.speed, h.threshold, h.current)
     rig.advance(0.6)
     assert rig.joint.get_flags() & Flag.BUSY, "homing finished before the test could abort it"

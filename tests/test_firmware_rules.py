@@ -372,6 +372,10 @@ class SoftStopMotor:
     def pid_error_deg(self) -> float:
         return self.setpoint_deg - self.position_deg
 
+    @property
+    def pid_jitter_usteps(self) -> float:
+        return 0.0
+
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
         self._command, self._torque = velocity_dps, torque_fraction
 

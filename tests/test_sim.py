@@ -79,9 +79,12 @@ def poll_all(backend: Backend) -> Callable[[], None]:
 
 
 def home(backend: Backend, name: str) -> None:
-    """Home joint ``name`` with its configured speed, threshold and current."""
-    h = backend.config.joint(name).homing
-    backend.joints[name].home(h.speed, h.threshold, h.current)
+    """Home joint ``name`` as the arm layer does: at its homing acceleration, then its max again."""
+    j = backend.config.joint(name)
+    joint = backend.joints[name]
+    joint.set_max_acceleration(j.homing.acceleration)
+    joint.home(j.homing.speed, j.homing.threshold, j.homing.current)
+    joint.set_max_acceleration(j.max_acceleration)
 
 
 def commanded_homing_speed(speed: float, reduction: float) -> float:
@@ -362,6 +365,7 @@ def _scripted_trajectory(backend_name: str) -> np.ndarray:
 
         for name, joint in joints.items():
             h = backend.config.joint(name).homing
+            joint.set_max_acceleration(h.acceleration)
             joint.start_homing(h.speed, h.threshold, h.current)
         while any([joint.get_flags() & Flag.BUSY for joint in joints.values()]):  # poll every joint
             tick(lambda: None)

@@ -8,6 +8,7 @@ READMEs) as literals.
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import subprocess
 import sys
@@ -148,11 +149,28 @@ def test_the_swing_after_a_block_is_judged_against_the_real_one() -> None:
         "measured speed after the block: RMS error",
         "raw |PID error| after the block: median",
         "raw |PID error| after the block: largest",
+        "stall trip after the block",
     ]
     assert all(r.passed for r in rows), rows
     # a rotor thrown back a hundredth as hard: its measured speed falls too slowly
     stiff = CONFIG.with_drives(kick_accel=KICK_ACCEL / 100)
     assert stall.compare_block(event, stall.replay_block(event, stiff))[0].error > 3 * rows[0].error
+
+
+def test_a_drive_that_cannot_home_is_one_failing_row_not_a_crash(tmp_path: Path) -> None:
+    # j4 homes at 10 % current: friction of 5000 rad/s^2 against a pull-out of
+    # 2000 x 10 % = 200 leaves it standing; its recordings are not replayed.
+    stuck = CONFIG.joint("j4").drive.with_values(pullout_accel=2000.0, friction_coulomb=5000.0)
+    joints = tuple(dataclasses.replace(j, drive=stuck) if j.name == "j4" else j for j in CONFIG.joints)
+    root = tmp_path / "test"
+    (root / "maxAccel").mkdir(parents=True)
+    for name in ("j3_1.csv", "j4_1.csv"):
+        shutil.copy(DATA_DIR / "maxAccel" / name, root / "maxAccel" / name)
+    result = validate(root, dataclasses.replace(CONFIG, joints=joints))
+    homing = [r for r in result.rows if r.experiment == "homing/j4"]
+    assert len(homing) == 1 and not homing[0].passed
+    assert "short of the end stop" in str(homing[0].sim)
+    assert {r.experiment for r in result.rows if r.experiment.startswith("maxAccel/")} == {"maxAccel/j3_1"}
 
 
 def test_the_position_controller_lags_as_the_readme_says() -> None:

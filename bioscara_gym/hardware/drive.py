@@ -265,12 +265,12 @@ class PidNoiseProfile:
 HALF_NORMAL_MEDIAN = 0.6744897501960817
 
 
-#: The pole-slip swing fitted to the real blocks (``bioscara calibrate``,
-#: ``high_speed_stall_test/``: j4 at 20 % current held at 5.7 and 25.8 motor
-#: rad/s; docs/validation.md): the default of every drive.
-KICK_ACCEL = 2.6e5
-KICK_TIME_S = 0.0066
-KICK_PERIOD_S = 0.28
+#: The pole-slip swing fitted to the real blocks (``bioscara calibrate``, last,
+#: on the fitted drives; ``high_speed_stall_test/``: j4 at 20 % current held
+#: at 5.7 and 25.8 motor rad/s; docs/validation.md): every drive's default.
+KICK_ACCEL = 2.2e4
+KICK_TIME_S = 0.042
+KICK_PERIOD_S = 0.086
 
 
 @dataclass(frozen=True)

@@ -623,7 +623,7 @@ class FirmwareCore:
 
     def _detect_stall(self) -> None:
         rule = self.stall_rule
-        raw = abs(self.pid_error)
+        raw = max(abs(self.pid_error), self.motor.pid_jitter_usteps)  # the rotor's jitter (motor.py)
         u, x = rule.filter(raw, self._filter_last, self._filter_x)
         self._filter_x = x
         omega = self.encoder_rpm / STALL_RPM_PER_RAD_S

@@ -124,6 +124,11 @@ class MujocoMotor:
         """The library's last PID error, motor degrees."""
         return self.stepper.pid_error_deg
 
+    @property
+    def pid_jitter_usteps(self) -> float:
+        """The following rotor's jitter as the stall detector sees it (the drive's)."""
+        return self.stepper.pid_jitter_usteps
+
     def set_torque_fraction(self, fraction: float) -> None:
         """Scale stiffness, damping and force limit with the driver current."""
         if fraction == self._fraction:

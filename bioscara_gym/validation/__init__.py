@@ -17,6 +17,7 @@ package (:mod:`~bioscara_gym.validation.commands`):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +42,40 @@ class Validation:
         return all(r.passed for r in self.rows)
 
 
+def _without_unhomable_joints(rec: Recordings, config: ArmConfig, rows: list[Row]) -> Recordings:
+    """``rec`` less the recordings of joints whose drive cannot home; a failing row for each of those.
+
+    Every program homed its joint first; a drive that cannot (a calibration
+    gone wrong, a hand-edited drive block) has nothing to replay.
+    """
+    from bioscara_gym.validation.rig import JointRig, RigError
+
+    joints = {r.joint for kind in (rec.max_accel, rec.stall_signal) for r in kind}
+    if rec.tracking or rec.transactions:
+        joints.add("j1")  # tracking_error/ and RW_test/ replay on j1
+    failed = set()
+    for joint in sorted(joints & set(config.names)):
+        try:
+            JointRig(config, joint)
+        except RigError as e:
+            failed.add(joint)
+            rows.append(
+                Row.verdict(
+                    f"homing/{joint}", "homes at its configured homing parameters", "yes", str(e), False
+                )
+            )
+    if not failed:
+        return rec
+    keep = {
+        name: [r for r in value if not (isinstance(getattr(r, "joint", None), str) and r.joint in failed)]
+        for name, value in vars(rec).items()
+        if name != "root"
+    }
+    if "j1" in failed:
+        keep["tracking"], keep["transactions"], keep["handler_times"] = [], [], []
+    return dataclasses.replace(rec, **keep)
+
+
 def validate(root: Path | str | None = None, config: ArmConfig | None = None) -> Validation:
     """Replay every recording under ``root`` (default: the packaged ones) on the simulated arm.
 
@@ -57,6 +92,7 @@ def validate(root: Path | str | None = None, config: ArmConfig | None = None) ->
     config = config or load_config()
     rec = find_recordings(root)
     out = Validation(rec)
+    rec = _without_unhomable_joints(rec, config, out.rows)
     if rec.max_accel:
         rows, sims = max_accel.run_all(rec.max_accel, config)
         out.rows += rows

@@ -13,14 +13,15 @@ recordings (every other value is the input configuration's):
 * :func:`fit_pid_noise`: the PID error of a following rotor, median by speed
   band while the set speed rises and while it falls, from the free-running
   rows of ``high_speed_stall_test/``.
-* :func:`fit_pole_slip_swing`: how hard a pole slip throws the rotor back
-  and how its swing dies away, shared by every drive, from the blocks in
-  ``high_speed_stall_test/`` (the passes between the block and the trip).
 * :func:`fit_drive`: per joint, the pull-out acceleration, its fall with
   speed, friction, the slipping rotor's torque and the pull-in range, by
   differential evolution (scipy) on the ``maxAccel/`` replays: position and
   peak speed of every run and whether it lost steps, plus the limits the
   arm's authors state in ``maxAccel/README.md`` for runs not published.
+* :func:`fit_pole_slip_swing`, last, on the fitted drives: how hard a pole
+  slip throws the rotor back and how its swing dies away, shared by every
+  drive, from the blocks in ``high_speed_stall_test/`` (the passes between
+  the block and the trip).
 """
 
 from __future__ import annotations
@@ -133,37 +134,42 @@ def fit_program_overhead(runs: Sequence[MaxAccelRun], timing: TransactionTiming,
 
 
 # ----------------------------------------------------------------- PID noise
-def fit_pid_noise(signals: Sequence[StallSignal]) -> PidNoiseProfile:
-    """Median |PID error| per 5 rad/s band while the set speed rises and while it falls.
+#: Edges of the speed bands the PID-error jitter is fitted in, motor rad/s:
+#: 1 rad/s wide up to 5 (where homing runs, and the jitter grows from almost
+#: nothing at rest), then the validation's 5 rad/s bands.
+NOISE_BAND_EDGES = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0)
 
-    The bands are the validation's (:func:`~.experiments.stall.band_medians`),
-    pooled over every file's replayable passes (the old builds print the
-    same raw error; passes within 0.3 s before a trip are left out, they
-    belong to the stall); each band's median becomes a knot at its centre.
-    A band with fewer than 5 passes takes its neighbour's value.
+
+def fit_pid_noise(signals: Sequence[StallSignal]) -> PidNoiseProfile:
+    """Median |PID error| per speed band while the set speed rises and while it falls.
+
+    The bands are :data:`NOISE_BAND_EDGES`, then the validation's 5 rad/s
+    bands (:func:`~.experiments.stall.band_medians`); pooled over every
+    file's replayable passes (the old builds print the same raw error;
+    passes within 0.3 s before a trip are left out, they belong to the
+    stall); each band's median becomes a knot at its centre. A band with
+    fewer than 5 passes takes its neighbour's value.
 
     Raises:
         ValueError: No free-running passes at all.
     """
     from bioscara_gym.validation.experiments.stall import BAND_RAD_S, _bands
 
-    pools: dict[tuple[int, int], list[float]] = {}
+    pools: dict[tuple[int, float], list[float]] = {}
     for sig in signals:
         keep = (sig.raw < 10_000) & ~((sig.set_speed == 0) & (np.abs(sig.speed) > 2.0))
         for i in np.nonzero(sig.stalled > 0)[0]:
             keep &= ~((sig.t > sig.t[i] - 0.3) & (sig.t <= sig.t[i]))
-        band, direction = _bands(sig.speed, sig.set_speed)
-        for b, d, v in zip(band[keep], direction[keep], sig.raw[keep], strict=True):
-            pools.setdefault((1 if d >= 0 else -1, int(b)), []).append(float(v))
+        _, direction = _bands(sig.speed, sig.set_speed)
+        for w, d, v in zip(np.abs(sig.speed[keep]), direction[keep], sig.raw[keep], strict=True):
+            pools.setdefault((1 if d >= 0 else -1, _noise_knot(float(w), BAND_RAD_S)), []).append(float(v))
     if not pools:
         raise ValueError("high_speed_stall_test holds no free-running passes to fit the PID-error profile on")
-    top = max(b for _, b in pools)
-    knots = tuple(BAND_RAD_S * (b + 0.5) for b in range(top + 1))
+    knots = tuple(sorted({k for _, k in pools}))
 
     def medians(d: int) -> tuple[float, ...]:
         out: list[float | None] = [
-            float(np.median(pools[(d, b)])) if len(pools.get((d, b), ())) >= 5 else None
-            for b in range(top + 1)
+            float(np.median(pools[(d, k)])) if len(pools.get((d, k), ())) >= 5 else None for k in knots
         ]
         known = [v for v in out if v is not None]
         last = known[0] if known else 0.0
@@ -176,10 +182,24 @@ def fit_pid_noise(signals: Sequence[StallSignal]) -> PidNoiseProfile:
     return PidNoiseProfile(knots, medians(1), medians(-1))
 
 
+def _noise_knot(speed: float, width: float) -> float:
+    """The centre of the jitter band ``speed`` (motor rad/s) falls in."""
+    edges = NOISE_BAND_EDGES
+    if speed < edges[-1]:
+        i = int(np.searchsorted(edges, speed, side="right")) - 1
+        return 0.5 * (edges[i] + edges[i + 1])
+    band = math.floor(speed / width)
+    return width * (band + 0.5)
+
+
 # ------------------------------------------------------------ pole-slip swing
 #: Where the swing's fit starts: (kick_accel rad/s², kick_time_s, kick_period_s).
 #: Two starts, a short sharp swing and a slow one (the cost has both valleys).
 SWING_STARTS = ((1.5e5, 0.01, 0.04), (5e4, 0.05, 0.1))
+#: Seeds of the PID-error jitter each candidate is replayed with (the cost is
+#: their mean): whether a slow block trips at its first pole slip can hang on
+#: the jitter of one pass, and a fit on one seed finds that knife's edge.
+SWING_SEEDS = (0, 1, 2)
 
 
 def fit_pole_slip_swing(
@@ -189,8 +209,10 @@ def fit_pole_slip_swing(
 
     Each :class:`~.experiments.stall.BlockEvent` is replayed
     (:func:`~.experiments.stall.replay_block`) with one candidate on every
-    drive; the cost sums :func:`~.experiments.stall.block_cost` over them
-    (measured speed RMS plus the raw error's median and largest value).
+    drive and each of :data:`SWING_SEEDS`; the cost is the mean over the
+    seeds of :func:`~.experiments.stall.block_cost` summed over the blocks
+    (measured speed RMS, the raw error's median and largest value, and
+    whether the trip came within 50 ms of the real one).
     Nelder-Mead in log space from each of :data:`SWING_STARTS`; the best.
 
     Raises:
@@ -204,7 +226,9 @@ def fit_pole_slip_swing(
     def cost(x: np.ndarray) -> float:
         accel, tau, period = (float(10**v) for v in x)
         c = config.with_drives(kick_accel=accel, kick_time_s=tau, kick_period_s=period)
-        return sum(sum(block_cost(e, *replay_block(e, c))) for e in events)
+        return sum(
+            sum(block_cost(e, replay_block(e, c, seed=seed))) for e in events for seed in SWING_SEEDS
+        ) / len(SWING_SEEDS)
 
     best = min(
         (
@@ -419,10 +443,6 @@ def calibrate(
     noise = fit_pid_noise(rec.stall_signal) if rec.stall_signal else None
     if noise is not None:
         config = config.with_drives(noise=noise)
-    events = block_events(rec.stall_signal) if rec.stall_signal else []
-    if events:
-        accel, tau, period = fit_pole_slip_swing(config, events)
-        config = config.with_drives(kick_accel=accel, kick_time_s=tau, kick_period_s=period)
     limits = README_LIMITS if rec.root.resolve() == _packaged_root() else ()
     before, after = {}, {}
     for joint in sorted({r.joint for r in rec.max_accel} | {lim.joint for lim in limits}):
@@ -440,6 +460,11 @@ def calibrate(
             [r for r in rec.max_accel if r.joint == joint],
             [lim for lim in limits if lim.joint == joint],
         )
+    # Last: the blocks are replayed on the joint's fitted drive.
+    events = block_events(rec.stall_signal) if rec.stall_signal else []
+    if events:
+        accel, tau, period = fit_pole_slip_swing(config, events)
+        config = config.with_drives(kick_accel=accel, kick_time_s=tau, kick_period_s=period)
     return Calibration(config, timing, noise, before, after)
 
 

@@ -21,8 +21,19 @@ from bioscara_gym.hardware.config import ArmConfig, JointConfig
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, JointFirmware, StallRule
 from bioscara_gym.hardware.joint import Joint
-from bioscara_gym.hardware.motor import KinematicStepper
+from bioscara_gym.hardware.motor import POLE_PITCH_DEG, KinematicStepper
 from bioscara_gym.hardware.registers import Flag
+
+#: How far from its end stop the joint starts homing, motor degrees: enough
+#: for the homing to run up to speed and show that the drive can home.
+HOMING_RUN_DEG = 30.0
+#: How close to its end stop homing must leave the rotor, motor degrees: the
+#: first pole slip throws it back by up to a pole pitch (7.2 degrees).
+HOMED_WITHIN_DEG = 2 * POLE_PITCH_DEG
+
+
+class RigError(RuntimeError):
+    """The configured drive cannot do what the real joint does before every test: home."""
 
 
 def motor_deg(joint: JointConfig, q: float) -> float:
@@ -67,7 +78,7 @@ class JointRig:
         home_at = params.max if params.homing.speed > 0 else params.min
         self.motor = KinematicStepper(
             motor_deg(params, home_at)
-            - math.copysign(2.0, motor_deg(params, home_at) - motor_deg(params, 0.0)),
+            - math.copysign(HOMING_RUN_DEG, motor_deg(params, home_at) - motor_deg(params, 0.0)),
             lo if end_stops else -math.inf,
             hi if end_stops else math.inf,
             drive=params.drive,
@@ -102,9 +113,17 @@ class JointRig:
         self.joint.init()
         self.joint.enable(p.drive_current, p.hold_current)
         self.joint.set_max_acceleration(p.homing.acceleration)
+        stop = motor_deg(p, p.max if p.homing.speed > 0 else p.min)
         self.joint.home(p.homing.speed, p.homing.threshold, p.homing.current)
         if not self.joint.is_homed():
-            raise RuntimeError(f"{p.name}: the rig's joint did not home")
+            raise RigError(f"{p.name}: the rig's joint did not home")
+        # The real arm homes with its configured speed, threshold and current: a
+        # drive that trips its homing before the end stop is not the arm's.
+        if abs(self.motor.position_deg - stop) > HOMED_WITHIN_DEG:
+            raise RigError(
+                f"{p.name}: homing stopped {abs(self.motor.position_deg - stop):.1f} motor degrees "
+                "short of the end stop"
+            )
 
     def sleep(self, dt: float) -> None:
         """Let ``dt`` seconds pass (the firmware's loop runs)."""

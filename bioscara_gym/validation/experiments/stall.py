@@ -35,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, StallRule
-from bioscara_gym.hardware.registers import FLAG_STALL, STALL_RPM_PER_RAD_S, TICK_S
+from bioscara_gym.hardware.registers import FLAG_STALL, TICK_S
 from bioscara_gym.validation.recordings import StallSignal
 from bioscara_gym.validation.report import Row
 from bioscara_gym.validation.rig import JointRig
@@ -442,14 +443,31 @@ def block_events(signals: list[StallSignal]) -> list[BlockEvent]:
     return events
 
 
-def replay_block(event: BlockEvent, config: ArmConfig, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Run the joint at the event's speed, block it, and log as many passes as the real one printed.
+@dataclass(frozen=True)
+class BlockReplay:
+    """The simulated passes after a block, as :func:`replay_block` logged them.
+
+    Attributes:
+        speed: Measured speed of each pass, motor rad/s (as many as the real
+            event's, fewer if the simulated joint tripped sooner).
+        raw: Raw |PID error| of each, 1/256 microsteps.
+        trip: The pass that tripped, counted as the real event's (its trip is
+            its last pass), or None if none did within :data:`TRIP_BOUND_S`
+            after the real one.
+    """
+
+    speed: np.ndarray
+    raw: np.ndarray
+    trip: int | None
+
+
+def replay_block(event: BlockEvent, config: ArmConfig, seed: int = 0) -> BlockReplay:
+    """Run the joint at the event's speed, block it, and log the passes the real one printed.
 
     The program's set-up (:data:`PROGRAM_LIMITS`, :data:`PROGRAM_CURRENT`),
     the host talking every 20 ms; the rotor is blocked at a loop pass and
-    the passes after it are compared (measured speed, raw |PID error|).
-    Returns them; fewer than the real ones if the simulated joint tripped
-    sooner.
+    the passes after it are logged until :data:`TRIP_BOUND_S` after the real
+    trip, or the simulated one.
     """
     params = config.joint(event.joint)
     rig = JointRig(config, event.joint, stall_rule=event.rule, seed=seed, end_stops=False)
@@ -463,9 +481,12 @@ def replay_block(event: BlockEvent, config: ArmConfig, seed: int = 0) -> tuple[n
 
     def run(seconds: float) -> None:
         end = rig.now + seconds
-        while rig.now < end - 1e-9 and not rig.flags & FLAG_STALL:
-            joint.set_velocity(target)
-            joint.get_velocity()
+        while rig.now < end - 1e-9:
+            try:
+                joint.set_velocity(target)
+                joint.get_velocity()
+            except StalledError:
+                break  # the program ends on the refusal
             rig.sleep(min(0.02, end - rig.now))
 
     run(0.6)  # up to speed, the speed estimate settled
@@ -473,38 +494,51 @@ def replay_block(event: BlockEvent, config: ArmConfig, seed: int = 0) -> tuple[n
     core.stall_log = log = []
     rig.motor.blocked = True
     blocked_at = rig.now
-    run(0.0101 * (len(event.speed) + 2))
+    late = round(TRIP_BOUND_S / 0.01)
+    run(0.0101 * (len(event.speed) + late + 2))
     rig.sleep(0.0101)  # the trip's own pass
     # The pass that ran the tick the rotor was blocked in still shows the free rotor.
-    after = [row for row in log if row[0] > blocked_at][1 : len(event.speed) + 1]
-    return np.array([row[4] for row in after]), np.array([row[1] for row in after])
+    after = [row for row in log if row[0] > blocked_at][1 : len(event.speed) + late + 1]
+    trips = [i for i, row in enumerate(after) if row[7]]
+    trip = trips[0] if trips else None
+    shown = after[: len(event.speed)]
+    return BlockReplay(np.array([row[4] for row in shown]), np.array([row[1] for row in shown]), trip)
 
 
-def block_cost(event: BlockEvent, speed: np.ndarray, raw: np.ndarray) -> tuple[float, float, float]:
+def block_cost(event: BlockEvent, replay: BlockReplay) -> tuple[float, float, float, float]:
     """How far a replayed block is from the real one.
 
     Returns the measured speed's RMS error over the real passes as a
     fraction of the set speed (a trip before the real one counts each
-    missing pass as an error of the whole set speed), and the log ratios
-    of the raw error's median and largest value (+10 microsteps, so the
-    noise floor's 3 against 5 is not a large ratio).
+    missing pass as an error of the whole set speed), the log ratios of the
+    raw error's median and largest value (+10 microsteps, so the noise
+    floor's 3 against 5 is not a large ratio), and 1 if the trip is not
+    within :data:`TRIP_BOUND_S` of the real one (else 0).
     """
     n = len(event.speed)
+    speed, raw = replay.speed, replay.raw
     errors = np.full(n, abs(event.set_speed))
     k = min(n, len(speed))
     errors[:k] = speed[:k] - event.speed[:k]
     rms = float(np.sqrt(np.mean(errors**2))) / abs(event.set_speed)
+    late = _trip_passes(event, replay)
+    missed = 0.0 if late is not None and abs(late) <= round(TRIP_BOUND_S / 0.01) else 1.0
     if not len(raw):
-        return rms, math.inf, math.inf
+        return rms, math.inf, math.inf, missed
     median = abs(math.log((float(np.median(raw)) + 10.0) / (float(np.median(event.raw)) + 10.0)))
     peak = abs(math.log((float(np.max(raw)) + 10.0) / (float(np.max(event.raw)) + 10.0)))
-    return rms, median, peak
+    return rms, median, peak, missed
 
 
-def compare_block(event: BlockEvent, replayed: tuple[np.ndarray, np.ndarray]) -> list[Row]:
-    """The measured speed and the raw error after a block, simulated against real."""
-    speed, raw = replayed
-    rms, median, peak = block_cost(event, speed, raw)
+def _trip_passes(event: BlockEvent, replay: BlockReplay) -> int | None:
+    """Passes from the real trip to the simulated one (negative: sooner), or None."""
+    return None if replay.trip is None else replay.trip - (len(event.speed) - 1)
+
+
+def compare_block(event: BlockEvent, replay: BlockReplay) -> list[Row]:
+    """The measured speed, the raw error and the trip after a block, simulated against real."""
+    rms, median, peak, _ = block_cost(event, replay)
+    speed, raw = replay.speed, replay.raw
     name = f"high_speed_stall_test/{event.name}"
     bound = math.log(BLOCK_RAW_FACTOR)
     rows = [
@@ -539,9 +573,22 @@ def compare_block(event: BlockEvent, replayed: tuple[np.ndarray, np.ndarray]) ->
                     err <= bound,
                 )
             )
+    late = _trip_passes(event, replay)
+    real_ms = 10.0 * len(event.speed)
+    if late is None:
+        rows.append(Row.verdict(name, "stall trip after the block", f"{real_ms:.0f} ms", "none", False))
+    else:
+        rows.append(
+            Row(
+                name,
+                "stall trip after the block",
+                real_ms,
+                real_ms + 10.0 * late,
+                10.0 * abs(late),
+                TRIP_BOUND_S * 1e3,
+                "ms",
+                "ms",
+                abs(late) * 0.01 <= TRIP_BOUND_S + 1e-9,
+            )
+        )
     return rows
-
-
-def threshold_speed(rpm: float) -> float:
-    """Motor rad/s as the firmware divides (``qd / 9.549296596425384``)."""
-    return rpm / STALL_RPM_PER_RAD_S
