@@ -466,7 +466,7 @@ def sitl_source() -> str:
 #: max velocity j1 shows 57, j2 77. The arm's thresholds (30, 50; stall 60,
 #: 120) rely on the real rotor springing back when it loses steps, which
 #: the kinematic motor does not do (the drive model of issue #23 will).
-SITL_J1 = dataclasses.replace(J1, stall_threshold=3, homing=dataclasses.replace(J1.homing, threshold=12))
+SITL_J1 = dataclasses.replace(J1, stall_threshold=3, homing=J1.homing.with_stand_in_threshold(12))
 SITL_J2 = dataclasses.replace(J2, stall_threshold=5, homing=dataclasses.replace(J2.homing, threshold=30))
 
 

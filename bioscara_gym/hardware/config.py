@@ -278,6 +278,22 @@ class HomingConfig:
             raise ConfigError("homing.current 0 % gives the motor no torque: the homing would stop at once")
         _set(self, "acceleration", _positive(self.acceleration, "homing.acceleration"))
 
+    def with_stand_in_threshold(self, threshold: int) -> HomingConfig:
+        """This homing with ``threshold``, which may lie below :data:`HOMING_THRESHOLD_MIN`.
+
+        For the firmware-in-the-loop stand-ins only (``hardware/sitl``): their
+        motor is held by the library's closed loop and never shows the PID
+        errors the real rotor does, so they home with thresholds the real arm
+        must refuse. Every other check still applies.
+
+        Raises:
+            ConfigError: ``threshold`` is not an integer 0-255.
+        """
+        checked = _integer(threshold, "homing.threshold", high=SENSITIVITY_MAX)
+        homing = dataclasses.replace(self, threshold=max(checked, HOMING_THRESHOLD_MIN))
+        _set(homing, "threshold", checked)
+        return homing
+
 
 @dataclass(frozen=True)
 class DynamixelJointConfig:

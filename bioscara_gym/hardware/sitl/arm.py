@@ -65,7 +65,7 @@ def reachable_homing(config: ArmConfig) -> tuple[ArmConfig, list[str]]:
         reachable = max(CLOSED_LOOP_THRESHOLD - 1, math.floor(per_ms) - 2)
         if j.homing.threshold > reachable:
             notes.append(f"{j.name} homes with threshold {reachable} (configured {j.homing.threshold})")
-            j = dataclasses.replace(j, homing=dataclasses.replace(j.homing, threshold=reachable))
+            j = dataclasses.replace(j, homing=j.homing.with_stand_in_threshold(reachable))
         joints.append(j)
     return dataclasses.replace(config, joints=tuple(joints)), notes
 
