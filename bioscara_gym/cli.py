@@ -233,7 +233,7 @@ EXTRA_COMMAND_MODULES = (
     "bioscara_gym.training.deploy",
     "bioscara_gym.training.export",
     "bioscara_gym.console.commands",
-    "bioscara_gym.hardware.dynamixel.commands",
+    "bioscara_gym.console.emulate",
     "bioscara_gym.replay",
     "bioscara_gym.validation.commands",
 )
