@@ -1,4 +1,4 @@
-"""The operator console: ``bioscara status``, ``ping``, ``enable``, ``home``, ``move``, ``monitor``, ``emulate``.
+"""The operator console: ``bioscara status``, ``enable``, ``home``, ``move``, ``monitor``, ``emulate``.
 
 Modules, each importing only those above it:
 
