@@ -8,7 +8,8 @@
   tasks: no environment variables, and no warning filter but the one scoped
   to Gymnasium's unversioned-id message for the package's own ids.
 - No import cycles among the project's modules, function-local imports
-  included.
+  included; ``training/`` imports no env module (it reaches the envs through
+  ``gym.make`` and the task registry).
 - The wheel installs one top-level import package, ``bioscara_gym``, with
   the hyperparameter files and the model inside it.
 """
@@ -204,6 +205,18 @@ def test_hardware_layer_imports_nothing_above_it() -> None:
         name: sorted(t for t in _imports(path, name, known) if t.startswith(above))
         for name, path in known.items()
         if name.startswith("bioscara_gym.hardware")
+    }
+    assert {n: t for n, t in offenders.items() if t} == {}
+
+
+def test_training_reaches_the_envs_only_through_gym_make() -> None:
+    # No env class, no env module: a task's experts, layout and extractor come from
+    # bioscara_gym.tasks, keyed by env id.
+    known = _modules()
+    offenders = {
+        name: sorted(t for t in _imports(path, name, known) if t.startswith("bioscara_gym.envs"))
+        for name, path in known.items()
+        if name.startswith("bioscara_gym.training")
     }
     assert {n: t for n, t in offenders.items() if t} == {}
 

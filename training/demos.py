@@ -30,12 +30,11 @@ import numpy as np
 
 import bioscara_gym  # noqa: F401 - registers the tasks (recover_environment needs them)
 from bioscara_gym.errors import TrainingError
+from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.extras import needs_extra
 
 #: Minari's dataset ids: ``(namespace/)name-v<version>``.
 VERSION_RE = re.compile(r"-v\d+$")
-GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
-Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
 def dataset_id(name: str) -> str:

@@ -95,15 +95,15 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from bioscara_gym.envs.base import check_control_freq
 from bioscara_gym.errors import DeployError, MetadataError, TrainingError
-from bioscara_gym.hardware.arm import Arm, Lifecycle
+from bioscara_gym.hardware.arm import Arm, Lifecycle, check_control_freq
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, SitlError, StopReason
 from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
+from bioscara_gym.tasks import task_of
 from bioscara_gym.training.deploy_log import BusStats, LoopStats, RunLog
 from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
 from bioscara_gym.training.extras import needed_by
@@ -268,9 +268,7 @@ def load_policy(args: DeployArgs) -> LoadedPolicy:
     if args.expert:
         if args.env is None:
             raise DeployError("--expert needs --env ID: the task is never guessed")
-        from bioscara_gym.experts import expert_for
-
-        return LoadedPolicy(lambda env: expert_for(env.unwrapped), None, "scripted expert")
+        return LoadedPolicy(lambda env: task_of(env).make_expert(env.unwrapped), None, "scripted expert")
     if args.onnx is not None:
         from bioscara_gym.training.export import OnnxPolicy
 

@@ -20,7 +20,6 @@ backends that simulate and by a renderer.
 from __future__ import annotations
 
 import contextlib
-import numbers
 from collections import deque
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -40,17 +39,19 @@ from bioscara_gym.envs.actions import (
     to_unit,
 )
 from bioscara_gym.envs.randomization import DomainRandomization, PhysicsRandomizer
-from bioscara_gym.hardware.arm import Arm, CommandMode, Lifecycle
+from bioscara_gym.hardware.arm import (
+    MAX_CONTROL_FREQ,
+    MIN_CONTROL_FREQ,
+    Arm,
+    CommandMode,
+    Lifecycle,
+    check_control_freq,
+)
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.errors import JointError, StalledError
-from bioscara_gym.hardware.registers import TICK_S, Flag
+from bioscara_gym.hardware.registers import Flag
 
-#: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor.
-MIN_CONTROL_FREQ = 20.0
-#: The firmware runs its loop (stall detection, deadman) once per 10 ms tick, and
-#: one cycle's bus traffic takes milliseconds: 100 Hz is the ceiling.
-MAX_CONTROL_FREQ = 1.0 / TICK_S
 #: Joint command interface each control mode uses (prefer :attr:`BioscaraEnv.command_mode`).
 JOINT_MODE = MappingProxyType(
     {
@@ -69,28 +70,8 @@ __all__ = [
     "REWARD_TYPES",
     "BioscaraEnv",
     "DomainRandomization",
+    "check_control_freq",
 ]
-
-
-def check_control_freq(control_freq: object, name: str = "control_freq") -> float:
-    """``control_freq`` as a float, if it is a rate the arm can be commanded at.
-
-    Raises:
-        ValueError: Not a number, or outside ``MIN_CONTROL_FREQ``-``MAX_CONTROL_FREQ``; the
-            message names ``name``.
-    """
-    if isinstance(control_freq, bool) or not isinstance(control_freq, numbers.Real):
-        raise ValueError(f"{name} must be a rate in Hz, got {control_freq!r}")
-    if not MIN_CONTROL_FREQ <= control_freq <= MAX_CONTROL_FREQ:  # NaN fails both
-        why = (
-            "the joint firmware's loop runs every 10 ms"
-            if control_freq > MAX_CONTROL_FREQ
-            else "the joints' 50 ms deadman would stop them between commands"
-        )
-        raise ValueError(
-            f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
-        )
-    return float(control_freq)
 
 
 class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
@@ -35,7 +36,35 @@ from bioscara_gym.hardware.errors import (
     JointError,
     NotHomedError,
 )
-from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.registers import TICK_S, Flag, Reg
+
+#: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor of a
+#: control loop's rate.
+MIN_CONTROL_FREQ = 20.0
+#: The firmware runs its loop (stall detection, deadman) once per 10 ms tick, and
+#: one cycle's bus traffic takes milliseconds: 100 Hz is the ceiling.
+MAX_CONTROL_FREQ = 1.0 / TICK_S
+
+
+def check_control_freq(control_freq: object, name: str = "control_freq") -> float:
+    """``control_freq`` as a float, if it is a rate the arm can be commanded at.
+
+    Raises:
+        ValueError: Not a number, or outside ``MIN_CONTROL_FREQ``-``MAX_CONTROL_FREQ``; the
+            message names ``name``.
+    """
+    if isinstance(control_freq, bool) or not isinstance(control_freq, numbers.Real):
+        raise ValueError(f"{name} must be a rate in Hz, got {control_freq!r}")
+    if not MIN_CONTROL_FREQ <= control_freq <= MAX_CONTROL_FREQ:  # NaN fails both
+        why = (
+            "the joint firmware's loop runs every 10 ms"
+            if control_freq > MAX_CONTROL_FREQ
+            else "the joints' 50 ms deadman would stop them between commands"
+        )
+        raise ValueError(
+            f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
+        )
+    return float(control_freq)
 
 
 class Lifecycle(Enum):

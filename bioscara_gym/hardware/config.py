@@ -59,7 +59,6 @@ A group may name groups listed before it (the MH5's nested groups).
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -79,7 +78,7 @@ from bioscara_gym.hardware.drive import (
     noise_from_dict,
     noise_to_dict,
 )
-from bioscara_gym.hardware.errors import ConfigError, UnknownJointError
+from bioscara_gym.hardware.errors import ConfigError, UnknownJointError, closest_name
 from bioscara_gym.hardware.i2c_timing import (
     WIRE_ONLY,
     TransactionTiming,
@@ -711,9 +710,9 @@ def _check_fields(
     allowed = (*required, *optional)
     for key in data:
         if key not in allowed:
-            close = difflib.get_close_matches(str(key), allowed, n=1)
+            close = closest_name(key, allowed)
             hint = (
-                f" (did you mean {prefix + close[0]!r}?)"
+                f" (did you mean {prefix + close!r}?)"
                 if close
                 else f"; allowed: {', '.join(prefix + a for a in allowed)}"
             )

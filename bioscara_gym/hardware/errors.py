@@ -7,6 +7,8 @@ every :class:`JointError` carries its :class:`ErrType` in ``.code``.
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from enum import Enum, IntEnum
 
 
@@ -200,6 +202,16 @@ def require_extra(module: str, what: str, extra: str) -> None:
         if e.name is not None and e.name.split(".")[0] != module.split(".")[0]:
             raise  # the module is there but something it needs is broken: show that
         raise MissingExtraError(what, extra) from e
+
+
+def closest_name(name: object, known: Iterable[str]) -> str | None:
+    """The name of ``known`` closest to a misspelt ``name``, if one is close enough ("did you mean").
+
+    The one rule behind every "did you mean" the package prints: the
+    configuration's fields, the hyperparameters, the DAgger settings.
+    """
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    return close[0] if close else None
 
 
 class UnknownJointError(InvalidArgumentError, ConfigError):
