@@ -182,12 +182,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
+    from bioscara_gym.training.methods import METHODS  # names only: no torch
+
     p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
     p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
     p.add_argument(
         "--algo",
-        help="sac, td3, ppo, bc (behaviour cloning) or dagger (default: dagger on PickPlace without "
-        "--config, sac elsewhere; on --resume the run's)",
+        choices=tuple(METHODS),
+        help=", ".join(f"{name}: {spec.help}" for name, spec in METHODS.items())
+        + " (default: the task's: dagger on PickPlace without --config, else sac; on --resume the run's)",
     )
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
