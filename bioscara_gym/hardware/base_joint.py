@@ -164,6 +164,8 @@ class BaseJoint(abc.ABC):
                 joint=self.name,
             )
 
+    #: The joint's bus address where it has one (the I2C driver's, e.g. 0x11); ``None`` elsewhere.
+    address: int | None = None
     #: Whether the subclass reports each delivered bus transfer itself (retries included).
     _reports_transfers = False
     #: Extra attempts after a failed transaction (bus drivers set it; simulated joints never fail).

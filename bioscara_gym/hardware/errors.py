@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Iterable
-from enum import Enum, IntEnum
+from enum import IntEnum
 
 
 class ErrType(IntEnum):
@@ -223,34 +223,28 @@ class UnknownJointError(InvalidArgumentError, ConfigError):
     """
 
 
-class StopReason(Enum):
-    """Why a deployment ended."""
+class DeadmanError(Exception):
+    """The host's deadman guard saw a joint go longer than the firmware's deadman without a transaction.
 
-    COMPLETED = "completed"
-    NAN_ACTION = "nan_action"
-    STALL = "stall"
-    COMM_ERROR = "comm_error"
-    JOINT_ERROR = "joint_error"
-    DEADMAN = "deadman"
-    INTERRUPTED = "interrupted"
-    TERMINATED = "terminated"
-    LOG_ERROR = "log_error"
-    ERROR = "error"
-
-
-class SafetyStop(Exception):
-    """The safety layer stopped the run; the message names the cause.
+    Its firmware would have stopped it (docs/firmware.md, deadman). Raised by
+    :meth:`~bioscara_gym.hardware.safety.DeadmanGuard.check`; ``bioscara
+    deploy`` stops on it (``deadman``).
 
     Attributes:
-        reason: What tripped.
-        joint: The joint concerned, if one is.
+        joint: The joint silent the longest.
+        silence_s: How long it was silent, s.
+        limit_s: The longest silence allowed, s.
     """
 
-    def __init__(self, reason: StopReason, message: str, joint: str | None = None) -> None:
-        """Record the reason, the message and the joint."""
-        super().__init__(message)
-        self.reason = reason
+    def __init__(self, joint: str, silence_s: float, limit_s: float) -> None:
+        """Say which joint was silent, how long, and the limit."""
+        super().__init__(
+            f"deadman guard: {joint} went {silence_s * 1000:.1f} ms without a transaction "
+            f"(limit {limit_s * 1000:.0f} ms); its firmware would stop it"
+        )
         self.joint = joint
+        self.silence_s = silence_s
+        self.limit_s = limit_s
 
 
 class SitlHomingWarning(UserWarning):
