@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
     p.add_argument(
         "--algo",
-        choices=tuple(METHODS),
+        metavar="{" + ",".join(METHODS) + "}",  # checked by the registry: one line naming them
         help=", ".join(f"{name}: {spec.help}" for name, spec in METHODS.items())
         + " (default: the task's: dagger on PickPlace without --config, else sac; on --resume the run's)",
     )

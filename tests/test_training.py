@@ -41,8 +41,8 @@ from bioscara_gym.training.hyperparams import (
     Hyperparams,
     default_config_path,
     load_hyperparams,
-    parse_literal_call,
 )
+from bioscara_gym.training.literals import parse_literal_call
 from bioscara_gym.training.metadata import (
     METADATA_NAME,
     build_metadata,

@@ -13,7 +13,7 @@ entries unchanged.
 
 Values that are strings of Python calls such as ``"dict(net_arch=[256, 256])"``
 are parsed with :mod:`ast` for literals and the few class names in
-:data:`NAMES` (``nn.ReLU``, ``GoalErrorExtractor``), never evaluated; dotted
+:data:`~bioscara_gym.training.literals.NAMES` (``nn.ReLU``, ``GoalErrorExtractor``), never evaluated; dotted
 paths are imported, as rl-zoo3 does. Files of the older, bioscara-only form
 (``env_kwargs`` as a ``dict(...)`` string, ``eval_freq``/``eval_episodes``/
 ``target_success`` at the top of an entry) are still read; rl-zoo3 refuses them.
@@ -27,9 +27,7 @@ them could not be evaluated, exported or deployed on the plain env. Counts
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import importlib
 import inspect
 import math
 from collections.abc import Iterable, Sequence
@@ -42,6 +40,7 @@ import yaml
 
 from bioscara_gym.errors import HyperparamError
 from bioscara_gym.hardware.errors import closest_name
+from bioscara_gym.training.literals import import_dotted, parse_literal_call
 
 #: Keys of an entry that are not the algorithm's constructor arguments.
 EXTRA_KEYS = (
@@ -68,16 +67,6 @@ SUCCESS_CALLBACK = "bioscara_gym.training.zoo.SuccessEvalCallback"
 
 #: Its arguments that have fields of their own in :class:`Hyperparams`.
 EVAL_FIELDS = ("eval_freq", "eval_episodes", "target_success")
-
-
-#: Names a value may use (rl-zoo3 writes ``activation_fn=nn.ReLU``), as ``module:attribute``.
-NAMES = {
-    "nn.ReLU": "torch.nn:ReLU",
-    "nn.Tanh": "torch.nn:Tanh",
-    "nn.ELU": "torch.nn:ELU",
-    "nn.LeakyReLU": "torch.nn:LeakyReLU",
-    "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
-}
 
 
 @dataclass(frozen=True)
@@ -145,47 +134,6 @@ def _plain(value: Any) -> Any:
     if isinstance(value, type):
         return f"{value.__module__}.{value.__qualname__}"
     return str(value)
-
-
-def parse_literal_call(text: str, where: str) -> Any:
-    """Parse ``"dict(a=1, b=[2, 3])"`` or a literal; names only from :data:`NAMES`.
-
-    Raises:
-        HyperparamError: Anything but literals, nested ``dict(...)`` calls and
-            the names of :data:`NAMES`.
-    """
-    try:
-        node = ast.parse(text, mode="eval").body
-    except SyntaxError as e:
-        raise HyperparamError(f"{where}: {text!r} is not a Python literal or dict(...)") from e
-
-    def convert(n: ast.AST) -> Any:
-        if (
-            isinstance(n, ast.Call)
-            and isinstance(n.func, ast.Name)
-            and n.func.id == "dict"
-            and not n.args
-            and all(kw.arg is not None for kw in n.keywords)  # no **mapping
-        ):
-            return {kw.arg: convert(kw.value) for kw in n.keywords}
-        if isinstance(n, ast.List):
-            return [convert(e) for e in n.elts]
-        if isinstance(n, ast.Tuple):
-            return tuple(convert(e) for e in n.elts)
-        if isinstance(n, ast.Dict):
-            return {convert(k): convert(v) for k, v in zip(n.keys, n.values, strict=True)}
-        if isinstance(n, ast.Name | ast.Attribute) and ast.unparse(n) in NAMES:
-            module, attribute = NAMES[ast.unparse(n)].split(":")
-            return getattr(importlib.import_module(module), attribute)
-        try:
-            return ast.literal_eval(n)
-        except ValueError as e:
-            raise HyperparamError(
-                f"{where}: {ast.unparse(n)!r} is not allowed; use literals, dict(...) "
-                f"and the names {', '.join(NAMES)}"
-            ) from e
-
-    return convert(node)
 
 
 def default_config_path(algo: str) -> Path:
@@ -409,23 +357,6 @@ def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
         f"see the {algo_cls.__name__} documentation",
         near=EXTRA_KEYS,
     )
-
-
-def import_dotted(name: str, where: str) -> Any:
-    """The attribute a dotted path ``package.module.Name`` names (imported, as rl-zoo3 does).
-
-    Raises:
-        HyperparamError: Not a dotted path, or nothing importable by that name.
-    """
-    module, _, attribute = name.rpartition(".")
-    if not module or not attribute:
-        raise HyperparamError(f"{where}: {name!r} is not a dotted path package.module.Name")
-    try:
-        return getattr(importlib.import_module(module), attribute)
-    except ImportError as e:
-        raise HyperparamError(f"{where}: cannot import {module}: {e}") from e
-    except AttributeError as e:
-        raise HyperparamError(f"{where}: {module} has no {attribute}") from e
 
 
 def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple[type, dict[str, Any]], ...]]:

@@ -160,83 +160,100 @@ class DemoSAC(SAC):
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         """SAC's update (stable-baselines3 2.x) with demonstrations in every batch."""
-        demo = self.demo_buffer
-        if demo is None:
+        if self.demo_buffer is None:
             return super().train(gradient_steps, batch_size)
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.ent_coef_optimizer is not None:
             optimizers += [self.ent_coef_optimizer]
         self._update_learning_rate(optimizers)
-        actor_losses, critic_losses, bc_losses, kept = [], [], [], []
-        n_demo = self.demo_batch_size
+        keys = ("actor_loss", "critic_loss", "bc_loss", "q_filter_kept")
+        losses: dict[str, list[float]] = {k: [] for k in keys}
         for gradient_step in range(gradient_steps):
-            data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            d_obs, d_act, d_next, d_rew, d_done = demo.sample(n_demo)
-            obs = {k: th.cat((data.observations[k], d_obs[k])) for k in GOAL_KEYS}
-            next_obs = {k: th.cat((data.next_observations[k], d_next[k])) for k in GOAL_KEYS}
-            actions = th.cat((data.actions, d_act))
-            rewards = th.cat((data.rewards, d_rew))
-            dones = th.cat((data.dones, d_done))
-
+            batch, demo = self._mixed_batch(batch_size)
+            obs = batch[0]
             actions_pi, log_prob = self.actor.action_log_prob(obs)
             log_prob = log_prob.reshape(-1, 1)
-            ent_coef_loss = None
-            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-                ent_coef = th.exp(self.log_ent_coef.detach())
-                ent_coef_loss = -(self.log_ent_coef * (log_prob + self.target_entropy).detach()).mean()
-                self.ent_coef_optimizer.zero_grad()
-                ent_coef_loss.backward()
-                self.ent_coef_optimizer.step()
-            else:
-                ent_coef = self.ent_coef_tensor
-
-            with th.no_grad():
-                next_actions, next_log_prob = self.actor.action_log_prob(next_obs)
-                next_q = th.cat(self.critic_target(next_obs, next_actions), dim=1)
-                next_q, _ = th.min(next_q, dim=1, keepdim=True)
-                next_q = next_q - ent_coef * next_log_prob.reshape(-1, 1)
-                target_q = rewards + (1 - dones) * self.gamma * next_q
-            current_q = self.critic(obs, actions)
-            critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current_q)
-            assert isinstance(critic_loss, th.Tensor)
-            critic_losses.append(critic_loss.item())
-            self.critic.optimizer.zero_grad()
-            critic_loss.backward()
-            self.critic.optimizer.step()
-
-            q_pi = th.cat(self.critic(obs, actions_pi), dim=1)
-            min_q_pi, _ = th.min(q_pi, dim=1, keepdim=True)
-            actor_loss = (ent_coef * log_prob - min_q_pi).mean()
-            # Behaviour cloning on the demonstrations, where the critic prefers them (Q-filter).
-            pred, _ = _deterministic(self.actor, d_obs)
-            bc_err = ((pred - d_act) ** 2).sum(dim=1, keepdim=True)
-            if self.q_filter:
-                with th.no_grad():
-                    q_demo = th.min(th.cat(self.critic(d_obs, d_act), dim=1), dim=1, keepdim=True)[0]
-                    q_actor = th.min(th.cat(self.critic(d_obs, pred), dim=1), dim=1, keepdim=True)[0]
-                    mask = (q_demo > q_actor).float()
-            else:
-                mask = th.ones_like(bc_err)
-            bc_loss = (mask * bc_err).mean()
-            actor_loss = actor_loss + self.bc_weight * bc_loss
-            actor_losses.append(actor_loss.item())
-            bc_losses.append(bc_loss.item())
-            kept.append(mask.mean().item())
-            self.actor.optimizer.zero_grad()
-            actor_loss.backward()
-            self.actor.optimizer.step()
-
+            ent_coef = self._entropy_coefficient(log_prob)
+            losses["critic_loss"].append(self._critic_step(batch, ent_coef))
+            for key, value in self._actor_step(obs, actions_pi, log_prob, ent_coef, demo).items():
+                losses[key].append(value)
             if gradient_step % self.target_update_interval == 0:
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
                 polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/actor_loss", np.mean(actor_losses))
-        self.logger.record("train/critic_loss", np.mean(critic_losses))
-        self.logger.record("train/bc_loss", np.mean(bc_losses))
-        self.logger.record("train/q_filter_kept", np.mean(kept))
+        for key, values in losses.items():
+            self.logger.record(f"train/{key}", np.mean(values))
         return None
+
+    def _mixed_batch(self, batch_size: int) -> tuple[tuple[Any, ...], tuple[Any, Any]]:
+        """``batch_size`` replayed transitions and ``demo_batch_size`` demonstrations, concatenated.
+
+        Returns:
+            (obs, actions, next_obs, rewards, dones) of both, and the demonstrations' (obs, actions).
+        """
+        data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        d_obs, d_act, d_next, d_rew, d_done = self.demo_buffer.sample(self.demo_batch_size)
+        obs = {k: th.cat((data.observations[k], d_obs[k])) for k in GOAL_KEYS}
+        next_obs = {k: th.cat((data.next_observations[k], d_next[k])) for k in GOAL_KEYS}
+        actions = th.cat((data.actions, d_act))
+        rewards = th.cat((data.rewards, d_rew))
+        dones = th.cat((data.dones, d_done))
+        return (obs, actions, next_obs, rewards, dones), (d_obs, d_act)
+
+    def _entropy_coefficient(self, log_prob: th.Tensor) -> th.Tensor:
+        """SAC's entropy coefficient, after its own update where it is learned."""
+        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
+            return self.ent_coef_tensor
+        ent_coef = th.exp(self.log_ent_coef.detach())
+        ent_coef_loss = -(self.log_ent_coef * (log_prob + self.target_entropy).detach()).mean()
+        self.ent_coef_optimizer.zero_grad()
+        ent_coef_loss.backward()
+        self.ent_coef_optimizer.step()
+        return ent_coef
+
+    def _critic_step(self, batch: tuple[Any, ...], ent_coef: th.Tensor) -> float:
+        """One critic update on the mixed batch; its loss."""
+        obs, actions, next_obs, rewards, dones = batch
+        with th.no_grad():
+            next_actions, next_log_prob = self.actor.action_log_prob(next_obs)
+            next_q = th.cat(self.critic_target(next_obs, next_actions), dim=1)
+            next_q, _ = th.min(next_q, dim=1, keepdim=True)
+            next_q = next_q - ent_coef * next_log_prob.reshape(-1, 1)
+            target_q = rewards + (1 - dones) * self.gamma * next_q
+        current_q = self.critic(obs, actions)
+        critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current_q)
+        assert isinstance(critic_loss, th.Tensor)
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+        return critic_loss.item()
+
+    def _actor_step(
+        self, obs: Any, actions_pi: th.Tensor, log_prob: th.Tensor, ent_coef: th.Tensor, demo: tuple[Any, Any]
+    ) -> dict[str, float]:
+        """One actor update: SAC's loss plus behaviour cloning where the critic prefers the demonstration."""
+        d_obs, d_act = demo
+        q_pi = th.cat(self.critic(obs, actions_pi), dim=1)
+        min_q_pi, _ = th.min(q_pi, dim=1, keepdim=True)
+        actor_loss = (ent_coef * log_prob - min_q_pi).mean()
+        pred, _ = _deterministic(self.actor, d_obs)
+        bc_err = ((pred - d_act) ** 2).sum(dim=1, keepdim=True)
+        if self.q_filter:  # the Q-filter
+            with th.no_grad():
+                q_demo = th.min(th.cat(self.critic(d_obs, d_act), dim=1), dim=1, keepdim=True)[0]
+                q_actor = th.min(th.cat(self.critic(d_obs, pred), dim=1), dim=1, keepdim=True)[0]
+                mask = (q_demo > q_actor).float()
+        else:
+            mask = th.ones_like(bc_err)
+        bc_loss = (mask * bc_err).mean()
+        actor_loss = actor_loss + self.bc_weight * bc_loss
+        self.actor.optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor.optimizer.step()
+        kept = mask.mean().item()
+        return {"actor_loss": actor_loss.item(), "bc_loss": bc_loss.item(), "q_filter_kept": kept}
 
 
 def attach_demos(
