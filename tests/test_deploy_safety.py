@@ -35,6 +35,9 @@ class FlagsBackend(Backend):
 
     name = "mock"
 
+    def close(self) -> None:
+        """Nothing to release."""
+
     def device_flags(self, name: str) -> Flag | None:
         joint = self.joints[name]
         return Flag(joint.device_flags) if isinstance(joint, MockJoint) else None

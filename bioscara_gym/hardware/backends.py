@@ -26,6 +26,7 @@ call (``sim``) has already advanced them by its wire time at the configured
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import importlib
 import os
@@ -117,15 +118,34 @@ def _i2c_joint(j: JointConfig, bus: I2CBus, retries: int, clock: Clock) -> Joint
     )
 
 
-class Backend:
-    """Joints, gripper and clock of one arm.
+class Backend(abc.ABC):
+    """Joints, gripper and clock of one arm: what the :class:`~bioscara_gym.hardware.arm.Arm` drives.
+
+    The contract every backend keeps (the Arm, the envs, the console and
+    deploy rely on nothing else):
+
+    - :attr:`joints` holds one :class:`~bioscara_gym.hardware.base_joint.BaseJoint`
+      per configured joint, by name, in configuration order; :attr:`gripper`
+      one :class:`~bioscara_gym.hardware.gripper.BaseGripper`. Nothing is
+      sent to a device before the Arm calls ``init()``.
+    - :attr:`clock` is the one time source of the joints, the gripper and
+      :meth:`step`: simulated (``sim``, ``mock``, ``emulated``, ``sitl``) or
+      the wall clock (the arm), in seconds.
+    - :meth:`step` lets one control period pass, on that clock, without drift.
+    - :meth:`device_flags` and :meth:`device_currents` look into a device
+      without a transaction where the backend can (a simulation, a mirror),
+      else return ``None``; :meth:`comm_stats` and :meth:`loop_stats` are empty
+      without a bus or sync loops.
+    - :meth:`close` releases what the backend holds (bus handles, ports,
+      loaded firmware); the Arm calls it once, on ``shutdown()``. A backend
+      is a context manager that closes on leaving the ``with`` block.
 
     Attributes:
-        name: Backend name.
+        name: Backend name, as :func:`make_backend` takes it.
         config: The arm configuration.
         joints: Joint name to joint, in configuration order.
         gripper: The gripper.
-        clock: The backend's time source.
+        clock: The backend's time source, s.
         sim: The MuJoCo arm where there is one, else ``None``.
         schedule: The control loop's deadlines on ``clock`` (:meth:`step`).
     """
@@ -194,8 +214,9 @@ class Backend:
         """
         return {}
 
+    @abc.abstractmethod
     def close(self) -> None:
-        """Release resources (bus handles)."""
+        """Release what the backend holds (bus handles, ports, loaded firmware); sends nothing."""
 
     def __enter__(self) -> Backend:
         """Use as a context manager."""
@@ -244,6 +265,9 @@ class SimBackend(Backend):
             sim,
             sim.schedule,
         )
+
+    def close(self) -> None:
+        """Nothing to release: the MuJoCo arm holds no handle."""
 
 
 class EmulatedBackend(Backend):
@@ -317,6 +341,9 @@ class MockBackend(Backend):
             j.name: MockJoint(j.name, j.reduction, j.min, j.max, clock, homing_time_s) for j in config.joints
         }
         super().__init__(config, joints, mock_gripper(config, state_file), clock)
+
+    def close(self) -> None:
+        """Nothing to release: the mirrors hold no handle."""
 
     def device_flags(self, name: str) -> Flag | None:
         """The mirror's own flags (see :meth:`Backend.device_flags`)."""

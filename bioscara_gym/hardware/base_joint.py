@@ -9,6 +9,7 @@ from collections.abc import Callable
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.codec import pack_bytes
 from bioscara_gym.hardware.errors import (
+    AlreadyInitializedError,
     CommError,
     IncorrectStateError,
     InvalidArgumentError,
@@ -354,14 +355,25 @@ class BaseJoint(abc.ABC):
 
     # ------------------------------------------------------------ lifecycle
     def init(self) -> None:
-        """Open the connection, PING the joint and restore the homing offset.
+        """Open the connection, PING the joint and restore the homing offset (:meth:`_init`).
 
         If the joint reports homed (it kept power while the host restarted),
-        the offset is read back from HOMEOFFSET so positions stay valid.
+        the offset is read back from HOMEOFFSET so positions stay valid. A
+        failed ``init()`` leaves the joint uninitialized.
 
         Raises:
+            AlreadyInitializedError: The joint is initialized already (``deinit()`` first);
+                nothing is sent.
             CommError: No answer, or PING did not answer ``'O'``.
         """
+        if self._initialized:
+            raise AlreadyInitializedError(
+                "joint already initialized; call deinit() before init() again", joint=self.name
+            )
+        self._init()
+
+    def _init(self) -> None:
+        """The driver's connection: open, PING, restore the homing offset (see :meth:`init`)."""
         self._open()
         self._initialized = True
         self._enable_needed = False  # a new session: the joint's own flags decide

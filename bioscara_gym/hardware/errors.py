@@ -165,6 +165,10 @@ class IncorrectStateError(JointError):
     code = ErrType.INCORRECT_STATE
 
 
+class AlreadyInitializedError(IncorrectStateError):
+    """``init()`` on a joint already initialized: ``deinit()`` it first (LeRobot's ``connect()`` twice)."""
+
+
 class ArmStateError(IncorrectStateError):
     """A request that the arm's lifecycle state or command mode does not allow."""
 
