@@ -26,13 +26,14 @@ from bioscara_gym.hardware.arm import check_control_freq
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import SitlError
+from bioscara_gym.hardware.registry import backend_names
 from bioscara_gym.tasks import task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import PolicyShapes, read_metadata, resolve_env_id
 
-#: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``); ``sitl`` runs the
-#: firmware's own source behind the emulated bus (``--firmware DIR``).
-DEPLOY_BACKENDS = ("i2c", "emulated", "sitl", "mock")
+#: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
+#: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
+DEPLOY_BACKENDS = backend_names("deployable")
 
 
 class Policy(Protocol):

@@ -146,7 +146,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         height: int = 480,
     ) -> None:
         """Create the env; the backend is built now, the arm is brought up on reset."""
-        if isinstance(backend, str) and backend not in BACKENDS:
+        if isinstance(backend, str) and backend not in BACKENDS:  # the registry's for the Bioscara's joints
             raise ValueError(f"backend {backend!r} is unknown; expected one of {', '.join(BACKENDS)}")
         if control_mode not in CONTROL_MODES:
             raise ValueError(f"control_mode {control_mode!r} must be one of {', '.join(CONTROL_MODES)}")

@@ -43,22 +43,15 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
-from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, BusWrapper, Recording, recorder
+from bioscara_gym.hardware.recording import BusWrapper, Recording, recorder
 from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.registry import BACKENDS as REGISTRY
 from bioscara_gym.hardware.stats import CommStats
 
-BACKENDS = ("sim", "mock", "emulated", "i2c", "sitl")
-#: Backends of this package built from a module of their own, imported when made:
-#: the firmware in the loop needs MuJoCo and, the first time, a C++ compiler.
-LAZY_BACKENDS = {"sitl": "bioscara_gym.hardware.sitl.arm:SitlBackend"}
-#: Backends of optional subpackages, name to ``module:class``, imported when built
-#: (as ``EXTRA_COMMAND_MODULES`` in ``cli.py``): an arm of Dynamixel servos (docs/dynamixel.md).
-EXTRA_BACKENDS = {
-    "dynamixel": "bioscara_gym.hardware.dynamixel.backend:DynamixelBackend",
-    "dynamixel-emulated": "bioscara_gym.hardware.dynamixel.backend:EmulatedDynamixelBackend",
-}
-#: Every backend name :func:`make_backend` accepts.
-ALL_BACKENDS = (*BACKENDS, *EXTRA_BACKENDS)
+#: The backends of the Bioscara's own joints (:data:`~bioscara_gym.hardware.registry.BACKENDS`).
+BACKENDS = tuple(n for n, spec in REGISTRY.items() if spec.bioscara)
+#: Every backend name :func:`make_backend` accepts, optional subpackages' included.
+ALL_BACKENDS = tuple(REGISTRY)
 
 
 def with_i2c_clock(config: ArmConfig, i2c_clock_hz: float | None) -> ArmConfig:
@@ -417,25 +410,18 @@ def make_backend(
     """
     if not isinstance(config, ArmConfig):
         config = load_config(config)
-    classes: dict[str, type[Backend]] = {
-        "sim": SimBackend,
-        "mock": MockBackend,
-        "emulated": EmulatedBackend,
-        "i2c": I2CBackend,
-    }
-    lazy = LAZY_BACKENDS.get(name) or EXTRA_BACKENDS.get(name)
-    if lazy is not None:
-        if name in LAZY_BACKENDS:
-            require_extra("mujoco", f"the {name} backend", "sim")
-        module, _, cls = lazy.partition(":")
-        classes[name] = getattr(importlib.import_module(module), cls)
-    if name not in classes:
+    spec = REGISTRY.get(name)
+    if spec is None:
         raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
+    if spec.needs is not None:
+        require_extra(spec.needs[0], f"the {name} backend", spec.needs[1])
+    module, _, cls_name = spec.entry_point.partition(":")
+    cls: type[Backend] = getattr(importlib.import_module(module), cls_name)
     record = options.pop("record", None)
     if record is not None:
-        if name not in RECORDABLE_BACKENDS:
+        if not spec.records:
             raise ValueError(f"--record needs a backend with an I2C bus (i2c, emulated); {name} has none")
         if not isinstance(record, Recording):
             record = Recording(Path(record), "")  # type: ignore[arg-type]
         options["wrap_bus"] = recorder(record, name, config)
-    return classes[name](config, **options)  # type: ignore[arg-type]
+    return cls(config, **options)  # type: ignore[arg-type]

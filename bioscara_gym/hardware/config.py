@@ -99,6 +99,7 @@ from bioscara_gym.hardware.registers import (
     MOTOR_RPM_MAX,
     SENSITIVITY_MAX,
 )
+from bioscara_gym.hardware.registry import DRIVERS
 from bioscara_gym.hardware.transmission import rate_to_degrees, velocity_to_rpm
 
 __all__ = [
@@ -121,8 +122,9 @@ GRIPPER_NAME = "gripper"
 #: Allowed values of :attr:`JointConfig.joint_type`.
 JOINT_TYPES = ("revolute", "prismatic")
 
-#: Allowed values of :attr:`JointConfig.type`: the Bioscara's I2C stepper joint, a Dynamixel servo.
-DRIVER_TYPES = ("i2c", "dynamixel")
+#: Allowed values of :attr:`JointConfig.type`: the joint types of the registry
+#: (:data:`~bioscara_gym.hardware.registry.DRIVERS`: the Bioscara's I2C stepper joint, a Dynamixel servo).
+DRIVER_TYPES = tuple(DRIVERS)
 #: Sync loops of a Dynamixel bus and their default rates, Hz (the MH5's defaults; see
 #: ``bioscara_gym/hardware/dynamixel/control_table.py``).
 DYNAMIXEL_LOOP_RATES = {"pvl_reader": 100.0, "tv_reader": 1.0, "pv_writer": 100.0, "t_writer": 2.0}
