@@ -15,7 +15,7 @@ import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -27,21 +27,13 @@ from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import SitlError
 from bioscara_gym.hardware.registry import backend_names
-from bioscara_gym.tasks import task_of
+from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import PolicyShapes, read_metadata, resolve_env_id
 
 #: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
 #: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
 DEPLOY_BACKENDS = backend_names("deployable")
-
-
-class Policy(Protocol):
-    """Observation -> action; ``reset()`` is called at each episode start if present."""
-
-    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """The action for ``obs``."""
-        ...
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """The run phase of ``bioscara deploy``: episodes of control cycles, each behind the safety layer.
 
-:class:`ControlLoop` resets the env for each episode and runs its cycles:
+:class:`ControlLoop` resets the env (and the policy, if it has a ``reset()``)
+for each episode and runs its cycles:
 the policy's action through :class:`~bioscara_gym.training.deploy_safety.SafetyLayer`,
 the cycle's timing on the backend's clock and the wall clock
 (:class:`EpisodeClock`), overruns warned about, and one ``cycle`` record per
