@@ -263,6 +263,11 @@ def test_bioscara_train_algo_dagger_runs_from_the_command_line(tmp_path: Path) -
     assert state["algo"] == "dagger" and state["total_timesteps"] == 500
 
 
+def test_models_saved_before_the_extractor_moved_still_find_it() -> None:
+    # SB3 pickles policy_kwargs' features_extractor_class by module path.
+    assert dagger.PickPlaceExtractor is PickPlaceExtractor
+
+
 def test_extractor_sees_millimetres_near_the_block(pick_env: gym.Env) -> None:
     import torch as th
 

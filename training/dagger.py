@@ -54,6 +54,9 @@ with needs_train():
     from stable_baselines3.common.logger import configure as configure_logger
 
     from bioscara_gym.training.algos import sb3_policy
+
+    # Models saved before issue #26 name their extractor here (SB3 pickles the class by path).
+    from bioscara_gym.training.features import PickPlaceExtractor  # noqa: F401
     from bioscara_gym.training.imitation import fit_actor
     from bioscara_gym.training.zoo import EVAL_SEED_OFFSET
 
