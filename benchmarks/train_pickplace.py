@@ -97,17 +97,15 @@ def run(method: str, seed: int, minutes: float, out: Path, extra: list[str], epi
 
 def _env_kwargs(out: Path) -> dict[str, Any]:
     """The env the run trained on: its metadata's, else its config's (an interrupted run has no metadata)."""
-    from bioscara_gym.training import dagger
-    from bioscara_gym.training.hyperparams import load_hyperparams
+    from bioscara_gym.training.methods import method_spec
 
     meta = out / "metadata.json"
     if meta.exists():
         return dict(json.loads(meta.read_text(encoding="utf-8"))["env_kwargs"])
     state = json.loads((out / "train_state.json").read_text(encoding="utf-8"))
-    if state["algo"] == "dagger":
-        config = Path(state["config"]) if state["config"] else dagger.default_dagger_config()
-        return dict(dagger.load_dagger_config(config, ENV).env_kwargs)
-    return dict(load_hyperparams(Path(state["config"]), ENV).env_kwargs)
+    spec = method_spec(state["algo"])
+    config = Path(state["config"]) if state["config"] else spec.default_config()
+    return dict(spec.load_config(config, ENV).env_kwargs)
 
 
 def evaluate(out: Path, episodes: int) -> tuple[float, int]:
@@ -116,8 +114,8 @@ def evaluate(out: Path, episodes: int) -> tuple[float, int]:
 
     import bioscara_gym  # noqa: F401
     from bioscara_gym.training.algos import ALGOS, sb3_policy
+    from bioscara_gym.training.checkpoints import newest_checkpoint
     from bioscara_gym.training.evaluate import run_episodes
-    from bioscara_gym.training.train import newest_checkpoint
 
     path = out / "model.zip"
     if not path.exists():

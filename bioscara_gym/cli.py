@@ -182,12 +182,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
+    from bioscara_gym.training.methods import METHODS  # names only: no torch
+
     p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
     p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
     p.add_argument(
         "--algo",
-        help="sac, td3, ppo, bc (behaviour cloning) or dagger (default: dagger on PickPlace without "
-        "--config, sac elsewhere; on --resume the run's)",
+        metavar="{" + ",".join(METHODS) + "}",  # checked by the registry: one line naming them
+        help=", ".join(f"{name}: {spec.help}" for name, spec in METHODS.items())
+        + " (default: the task's: dagger on PickPlace without --config, else sac; on --resume the run's)",
     )
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
@@ -233,7 +236,7 @@ EXTRA_COMMAND_MODULES = (
     "bioscara_gym.training.deploy",
     "bioscara_gym.training.export",
     "bioscara_gym.console.commands",
-    "bioscara_gym.hardware.dynamixel.commands",
+    "bioscara_gym.console.emulate",
     "bioscara_gym.replay",
     "bioscara_gym.validation.commands",
 )

@@ -3,7 +3,22 @@
 They act through the tasks' own action spaces, from observations only (plus
 the arm's configuration), so they run on every backend like a policy would.
 They prove the tasks solvable and are the baselines trained policies are
-compared against (``bioscara eval --expert``).
+compared against (``bioscara eval --expert``). Each task names its experts in
+:data:`bioscara_gym.tasks.TASKS`; :func:`expert_for` and
+:func:`observation_expert_for` look them up there.
+
+The scripted :class:`PickPlaceExpert` keeps a phase (approach, descend,
+squeeze, carry), a squeeze counter and the elbow chosen per phase, so its
+action is not a function of the observation alone and it cannot label a
+state it did not reach itself. :class:`ObservationExpert` is the same
+controller with that state read from the observation: the phase from where
+the block is relative to the TCP and whether the gripper is commanded closed
+(the observation holds the commanded width), the squeeze counter replaced by
+closing in steps (the width itself counts them), and the elbow kept by a
+switching cost instead of a memory (:meth:`JointSpaceController.solve`). Its
+phase tests have tolerances, so a learner's inexact gripper output does not
+flip the phase. DAgger labels the learner's states with it
+(``training/dagger.py``), and ``bioscara collect --expert`` records it.
 """
 
 from __future__ import annotations
@@ -16,12 +31,16 @@ from bioscara_gym import kinematics
 from bioscara_gym.envs.actions import WRIST_STEP, to_range, to_unit
 from bioscara_gym.envs.base import BioscaraEnv
 from bioscara_gym.envs.pick_place import BLOCK_SIZE
+from bioscara_gym.tasks import Expert, task_of
 
 #: Fraction of the braking-limited speed the controller asks for (the firmware
 #: ramps every command with the joint's max acceleration).
 BRAKE_MARGIN = 0.8
 #: Proportional gain near the goal, 1/s.
 GAIN = 8.0
+#: :meth:`JointSpaceController.solve`'s cost of the other elbow by default: taken only if
+#: the preferred one cannot reach.
+ELBOW_REFUSED = 1e6
 
 
 class JointSpaceController:
@@ -62,15 +81,24 @@ class JointSpaceController:
         a = np.append((xyz - tcp) / np.asarray(self.env.cartesian_step), (q4_target - q4) / WRIST_STEP)
         return np.clip(a, -1.0, 1.0)
 
-    def solve(self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None) -> np.ndarray | None:
-        """IK for the TCP at ``xyz`` within the commandable range.
+    def solve(
+        self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None, switch_cost: float = ELBOW_REFUSED
+    ) -> np.ndarray | None:
+        """IK for the TCP at ``xyz`` within the commandable range: the solution reached soonest.
+
+        Each elbow's solution costs its slowest joint's travel time (travel
+        over max velocity), ties (e.g. both wait for the slow lift) broken by
+        a tenth of the total; the elbow other than ``elbow`` costs
+        ``switch_cost`` more.
 
         Args:
             xyz: TCP target in m.
             q: Current joint positions.
-            elbow: Preferred sign of j3; ``None`` picks the solution reached
-                soonest (slowest joint's travel over its max velocity, ties
-                broken by the total travel).
+            elbow: Preferred sign of j3; ``None``: no preference.
+            switch_cost: Extra cost, s, of the other elbow. The default
+                (:data:`ELBOW_REFUSED`) takes it only where the preferred one
+                cannot reach; :class:`ObservationExpert` charges a fraction of
+                a second, so it changes elbow only for a much shorter path.
 
         Returns:
             j1..j4 targets (j4 kept at ``q[3]``), or ``None`` if unreachable.
@@ -84,10 +112,9 @@ class JointSpaceController:
             if np.any(cand[:3] < self.cmd_lo[:3]) or np.any(cand[:3] > self.cmd_hi[:3]):
                 continue
             travel = np.abs(cand[:3] - q[:3]) / self.vmax[:3]
-            # Slowest joint's time, ties (e.g. both wait for the slow lift) broken by total motion.
             cost = float(np.max(travel) + 0.1 * np.sum(travel))
             if elbow is not None and sign != elbow:
-                cost += 1e6  # only if the preferred elbow cannot reach
+                cost += switch_cost
             if cost < best_cost:
                 best, best_cost = cand, cost
         return best
@@ -208,8 +235,116 @@ class PickPlaceExpert:
         return np.append(a, self._width_action(width)).astype(np.float32)
 
 
-def expert_for(env: BioscaraEnv) -> ReachExpert | PickPlaceExpert:
-    """The scripted expert of ``env``'s task."""
-    from bioscara_gym.envs.pick_place import BioscaraPickPlaceEnv
+class ObservationExpert(PickPlaceExpert):
+    """The PickPlace expert as a function of the observation (see the module docstring).
 
-    return PickPlaceExpert(env) if isinstance(env, BioscaraPickPlaceEnv) else ReachExpert(env)
+    Phases, decided afresh every step:
+
+    | phase    | when                                                       | does                          |
+    |----------|------------------------------------------------------------|-------------------------------|
+    | carry    | gripper commanded fully closed, block between the fingers  | block to the target           |
+    | squeeze  | gripper closing, or open at grasp height over the block    | closes in ``SQUEEZE_LEVELS``  |
+    | release  | gripper closed, block not between the fingers              | opens, as approach            |
+    | descend  | open, within ``ALIGN_M`` of the block (``ALIGN_LOW_M`` low) | down to ``GRASP_Z``           |
+    | approach | otherwise                                                  | above the block, wrist square |
+    """
+
+    #: Horizontal TCP-block distance (m) from which the gripper descends.
+    ALIGN_M = 0.003
+    #: The same while already below the approach height (no lift for a small drift).
+    ALIGN_LOW_M = 0.008
+    #: Block between the fingers: horizontal offset (m) and vertical range of block minus TCP.
+    HOLD_XY_M = 0.008
+    HOLD_Z_M = (-0.005, 0.012)
+    #: Gripper action (unit) within which the width counts as open, and as closed: a
+    #: learner's gripper output is never exact, and a phase must not flip on its last digit.
+    WIDTH_TOL = 0.15
+    CLOSED_TOL = 0.03
+    #: Gripper actions of the squeeze, one a step (-1 is 0.04 m, fully closed): the width
+    #: itself counts the steps, in steps a learner can tell apart (the scripted expert
+    #: waits 8 steps, measured enough from 3).
+    SQUEEZE_LEVELS = (-0.4, -0.7, -0.9)
+    #: TCP height (m) within which the gripper counts as at grasp height.
+    GRASP_TOL_M = 0.003
+    #: Cost (s of the slowest joint's travel) of changing elbow.
+    ELBOW_SWITCH_S = 0.3
+
+    def __init__(self, env: BioscaraEnv) -> None:
+        """Bind to ``env`` (use ``env.unwrapped``)."""
+        super().__init__(env)
+        self._u_open = self._width_action(self.OPEN)
+        self._u_closed = self._width_action(self.CLOSED)
+
+    def _squeeze_step(self, width: float) -> float:
+        """The next gripper action of the squeeze: the first of ``SQUEEZE_LEVELS`` below ``width`` by 0.1."""
+        return next((level for level in self.SQUEEZE_LEVELS if level < width - 0.1), self._u_closed)
+
+    def phase_of(self, obs: dict[str, np.ndarray]) -> str:
+        """The phase ``obs`` is in (see the class docstring)."""
+        o, s = obs["observation"], self._slices
+        tcp, block = o[s["tcp"]], o[s["block_pos"]]
+        width = float(o[s["gripper"]][0])
+        d = block - tcp
+        xy = math.hypot(d[0], d[1])
+        held = xy < self.HOLD_XY_M and self.HOLD_Z_M[0] < d[2] < self.HOLD_Z_M[1]
+        if width <= self._u_closed + self.CLOSED_TOL:
+            return "carry" if held else "release"
+        if width < self._u_open - self.WIDTH_TOL:  # closing
+            return "squeeze" if held else "release"
+        if abs(tcp[2] - self.GRASP_Z) < self.GRASP_TOL_M and xy < self.ALIGN_M:
+            return "squeeze"
+        low = tcp[2] < BLOCK_SIZE + 0.01 - 0.002
+        if xy < self.ALIGN_M or (low and xy < self.ALIGN_LOW_M):
+            return "descend"
+        return "approach"
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Action for ``obs``."""
+        o = obs["observation"]
+        q = self.ctrl.joints(o)
+        s = self._slices
+        tcp, block, yaw = o[s["tcp"]], o[s["block_pos"]], float(o[s["block_yaw"]][0])
+        phase = self.phase = self.phase_of(obs)
+        width_u = self._u_open
+        if phase in ("approach", "release"):
+            xyz = np.array([block[0], block[1], max(tcp[2], BLOCK_SIZE + 0.01)])
+        elif phase == "descend":
+            xyz = np.array([block[0], block[1], self.GRASP_Z])
+        elif phase == "squeeze":
+            xyz = np.array([block[0], block[1], self.GRASP_Z])
+            width_u = self._squeeze_step(float(o[s["gripper"]][0]))
+        else:  # carry
+            width_u = self._u_closed
+            xyz = obs["desired_goal"] - (block - tcp)
+            xyz[2] = max(xyz[2], self.GRASP_Z)
+        if self.env.control_mode == "cartesian":
+            q4_target = self._wrist_for(q, yaw) if phase in ("approach", "descend") else q[3]
+            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target)
+            return np.append(a, width_u).astype(np.float32)
+        elbow = 1.0 if q[2] >= 0 else -1.0  # the arm's own: kept unless the other is much shorter
+        target = self.ctrl.solve(xyz, q, elbow, switch_cost=self.ELBOW_SWITCH_S)
+        target = q.copy() if target is None else target
+        if phase in ("approach", "descend", "release"):
+            target[3] = self._wrist_for(target, yaw)
+        else:
+            target[3] = q[3]
+        return np.append(self.ctrl.action(q, target), width_u).astype(np.float32)
+
+
+def expert_for(env: BioscaraEnv) -> Expert:
+    """The scripted expert of ``env``'s task (:data:`bioscara_gym.tasks.TASKS`), bound to ``env``.
+
+    Raises:
+        KeyError: ``env`` was not made from a registered task.
+    """
+    return task_of(env).make_expert(env)
+
+
+def observation_expert_for(env: BioscaraEnv) -> Expert:
+    """The expert of ``env``'s task whose action is a function of the observation alone.
+
+    Raises:
+        KeyError: ``env`` was not made from a registered task.
+        LookupError: The task has no such expert.
+    """
+    return task_of(env).make_observation_expert(env)

@@ -148,12 +148,8 @@ def _run_deploy(args: dict[str, Any], options: dict[str, object], tmp: Path) -> 
     _paths(args, ("model", "onnx", "config", "log", "state_file", "record"))
     args.update(log=tmp / "deploy.jsonl", state_file=None, faults=None, realtime=False, record=None)
 
-    class ReplayDeployment(Deployment):
-        def _backend_options(self) -> dict[str, Any]:
-            return {**super()._backend_options(), **options}
-
     with contextlib.suppress(DeployError):  # a recorded safety stop ends the replay the same way
-        ReplayDeployment(DeployArgs(**args), console=Console(file=io.StringIO())).run()
+        Deployment(DeployArgs(**args), console=Console(file=io.StringIO()), backend_options=options).run()
 
 
 def _run_eval(args: dict[str, Any], options: dict[str, object], tmp: Path) -> None:

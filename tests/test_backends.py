@@ -28,6 +28,7 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.errors import AlreadyInitializedError
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -400,3 +401,24 @@ def test_device_flags_follow_the_emulated_firmware_not_the_last_reply(make_arm_b
 
 def test_device_flags_cannot_be_seen_on_hardware(i2c_backend: I2CBackend) -> None:
     assert i2c_backend.device_flags("j1") is None
+
+
+# ------------------------------------------------------------- guarded state
+@pytest.mark.parametrize("name", ARM_BACKENDS)
+def test_init_twice_is_refused_with_a_named_error_and_sends_nothing(
+    make_arm_backend: MakeBackend, name: str
+) -> None:
+    backend = make_arm_backend(name)
+    joint = backend.joints["j1"]
+    joint.init()
+    before = backend.comm_stats().get("j1")
+    sent = None if before is None else before.total_transactions
+    with pytest.raises(AlreadyInitializedError, match=r"^j1: joint already initialized; call deinit\(\)"):
+        joint.init()
+    after = backend.comm_stats().get("j1")
+    assert (None if after is None else after.total_transactions) == sent
+    assert joint.initialized  # still usable
+    joint.get_flags()
+    joint.deinit()
+    joint.init()  # after deinit() it connects again
+    assert joint.initialized

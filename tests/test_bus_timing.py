@@ -31,8 +31,7 @@ from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.clock import DeadlineScheduler, ManualClock
 from bioscara_gym.hardware.config import config_from_dict, config_to_dict, load_config
-from bioscara_gym.hardware.dynamixel.emulator import DxlFaultPlan
-from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
+from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, EmulatedI2CBus, FaultPlan
 from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.i2c_timing import wire_time_s
 from bioscara_gym.hardware.motor import KinematicStepper
@@ -282,8 +281,8 @@ def test_the_dynamixel_fault_spec_still_lists_its_own_keys() -> None:
     with pytest.raises(
         ValueError, match=r"^unknown fault 'nack'; expected drop, corrupt, delay_ms, delay_s$"
     ):
-        DxlFaultPlan.parse("nack=0.1")
-    assert DxlFaultPlan.parse("delay_ms=2") == DxlFaultPlan(delay_s=0.002)
+        FaultPlan.parse("nack=0.1", kinds=RS485_FAULTS)
+    assert FaultPlan.parse("delay_ms=2", kinds=RS485_FAULTS) == FaultPlan(latency_s=0.002)
 
 
 @pytest.mark.parametrize(

@@ -18,21 +18,18 @@ import yaml
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.cli import main
 from bioscara_gym.errors import HyperparamError, TrainingError
-from bioscara_gym.experts import PickPlaceExpert
+from bioscara_gym.experts import ObservationExpert, PickPlaceExpert
 from bioscara_gym.training import dagger
 from bioscara_gym.training.algos import load_model
-from bioscara_gym.training.dagger import (
-    DaggerConfig,
-    Labelled,
-    ObservationExpert,
-    PickPlaceExtractor,
-    label_episodes,
-    load_dagger_config,
-    train_dagger,
-    uses_dagger,
-)
+from bioscara_gym.training.dagger import Labelled, label_episodes
 from bioscara_gym.training.evaluate import run_episodes
-from bioscara_gym.training.train import TrainArgs, TrainingInterrupted
+from bioscara_gym.training.features import PickPlaceExtractor
+from bioscara_gym.training.hyperparams import DaggerConfig, default_config_path, load_dagger_config
+from bioscara_gym.training.train import TrainArgs, TrainingInterrupted, choose_method, train
+
+
+def uses_dagger(args: TrainArgs, env_id: str) -> bool:
+    return choose_method(args, env_id).name == "dagger"
 
 PICK = "Bioscara-PickPlace-v0"
 REACH = "Bioscara-Reach-v0"
@@ -157,7 +154,7 @@ def test_labelled_sets_add_up_in_order() -> None:
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     tmp = tmp_path_factory.mktemp("dagger")
-    result = train_dagger(tiny_args(tmp), PICK)
+    result = train(tiny_args(tmp))
     assert result.model_path.exists()
     return tmp / "run"
 
@@ -195,22 +192,22 @@ def test_an_interrupted_run_resumes_from_its_newest_checkpoint(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     calls = {"n": 0}
-    original = dagger._Run.iteration
+    original = dagger.DAgger.iteration
 
-    def interrupted_at_the_third(self: dagger._Run, i: int, *args: object) -> object:
+    def interrupted_at_the_third(self: dagger.DAgger, i: int, *args: object) -> object:
         calls["n"] += 1
         if calls["n"] == 3:
             raise KeyboardInterrupt
         return original(self, i, *args)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(dagger._Run, "iteration", interrupted_at_the_third)
+    monkeypatch.setattr(dagger.DAgger, "iteration", interrupted_at_the_third)
     with pytest.raises(TrainingInterrupted) as caught:
-        train_dagger(tiny_args(tmp_path), PICK)
+        train(tiny_args(tmp_path))
     assert caught.value.checkpoint is not None
     saved = checkpoint_data(tmp_path / "run")[-1]
     assert int(saved["iteration"]) == 2
-    monkeypatch.setattr(dagger._Run, "iteration", original)
-    result = train_dagger(tiny_args(tmp_path, resume=True, config=None), PICK)
+    monkeypatch.setattr(dagger.DAgger, "iteration", original)
+    result = train(tiny_args(tmp_path, resume=True, config=None))
     last = checkpoint_data(tmp_path / "run")[-1]
     assert int(last["iteration"]) > 2
     assert np.array_equal(last["actions"][: len(saved["actions"])], saved["actions"])  # the aggregate kept
@@ -228,7 +225,7 @@ def test_pickplace_trains_with_dagger_by_default_and_reach_does_not(tmp_path: Pa
 
 
 def test_the_packaged_config_loads() -> None:
-    cfg = load_dagger_config(dagger.default_dagger_config(), PICK)
+    cfg = load_dagger_config(default_config_path("dagger"), PICK)
     assert cfg.target_success == 0.9 and cfg.eval_episodes == 100
     assert cfg.env_kwargs["control_mode"] == "cartesian"
 
@@ -253,7 +250,7 @@ def test_dagger_refuses_a_task_without_an_observation_expert(tmp_path: Path) -> 
     path.write_text(yaml.safe_dump({REACH: {"net_arch": [8]}}), encoding="utf-8")
     args = TrainArgs(env=REACH, algo="dagger", config=path, out=tmp_path / "r", progress=False)
     with pytest.raises(TrainingError, match="label any state"):
-        train_dagger(args, REACH)
+        train(args)
 
 
 def test_bioscara_train_algo_dagger_runs_from_the_command_line(tmp_path: Path) -> None:
@@ -264,6 +261,11 @@ def test_bioscara_train_algo_dagger_runs_from_the_command_line(tmp_path: Path) -
     assert code == 0
     state = json.loads((tmp_path / "cli" / "train_state.json").read_text(encoding="utf-8"))
     assert state["algo"] == "dagger" and state["total_timesteps"] == 500
+
+
+def test_models_saved_before_the_extractor_moved_still_find_it() -> None:
+    # SB3 pickles policy_kwargs' features_extractor_class by module path.
+    assert dagger.PickPlaceExtractor is PickPlaceExtractor
 
 
 def test_extractor_sees_millimetres_near_the_block(pick_env: gym.Env) -> None:
@@ -287,7 +289,7 @@ def test_demos_from_a_dataset_replace_the_experts_own_episodes(
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
     argv = ["collect", "--expert", "--env", "Bioscara-PickPlace", "--backend", "mock", "--episodes", "1"]
     assert main([*argv, "--dataset", "pp", "--no-progress"]) == 0
-    result = train_dagger(tiny_args(tmp_path, demos="pp", timesteps=300), PICK)
+    result = train(tiny_args(tmp_path, demos="pp", timesteps=300))
     first = checkpoint_data(tmp_path / "run")[0]
     assert len(first["actions"]) == 200 and int(first["env_steps"]) == 0  # the dataset's episode, no env step
     assert json.loads(result.metadata_path.read_text(encoding="utf-8"))["dagger"]["demos"] == "pp"

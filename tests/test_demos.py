@@ -215,16 +215,17 @@ def test_q_filtered_bc_update_logs_its_losses() -> None:
     from stable_baselines3.common.logger import configure
 
     from bioscara_gym.experts import expert_for
-    from bioscara_gym.training.bc import DemoSAC, attach_demos
     from bioscara_gym.training.demos import rollout_demos
-    from bioscara_gym.training.train import TrainArgs, _algo_kwargs, load_run_hyperparams
+    from bioscara_gym.training.hyperparams import default_config_path
+    from bioscara_gym.training.imitation import DemoSAC, attach_demos
+    from bioscara_gym.training.sb3 import algo_kwargs, load_run_hyperparams
 
-    hp = load_run_hyperparams(TrainArgs(env=REACH), REACH)
+    hp = load_run_hyperparams("SAC", default_config_path("sac"), REACH)
     env = gym.make(REACH, **hp.env_kwargs)
     try:
         expert = expert_for(env.unwrapped)
         demos = rollout_demos(env, expert, expert.reset, 1)
-        kwargs = {**_algo_kwargs(hp, env, "sac"), "learning_starts": 1000, "buffer_size": 200}
+        kwargs = {**algo_kwargs(hp, env, "sac"), "learning_starts": 1000, "buffer_size": 200}
         model = SAC(hp.policy, env, seed=0, device="cpu", **kwargs)
         model.set_logger(configure(None, []))
         model.learn(60)  # one episode in the buffer, no update yet

@@ -28,6 +28,7 @@ from rich.console import Console
 from rigs import place_obstacle, train_tiny_sac
 
 from bioscara_gym.errors import DeployError
+from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
@@ -706,3 +707,36 @@ def test_deploy_onnx_on_mock_imports_no_torch_sb3_or_mujoco(tmp_path: Path, onnx
     summary = read_log(log)[-1]
     assert summary["stop_reason"] == "completed" and summary["cycles"] == 50
     assert_every_joint_disabled(summary)
+
+
+# ------------------------------------------------------------- one owner of the arm
+LIFECYCLE = ("configure", "activate", "home", "deactivate", "cleanup", "shutdown")
+
+
+@pytest.mark.parametrize("nack_from", [None, 3], ids=["completed", "safe-stop"])
+def test_the_env_alone_brings_the_arm_up_and_shuts_it_down(
+    deploy: Callable[..., Run], monkeypatch: pytest.MonkeyPatch, nack_from: int | None
+) -> None:
+    """Deploy asks the env (bring_up, shut_down, safe_stop); no deploy module calls the Arm's lifecycle."""
+    calls: list[tuple[str, str]] = []
+    for name in LIFECYCLE:
+        original = getattr(Arm, name)
+
+        def recorded(self: Arm, *args: Any, _name: str = name, _orig: Any = original, **kwargs: Any) -> Any:
+            caller = sys._getframe(1).f_globals.get("__name__", "")
+            calls.append((_name, caller))
+            return _orig(self, *args, **kwargs)
+
+        monkeypatch.setattr(Arm, name, recorded)
+
+    def lose_the_bus(cycle: int, env: gym.Env) -> None:
+        if nack_from is not None and cycle == nack_from:
+            env.unwrapped.backend.bus.faults = FaultPlan(nack=1.0)
+
+    run = deploy(episodes=1, on_cycle=lose_the_bus)
+    assert (run.error is None) == (nack_from is None)
+    callers = {caller for _, caller in calls}
+    assert not any(c.startswith("bioscara_gym.training") for c in callers), calls
+    assert callers <= {"bioscara_gym.hardware.arm", "bioscara_gym.hardware.safety"}, calls
+    assert [n for n, _ in calls].count("shutdown") == 1  # finalized once, by one owner
+    assert run.summary["arm_state"] == "finalized"

@@ -20,11 +20,11 @@ from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, NotEnabledError, SafetyStop, StalledError, StopReason
+from bioscara_gym.hardware.errors import CommError, DeadmanError, NotEnabledError, StalledError
 from bioscara_gym.hardware.mock import MockJoint
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag, Reg
 from bioscara_gym.hardware.safety import DeadmanGuard, final_state, safe_stop
-from bioscara_gym.training.deploy_safety import SafetyLayer
+from bioscara_gym.training.deploy_safety import SafetyLayer, SafetyStop, StopReason, stop_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,6 +34,9 @@ class FlagsBackend(Backend):
     """A backend that can read its devices' flags without a transaction."""
 
     name = "mock"
+
+    def close(self) -> None:
+        """Nothing to release."""
 
     def device_flags(self, name: str) -> Flag | None:
         joint = self.joints[name]
@@ -61,10 +64,12 @@ def test_deadman_guard_trips_on_the_joint_silent_too_long(listened: Backend) -> 
     clock.sleep(0.03)
     j1.get_velocity()
     clock.sleep(0.03)
-    with pytest.raises(SafetyStop) as stop:
+    with pytest.raises(DeadmanError) as trip:
         guard.check()
-    assert stop.value.reason is StopReason.DEADMAN and stop.value.joint == "j2"
-    assert f"limit {DEADMAN_S * 1000:.0f} ms" in str(stop.value)
+    assert trip.value.joint == "j2" and trip.value.limit_s == DEADMAN_S
+    assert f"limit {DEADMAN_S * 1000:.0f} ms" in str(trip.value)
+    stop = stop_for(trip.value)  # what deploy stops with
+    assert stop is not None and stop.reason is StopReason.DEADMAN and stop.joint == "j2"
 
 
 def test_deadman_guard_sees_a_gap_between_exchanges_within_a_cycle(listened: Backend) -> None:
@@ -76,7 +81,7 @@ def test_deadman_guard_sees_a_gap_between_exchanges_within_a_cycle(listened: Bac
     j1.get_velocity()
     j2.get_velocity()  # both just talked to, but each was silent over the deadman before
     assert guard.silences()["j1"] == pytest.approx(DEADMAN_S + 0.01)
-    with pytest.raises(SafetyStop, match="deadman guard"):
+    with pytest.raises(DeadmanError, match="deadman guard"):
         guard.check()
 
 
@@ -143,7 +148,6 @@ class RaisingEnv:
 
     def __init__(self, backend: Backend, error: Exception) -> None:
         self.arm = Arm(backend)
-        self.unwrapped = self
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.error = error
 
@@ -163,14 +167,14 @@ class RaisingEnv:
 def test_safety_layer_names_the_joint_the_driver_error_carries(
     listened: Backend, error: Exception, reason: StopReason
 ) -> None:
-    layer = SafetyLayer(RaisingEnv(listened, error), DeadmanGuard(listened))
+    layer = SafetyLayer(env := RaisingEnv(listened, error), env.arm, DeadmanGuard(listened))
     with pytest.raises(SafetyStop) as stop:
         layer.step(np.zeros(2))
     assert stop.value.reason is reason and stop.value.joint == "j2"
 
 
 def test_safety_layer_clamps_and_refuses_non_finite_actions(listened: Backend) -> None:
-    layer = SafetyLayer(RaisingEnv(listened, RuntimeError()), DeadmanGuard(listened))
+    layer = SafetyLayer(env := RaisingEnv(listened, RuntimeError()), env.arm, DeadmanGuard(listened))
     clipped, clamped = layer.filter_action([2.0, -0.5])
     assert clamped and clipped.tolist() == [1.0, -0.5]
     with pytest.raises(SafetyStop) as stop:
@@ -235,7 +239,7 @@ def test_deadman_guard_keeps_the_long_gap_when_two_quick_exchanges_follow(listen
     j1.get_flags()
     j2.get_flags()
     assert guard.silences() == {"j1": pytest.approx(0.06), "j2": pytest.approx(0.06)}
-    with pytest.raises(SafetyStop, match=r"went 60\.0 ms without a transaction"):
+    with pytest.raises(DeadmanError, match=r"went 60\.0 ms without a transaction"):
         guard.check()
 
 
@@ -254,7 +258,7 @@ def test_deadman_guard_check_starts_anew_and_restart_forgets(listened: Backend) 
 
 
 def test_a_stall_the_env_reports_without_a_joint_still_stops_in_words(listened: Backend) -> None:
-    layer = SafetyLayer(RaisingEnv(listened, RuntimeError()), DeadmanGuard(listened))
+    layer = SafetyLayer(env := RaisingEnv(listened, RuntimeError()), env.arm, DeadmanGuard(listened))
     with pytest.raises(SafetyStop) as stop:
         layer._check_stall({"stalled": True})
     assert stop.value.reason is StopReason.STALL and stop.value.joint is None
@@ -264,7 +268,7 @@ def test_a_stall_the_env_reports_without_a_joint_still_stops_in_words(listened: 
 
 def test_a_joint_disabled_mid_run_stops_only_while_the_arm_is_active(listened: Backend) -> None:
     env = RaisingEnv(listened, RuntimeError())
-    layer = SafetyLayer(env, DeadmanGuard(listened))
+    layer = SafetyLayer(env, env.arm, DeadmanGuard(listened))
     arm = env.arm
     arm.configure()
     arm.activate()

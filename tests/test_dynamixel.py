@@ -17,8 +17,9 @@ from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.dynamixel import control_table as ct
 from bioscara_gym.hardware.dynamixel import protocol
-from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
+from bioscara_gym.hardware.dynamixel.emulator import XL430, EmulatedRS485Bus
 from bioscara_gym.hardware.dynamixel.pty_server import parse_ids
+from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, Fault, FaultPlan
 from bioscara_gym.hardware.errors import CommError, MissingExtraError, NotEnabledError, StalledError
 from bioscara_gym.hardware.registers import Flag
 
@@ -247,7 +248,7 @@ def test_emulator_position_mode_reaches_the_goal_at_the_profile_velocity() -> No
 
 
 def test_fault_schedule_drops_and_corrupts_status_packets() -> None:
-    bus = EmulatedRS485Bus.with_ids([1], faults=DxlFaultPlan(schedule={0: "drop", 1: "corrupt"}))
+    bus = EmulatedRS485Bus.with_ids([1], faults=FaultPlan(schedule={0: Fault.DROP, 1: Fault.CORRUPT}))
     ping = protocol.instruction_packet(1, ct.Instruction.PING)
     assert bus.transact(ping) == b""
     (bad,) = protocol.parse(bus.transact(ping))
@@ -256,10 +257,10 @@ def test_fault_schedule_drops_and_corrupts_status_packets() -> None:
 
 
 def test_fault_plan_parse() -> None:
-    plan = DxlFaultPlan.parse("drop=0.1, corrupt=0.01, delay_ms=2")
-    assert (plan.drop, plan.corrupt, plan.delay_s) == (0.1, 0.01, 0.002)
+    plan = FaultPlan.parse("drop=0.1, corrupt=0.01, delay_ms=2", kinds=RS485_FAULTS)
+    assert (plan.drop, plan.corrupt, plan.latency_s) == (0.1, 0.01, 0.002)
     with pytest.raises(ValueError, match="unknown fault"):
-        DxlFaultPlan.parse("nack=1")
+        FaultPlan.parse("nack=1", kinds=RS485_FAULTS)
 
 
 def test_parse_ids() -> None:
@@ -295,7 +296,7 @@ def test_cli_emulate_refuses_a_huge_id_range_in_one_line(capsys: pytest.CaptureF
 
 
 def make_joint(
-    ids: tuple[int, ...] = (1,), faults: DxlFaultPlan | None = None, retries: int = 2, **kwargs: float
+    ids: tuple[int, ...] = (1,), faults: FaultPlan | None = None, retries: int = 2, **kwargs: float
 ) -> tuple[DynamixelJoint, DynamixelBus, EmulatedRS485Bus, ManualClock]:
     clock = ManualClock()
     emulated = EmulatedRS485Bus.with_ids(ids, clock=clock, faults=faults)
@@ -365,7 +366,7 @@ def test_joint_overload_is_stall_and_reboot_clears_it() -> None:
 
 
 def test_joint_ping_retries_through_dropped_status_packets() -> None:
-    joint, _, _, _ = make_joint(faults=DxlFaultPlan(schedule={0: "drop", 1: "corrupt"}))
+    joint, _, _, _ = make_joint(faults=FaultPlan(schedule={0: Fault.DROP, 1: Fault.CORRUPT}))
     joint.init()  # 5 PING tries, as the MH5
     assert joint.stats.total_errors == 2 and joint.model_number == 1060
 

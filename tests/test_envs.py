@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 import re
+import subprocess
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -111,9 +113,37 @@ def reach_env() -> gym.Env:
 
 def test_import_registers_both_tasks() -> None:
     assert bioscara_gym.__version__
-    for env_id, (entry_point, _) in TASKS.items():
-        assert gym.spec(env_id).entry_point == entry_point
+    for env_id, task in TASKS.items():
+        assert gym.spec(env_id).entry_point == task.entry_point
     assert set(TASK_IDS) <= set(gym.registry)
+
+
+#: Made under ``python -W error``: any warning fails the make.
+MAKE_UNVERSIONED = """
+import gymnasium as gym
+import bioscara_gym
+for env_id in ("Bioscara-Reach", "Bioscara-PickPlace"):
+    env = gym.make(env_id, backend="mock")
+    assert env.spec.id == env_id + "-v0", env.spec.id
+    env.reset(seed=0)
+    env.close()
+try:
+    gym.make("CartPole")
+except UserWarning as e:
+    print("CartPole:", "Using the latest versioned environment" in str(e))
+"""
+
+
+def test_unversioned_make_gives_the_latest_version_without_a_warning() -> None:
+    result = subprocess.run(
+        [sys.executable, "-W", "error", "-c", MAKE_UNVERSIONED],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    # The filter is this package's: another package's unversioned id still warns.
+    assert result.stdout.strip() == "CartPole: True"
 
 
 def test_register_envs_is_idempotent() -> None:
@@ -125,7 +155,7 @@ def test_register_envs_is_idempotent() -> None:
 @pytest.mark.parametrize(("env_id", "steps"), [(REACH, 50), (PICK, 200)])
 def test_max_episode_steps_defaults(env_id: str, steps: int) -> None:
     assert gym.spec(env_id).max_episode_steps == steps
-    assert TASKS[env_id][1] == steps
+    assert TASKS[env_id].max_episode_steps == steps
 
 
 @pytest.mark.parametrize(("env_id", "steps"), [(REACH, 50), (PICK, 200)])

@@ -409,3 +409,21 @@ def test_host_restart_with_a_corrupted_first_reply_still_restores_the_offset(see
     joint = Joint(J1.name, J1.address, J1.reduction, J1.min, J1.max, bus, clock=emu.clock)
     joint.init()
     assert joint.get_position() == pytest.approx(expected, abs=1e-6)
+
+
+# ------------------------------------------------------- one plan, two buses
+def test_one_fault_plan_serves_both_emulated_buses_and_each_refuses_what_it_cannot_inject() -> None:
+    from bioscara_gym.hardware.dynamixel.emulator import EmulatedRS485Bus
+    from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, Fault
+
+    dxl = FaultPlan.parse("drop=0.1,delay_ms=2", kinds=RS485_FAULTS)
+    assert (dxl.drop, dxl.latency_s) == (0.1, 0.002)
+    EmulatedRS485Bus.with_ids([1], faults=dxl)  # taken
+    with pytest.raises(ValueError, match=r"^the emulated RS-485 bus cannot inject nack; it injects drop"):
+        EmulatedRS485Bus.with_ids([1], faults=FaultPlan(nack=0.1))
+    with pytest.raises(ValueError, match=r"^the emulated I2C bus cannot inject drop; it injects nack"):
+        EmulatedI2CBus({}, FaultPlan(drop=0.1))
+    with pytest.raises(ValueError, match="cannot inject schedule drop"):
+        EmulatedI2CBus({}, FaultPlan(schedule={0: Fault.DROP}))
+    with pytest.raises(ValueError, match=r"schedule\[3\] = 'drop': expected one of Fault\.NACK"):
+        FaultPlan(schedule={3: "drop"})  # type: ignore[dict-item]

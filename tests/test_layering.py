@@ -5,9 +5,11 @@
   absent, as on a robot computer; a backend that needs MuJoCo says which
   extra to install.
 - Importing ``bioscara_gym`` has no side effects beyond registering the
-  tasks: no environment variables, no warning filters.
+  tasks: no environment variables, and no warning filter but the one scoped
+  to Gymnasium's unversioned-id message for the package's own ids.
 - No import cycles among the project's modules, function-local imports
-  included.
+  included; ``training/`` imports no env module (it reaches the envs through
+  ``gym.make`` and the task registry).
 - The wheel installs one top-level import package, ``bioscara_gym``, with
   the hyperparameter files and the model inside it.
 """
@@ -79,7 +81,12 @@ def test_importing_the_package_has_no_side_effects() -> None:
             "env, filters = dict(os.environ), list(warnings.filters)\n"
             "import bioscara_gym\n"
             "assert dict(os.environ) == env, set(os.environ.items()) ^ set(env.items())\n"
-            "assert warnings.filters == filters, warnings.filters[:3]\n"
+            "(added,) = [f for f in warnings.filters if f not in filters]\n"
+            "assert warnings.filters == [added, *filters], warnings.filters[:3]\n"
+            "action, message, category, module, _ = added\n"
+            "assert (action, category) == ('ignore', UserWarning), added\n"
+            "assert message.pattern == bioscara_gym.UNVERSIONED_MESSAGE, message\n"
+            "assert module.pattern == r'gymnasium\\.envs\\.registration', module\n"
             "assert 'mujoco' not in sys.modules and 'bioscara_gym.envs' not in sys.modules\n"
             "assert 'Bioscara-Reach-v0' in gymnasium.registry\n",
         ],
@@ -183,11 +190,33 @@ def test_no_import_cycles() -> None:
 
 def test_hardware_layer_imports_nothing_above_it() -> None:
     known = _modules()
-    above = ("bioscara_gym.envs", "bioscara_gym.training", "bioscara_gym.console", "bioscara_gym.cli")
+    above = (
+        "bioscara_gym.envs",
+        "bioscara_gym.training",
+        "bioscara_gym.console",
+        "bioscara_gym.cli",
+        "bioscara_gym.errors",
+        "bioscara_gym.experts",
+        "bioscara_gym.tasks",
+        "bioscara_gym.replay",
+        "bioscara_gym.validation",
+    )
     offenders = {
         name: sorted(t for t in _imports(path, name, known) if t.startswith(above))
         for name, path in known.items()
         if name.startswith("bioscara_gym.hardware")
+    }
+    assert {n: t for n, t in offenders.items() if t} == {}
+
+
+def test_training_reaches_the_envs_only_through_gym_make() -> None:
+    # No env class, no env module: a task's experts, layout and extractor come from
+    # bioscara_gym.tasks, keyed by env id.
+    known = _modules()
+    offenders = {
+        name: sorted(t for t in _imports(path, name, known) if t.startswith("bioscara_gym.envs"))
+        for name, path in known.items()
+        if name.startswith("bioscara_gym.training")
     }
     assert {n: t for n, t in offenders.items() if t} == {}
 

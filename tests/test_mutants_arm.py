@@ -94,6 +94,8 @@ def test_attach_takes_the_width_the_gripper_was_left_at(make_arm_backend: MakeBa
     earlier.enable(["gripper"])
     earlier.set_gripper(0.1)
     earlier.write()
+    for joint in backend.joints.values():  # its connections end with it; the devices stay as they were
+        joint.deinit()
     arm = Arm(backend)
     arm.configure()
     assert arm.attach()

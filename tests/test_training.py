@@ -34,14 +34,15 @@ from bioscara_gym.cli import EXIT_INTERRUPTED, main
 from bioscara_gym.errors import HyperparamError, MetadataError, MissingExtraError, TrainingError
 from bioscara_gym.fsutil import atomic_open
 from bioscara_gym.training.algos import ALGOS
+from bioscara_gym.training.checkpoints import STATE_NAME
 from bioscara_gym.training.features import GoalErrorExtractor
 from bioscara_gym.training.hyperparams import (
     EXTRA_KEYS,
     Hyperparams,
     default_config_path,
     load_hyperparams,
-    parse_literal_call,
 )
+from bioscara_gym.training.literals import parse_literal_call
 from bioscara_gym.training.metadata import (
     METADATA_NAME,
     build_metadata,
@@ -50,7 +51,8 @@ from bioscara_gym.training.metadata import (
     resolve_env_id,
     write_metadata,
 )
-from bioscara_gym.training.train import STATE_NAME, SuccessEvalCallback, _algo_kwargs
+from bioscara_gym.training.sb3 import algo_kwargs
+from bioscara_gym.training.zoo import SuccessEvalCallback
 
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")
@@ -657,18 +659,18 @@ def test_config_replay_buffer_class_her_maps_to_the_sb3_class(tmp_path: Path, re
     config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["sac"]})
     hp = load_hyperparams(config, REACH)
     assert hp.algo_kwargs["replay_buffer_class"] == "HerReplayBuffer"
-    assert _algo_kwargs(hp, reach_env, "sac")["replay_buffer_class"] is HerReplayBuffer
+    assert algo_kwargs(hp, reach_env, "sac")["replay_buffer_class"] is HerReplayBuffer
 
 
 def test_config_unknown_replay_buffer_class_is_refused(reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"replay_buffer_class": "Nope"})
     with pytest.raises(TrainingError, match="replay_buffer_class 'Nope'"):
-        _algo_kwargs(hp, reach_env, "sac")
+        algo_kwargs(hp, reach_env, "sac")
 
 
 def test_config_noise_type_becomes_action_noise(reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, noise_type="normal", noise_std=0.3)
-    noise = _algo_kwargs(hp, reach_env, "td3")["action_noise"]
+    noise = algo_kwargs(hp, reach_env, "td3")["action_noise"]
     assert noise._sigma.tolist() == pytest.approx([0.3] * reach_env.action_space.shape[0])
 
 
@@ -691,7 +693,7 @@ def test_packaged_reach_config_builds_sac_on_the_goal_error() -> None:
     hp = load_hyperparams(default_config_path("sac"), REACH)
     env = gym.make(REACH, backend="mock", **hp.env_kwargs)
     try:
-        model = SAC(hp.policy, env, device="cpu", **_algo_kwargs(hp, env, "sac"))
+        model = SAC(hp.policy, env, device="cpu", **algo_kwargs(hp, env, "sac"))
     finally:
         env.close()
     extractor = model.actor.features_extractor
@@ -704,19 +706,19 @@ def test_packaged_reach_config_builds_sac_on_the_goal_error() -> None:
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_off_policy_on_goal_env_gets_her_when_config_omits_it(algo: str, reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"learning_starts": 10})
-    model = ALGOS[algo]("MultiInputPolicy", reach_env, device="cpu", **_algo_kwargs(hp, reach_env, algo))
+    model = ALGOS[algo]("MultiInputPolicy", reach_env, device="cpu", **algo_kwargs(hp, reach_env, algo))
     assert isinstance(model.replay_buffer, HerReplayBuffer)
 
 
 def test_off_policy_keeps_the_replay_buffer_the_config_names(reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"replay_buffer_class": DictReplayBuffer})
-    model = SAC("MultiInputPolicy", reach_env, device="cpu", **_algo_kwargs(hp, reach_env, "sac"))
+    model = SAC("MultiInputPolicy", reach_env, device="cpu", **algo_kwargs(hp, reach_env, "sac"))
     assert type(model.replay_buffer) is DictReplayBuffer
 
 
 def test_on_policy_gets_no_replay_buffer(reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1)
-    assert "replay_buffer_class" not in _algo_kwargs(hp, reach_env, "ppo")
+    assert "replay_buffer_class" not in algo_kwargs(hp, reach_env, "ppo")
 
 
 #: TINY["sac"] as rl-zoo3 writes it: env_kwargs a mapping, the evaluation a dotted-path callback.
@@ -796,9 +798,9 @@ def test_load_hyperparams_refuses_malformed_rl_zoo3_entries(
 
 
 def test_config_lin_schedule_and_train_freq_list_become_what_sb3_takes(reach_env: gym.Env) -> None:
-    algo_kwargs = {"learning_rate": "lin_0.002", "train_freq": [1, "episode"]}
-    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs=algo_kwargs)
-    kwargs = _algo_kwargs(hp, reach_env, "sac")
+    given = {"learning_rate": "lin_0.002", "train_freq": [1, "episode"]}
+    hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs=given)
+    kwargs = algo_kwargs(hp, reach_env, "sac")
     assert kwargs["learning_rate"](1.0) == pytest.approx(0.002)
     assert kwargs["learning_rate"](0.25) == pytest.approx(0.0005)
     assert kwargs["train_freq"] == (1, "episode")
@@ -807,7 +809,7 @@ def test_config_lin_schedule_and_train_freq_list_become_what_sb3_takes(reach_env
 def test_config_unknown_schedule_is_refused(reach_env: gym.Env) -> None:
     hp = Hyperparams(source="cfg.yaml", n_timesteps=1, algo_kwargs={"learning_rate": "exp_0.1"})
     with pytest.raises(TrainingError, match=r"learning_rate 'exp_0\.1'"):
-        _algo_kwargs(hp, reach_env, "sac")
+        algo_kwargs(hp, reach_env, "sac")
 
 
 def test_train_reads_the_rl_zoo3_form_and_stops_at_the_callbacks_target(tmp_path: Path) -> None:

@@ -1,33 +1,41 @@
 """The stable-baselines3 algorithms by name, and a trained model loaded to act.
 
 Training, evaluation, export and deployment of an SB3 model all use this
-module; it imports none of them. Importing it without the ``[train]`` extra
-raises :class:`~bioscara_gym.errors.MissingExtraError`.
+module; it imports none of them. Both tables are read off the registry of
+training methods (:data:`~bioscara_gym.training.methods.METHODS`).
+Importing it without the ``[train]`` extra raises
+:class:`~bioscara_gym.errors.MissingExtraError`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bioscara_gym.errors import MetadataError, PolicyFileError
+from bioscara_gym.tasks import Policy
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.metadata import check_embedded_metadata, read_metadata
+from bioscara_gym.training.methods import METHODS
 
 with needs_train():
+    import stable_baselines3
     import torch
-    from stable_baselines3 import PPO, SAC, TD3
     from stable_baselines3.common.base_class import BaseAlgorithm
 
-ALGOS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "td3": TD3, "ppo": PPO}
-#: The class each ``algo`` of a model's metadata loads with: behaviour cloning
-#: (``bioscara train --algo bc``) saves a SAC model whose actor was only cloned.
-MODEL_CLASSES: dict[str, type[BaseAlgorithm]] = {**ALGOS, "bc": SAC}
 
-Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
+def sb3_class(name: str) -> type[BaseAlgorithm]:
+    """The stable-baselines3 algorithm class called ``name`` (``SAC``)."""
+    return getattr(stable_baselines3, name)
+
+
+#: The algorithms trained from rl-zoo3 files, by ``--algo`` name.
+ALGOS: dict[str, type[BaseAlgorithm]] = {n: sb3_class(s.model) for n, s in METHODS.items() if s.rl_zoo}
+#: The class each ``algo`` of a model's metadata loads with: behaviour cloning
+#: (``--algo bc``, and DAgger, which saves as ``bc``) saves a SAC model whose actor was only cloned.
+MODEL_CLASSES: dict[str, type[BaseAlgorithm]] = {s.algo: sb3_class(s.model) for s in METHODS.values()}
 
 
 def load_model(path: Path, require_embedded: bool = False) -> tuple[BaseAlgorithm, dict[str, Any]]:

@@ -1,260 +1,99 @@
-"""Learning from demonstrations: behaviour cloning, and SAC with demonstrations (Nair et al. 2018).
+"""``bioscara train --algo bc``: behaviour cloning alone, the offline baseline.
 
-* :func:`bc_pretrain` fits an SB3 actor's deterministic action to the
-  demonstrated actions (mean squared error); SAC's exploration noise is set
-  to ``init_std`` at the same time (its state-dependent ``log_std`` regressed
-  to ``log(init_std)``), so the first rollouts look like the demonstrations
-  rather than like noise.
-* :func:`attach_demos` turns a SAC model into one that learns from
-  demonstrations as in Nair et al., "Overcoming Exploration in Reinforcement
-  Learning with Demonstrations" (ICRA 2018): the demonstrations are kept in a
-  buffer of their own and ``demo_batch_size`` of them join every batch; the
-  critic learns from them like from any transition, and the actor gets a
-  behaviour-cloning loss on them, kept only where the critic rates the
-  demonstrated action above the actor's (the Q-filter). HER relabels the
-  agent's own transitions (the model's ``HerReplayBuffer``).
-* ``bioscara train --algo bc --demos NAME`` (:func:`~bioscara_gym.training.train.train_bc`): behaviour
-  cloning alone, the offline baseline; the result is a SAC model whose actor
-  was only cloned, so ``bioscara eval``, ``export`` and ``deploy`` load it
-  like any SAC model (its metadata says ``algo: bc``).
+The demonstrations (``--demos NAME``, else the scripted expert's episodes)
+are cloned into the actor of a SAC model (:func:`~bioscara_gym.training.imitation.bc_pretrain`),
+so ``bioscara eval``, ``export`` and ``deploy`` load the result like any SAC
+model (its metadata says ``algo: bc``).
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+import contextlib
+from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
-from bioscara_gym.training.demos import GOAL_KEYS, Demos
+from bioscara_gym.errors import TrainingError
+from bioscara_gym.tasks import task_of
+from bioscara_gym.training.base import RunPlan, TrainingMethod
+from bioscara_gym.training.demos import check_demos, load_demos, rollout_demos
+from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.signals import SignalGuard
 
 with needs_train():
-    import torch as th
-    import torch.nn.functional as F
     from stable_baselines3 import SAC
-    from stable_baselines3.common.utils import polyak_update
+
+    from bioscara_gym.training.imitation import bc_pretrain
+    from bioscara_gym.training.sb3 import algo_kwargs, load_run_hyperparams
+    from bioscara_gym.training.zoo import EVAL_SEED_OFFSET, DemonstrationCallback
+
+#: Behaviour-cloning steps of ``bioscara train --algo bc`` without ``--timesteps``.
+BC_STEPS = 10_000
 
 
-@dataclass
-class DemoBuffer:
-    """Demonstration transitions as tensors, sampled uniformly."""
+class BehaviourCloning(TrainingMethod):
+    """``bioscara train --algo bc``: clone the demonstrations into a SAC actor, evaluate, save.
 
-    obs: dict[str, th.Tensor]
-    next_obs: dict[str, th.Tensor]
-    actions: th.Tensor
-    rewards: th.Tensor
-    dones: th.Tensor
-
-    @classmethod
-    def from_demos(cls, demos: Demos, rewards: np.ndarray) -> DemoBuffer:
-        """Tensors of ``demos`` with ``rewards`` (recomputed by the training env's reward)."""
-
-        def t(a: np.ndarray) -> th.Tensor:
-            return th.as_tensor(np.asarray(a), dtype=th.float32)
-
-        return cls(
-            obs={k: t(demos.obs[k]) for k in GOAL_KEYS},
-            next_obs={k: t(demos.next_obs[k]) for k in GOAL_KEYS},
-            actions=t(demos.actions),
-            rewards=t(rewards).reshape(-1, 1),
-            dones=t(demos.dones).reshape(-1, 1),
-        )
-
-    def __len__(self) -> int:
-        """Number of transitions."""
-        return len(self.actions)
-
-    def sample(self, n: int, generator: th.Generator | None = None) -> tuple[Any, ...]:
-        """``n`` transitions: obs, actions, next_obs, rewards, dones."""
-        idx = th.randint(len(self), (n,), generator=generator)
-        return (
-            {k: v[idx] for k, v in self.obs.items()},
-            self.actions[idx],
-            {k: v[idx] for k, v in self.next_obs.items()},
-            self.rewards[idx],
-            self.dones[idx],
-        )
-
-
-def _deterministic(actor: Any, obs: dict[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor | None]:
-    """The actor's deterministic action (in [-1, 1]) and, for SAC, its ``log_std``."""
-    if hasattr(actor, "get_action_dist_params"):  # SAC
-        mean, log_std, _ = actor.get_action_dist_params(obs)
-        return th.tanh(mean), log_std
-    return actor(obs), None  # TD3
-
-
-def bc_pretrain(
-    model: Any,
-    demos: Demos,
-    steps: int = 3000,
-    batch_size: int = 256,
-    learning_rate: float = 1e-3,
-    init_std: float = 0.1,
-    seed: int = 0,
-) -> float:
-    """Fit ``model``'s actor to the demonstrated actions; the final loss.
-
-    Uses its own Adam optimizer (the model's keeps its state). For TD3 the
-    target actor is synced afterwards.
-    """
-    return fit_actor(model, demos.obs, demos.actions, steps, batch_size, learning_rate, init_std, seed)
-
-
-def fit_actor(
-    model: Any,
-    obs: dict[str, np.ndarray],
-    actions: np.ndarray,
-    steps: int = 3000,
-    batch_size: int = 256,
-    learning_rate: float = 1e-3,
-    init_std: float = 0.1,
-    seed: int = 0,
-) -> float:
-    """Fit ``model``'s actor to ``actions`` in ``obs`` (rows of :data:`GOAL_KEYS` arrays); the final loss.
-
-    The loss is the mean squared error of the deterministic action, plus, for
-    SAC, ``log_std`` pulled to ``log(init_std)``. Uses its own Adam optimizer
-    (the model's keeps its state); for TD3 the target actor is synced afterwards.
-    """
-    actor = model.actor
-    actor.set_training_mode(True)
-    obs_t = {k: th.as_tensor(np.asarray(obs[k]), dtype=th.float32) for k in GOAL_KEYS}
-    act_t = th.as_tensor(np.asarray(actions), dtype=th.float32)
-    opt = th.optim.Adam(actor.parameters(), lr=learning_rate)
-    gen = th.Generator().manual_seed(seed)
-    target_log_std = math.log(init_std)
-    loss = th.zeros(())
-    for _ in range(int(steps)):
-        idx = th.randint(len(act_t), (batch_size,), generator=gen)
-        pred, log_std = _deterministic(actor, {k: v[idx] for k, v in obs_t.items()})
-        loss = F.mse_loss(pred, act_t[idx])
-        if log_std is not None:
-            loss = loss + 0.1 * F.mse_loss(log_std, th.full_like(log_std, target_log_std))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    actor.set_training_mode(False)
-    if getattr(model, "actor_target", None) is not None:
-        model.actor_target.load_state_dict(actor.state_dict())
-    return float(loss.item())
-
-
-class DemoSAC(SAC):
-    """SAC whose batches include demonstrations, with a Q-filtered BC loss (see the module docstring).
-
-    Made from a plain SAC model by :func:`attach_demos`; saved, it loads as a
-    plain SAC (the demonstrations are not saved with it).
+    The policy, its kwargs and the env's kwargs are those of the SAC config's
+    entry; ``--timesteps`` counts gradient steps (default :data:`BC_STEPS`).
+    Without ``--demos`` the scripted expert's episodes are collected first,
+    as many as the entry's :class:`~bioscara_gym.training.zoo.DemonstrationCallback`
+    says (100 by default). It trains in one go: nothing to resume.
     """
 
-    demo_buffer: DemoBuffer | None = None
-    demo_batch_size: int = 128
-    bc_weight: float = 1.0
-    q_filter: bool = True
+    def plan(self) -> RunPlan:
+        """SAC's entry (``--config``, else the packaged ``sac.yaml``) and the gradient steps."""
+        if self.args.resume:
+            raise TrainingError("--algo bc trains in one go; there is nothing to resume")
+        path = Path(self.args.config) if self.args.config else self.spec.default_config()
+        hp = load_run_hyperparams(self.spec.model, path, self.env_id)
+        return RunPlan(hp, hp.env_kwargs, int(self.args.timesteps or BC_STEPS), None)
 
-    def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "demo_buffer", "demo_batch_size", "bc_weight", "q_filter"]
+    def make_envs(self, plan: RunPlan, stack: contextlib.ExitStack) -> gym.Env:
+        """The env the demonstrations run on and the evaluation env."""
+        self.env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
+        self.eval_env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
+        return self.env
 
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SAC's update (stable-baselines3 2.x) with demonstrations in every batch."""
-        demo = self.demo_buffer
-        if demo is None:
-            return super().train(gradient_steps, batch_size)
-        self.policy.set_training_mode(True)
-        optimizers = [self.actor.optimizer, self.critic.optimizer]
-        if self.ent_coef_optimizer is not None:
-            optimizers += [self.ent_coef_optimizer]
-        self._update_learning_rate(optimizers)
-        actor_losses, critic_losses, bc_losses, kept = [], [], [], []
-        n_demo = self.demo_batch_size
-        for gradient_step in range(gradient_steps):
-            data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            d_obs, d_act, d_next, d_rew, d_done = demo.sample(n_demo)
-            obs = {k: th.cat((data.observations[k], d_obs[k])) for k in GOAL_KEYS}
-            next_obs = {k: th.cat((data.next_observations[k], d_next[k])) for k in GOAL_KEYS}
-            actions = th.cat((data.actions, d_act))
-            rewards = th.cat((data.rewards, d_rew))
-            dones = th.cat((data.dones, d_done))
+    def build_model(self, plan: RunPlan) -> SAC:
+        """A SAC model of the entry's policy, without a replay buffer (nothing is replayed)."""
+        kwargs = algo_kwargs(plan.config, self.env, "sac")
+        kwargs.update(replay_buffer_class=None, replay_buffer_kwargs=None, buffer_size=1, action_noise=None)
+        return SAC(plan.config.policy, self.env, seed=self.args.seed, device="cpu", verbose=0, **kwargs)
 
-            actions_pi, log_prob = self.actor.action_log_prob(obs)
-            log_prob = log_prob.reshape(-1, 1)
-            ent_coef_loss = None
-            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-                ent_coef = th.exp(self.log_ent_coef.detach())
-                ent_coef_loss = -(self.log_ent_coef * (log_prob + self.target_entropy).detach()).mean()
-                self.ent_coef_optimizer.zero_grad()
-                ent_coef_loss.backward()
-                self.ent_coef_optimizer.step()
-            else:
-                ent_coef = self.ent_coef_tensor
+    def learn(self, plan: RunPlan, callbacks: list[Any], guard: SignalGuard) -> None:
+        """Load (``--demos``) or collect the demonstrations, clone them for ``plan.total`` gradient steps."""
+        settings = next((k for c, k in plan.config.callbacks if c is DemonstrationCallback), {})
+        if self.args.demos:
+            self.demos = load_demos(self.args.demos, successful_only=True)
+            check_demos(self.demos, self.env)
+        else:
+            expert = task_of(self.env).make_expert(self.env.unwrapped)
+            episodes, seed = int(settings.get("episodes", 100)), int(settings.get("seed", 1_000_000))
+            self.demos = rollout_demos(self.env, expert, expert.reset, episodes, seed=seed)
+        init_std = float(settings.get("init_std", 0.1))
+        self.loss = bc_pretrain(self.model, self.demos, plan.total, init_std=init_std, seed=self.args.seed)
+        if self.args.verbose:
+            print(f"[bc] {plan.total} steps on {len(self.demos)} demonstration steps, loss {self.loss:.4f}")
 
-            with th.no_grad():
-                next_actions, next_log_prob = self.actor.action_log_prob(next_obs)
-                next_q = th.cat(self.critic_target(next_obs, next_actions), dim=1)
-                next_q, _ = th.min(next_q, dim=1, keepdim=True)
-                next_q = next_q - ent_coef * next_log_prob.reshape(-1, 1)
-                target_q = rewards + (1 - dones) * self.gamma * next_q
-            current_q = self.critic(obs, actions)
-            critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current_q)
-            assert isinstance(critic_loss, th.Tensor)
-            critic_losses.append(critic_loss.item())
-            self.critic.optimizer.zero_grad()
-            critic_loss.backward()
-            self.critic.optimizer.step()
+    def evaluate(self, plan: RunPlan) -> EvalStats:
+        """``eval_episodes`` seeded episodes of the cloned actor (seeds from the run's seed + 10000)."""
 
-            q_pi = th.cat(self.critic(obs, actions_pi), dim=1)
-            min_q_pi, _ = th.min(q_pi, dim=1, keepdim=True)
-            actor_loss = (ent_coef * log_prob - min_q_pi).mean()
-            # Behaviour cloning on the demonstrations, where the critic prefers them (Q-filter).
-            pred, _ = _deterministic(self.actor, d_obs)
-            bc_err = ((pred - d_act) ** 2).sum(dim=1, keepdim=True)
-            if self.q_filter:
-                with th.no_grad():
-                    q_demo = th.min(th.cat(self.critic(d_obs, d_act), dim=1), dim=1, keepdim=True)[0]
-                    q_actor = th.min(th.cat(self.critic(d_obs, pred), dim=1), dim=1, keepdim=True)[0]
-                    mask = (q_demo > q_actor).float()
-            else:
-                mask = th.ones_like(bc_err)
-            bc_loss = (mask * bc_err).mean()
-            actor_loss = actor_loss + self.bc_weight * bc_loss
-            actor_losses.append(actor_loss.item())
-            bc_losses.append(bc_loss.item())
-            kept.append(mask.mean().item())
-            self.actor.optimizer.zero_grad()
-            actor_loss.backward()
-            self.actor.optimizer.step()
+        def act(obs: dict[str, np.ndarray]) -> np.ndarray:
+            return self.model.predict(obs, deterministic=True)[0]
 
-            if gradient_step % self.target_update_interval == 0:
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-                polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/actor_loss", np.mean(actor_losses))
-        self.logger.record("train/critic_loss", np.mean(critic_losses))
-        self.logger.record("train/bc_loss", np.mean(bc_losses))
-        self.logger.record("train/q_filter_kept", np.mean(kept))
-        return None
+        episodes, seed = plan.config.eval_episodes, self.args.seed + EVAL_SEED_OFFSET
+        return run_episodes(self.eval_env, act, episodes, seed=seed)
 
+    @property
+    def timesteps(self) -> int:
+        """None: the demonstrations' steps are not the learner's."""
+        return 0
 
-def attach_demos(
-    model: Any,
-    demos: Demos,
-    rewards: np.ndarray,
-    demo_batch_size: int = 128,
-    bc_weight: float = 1.0,
-    q_filter: bool = True,
-) -> None:
-    """Make SAC ``model`` learn from ``demos`` too (its class becomes :class:`DemoSAC`).
-
-    Raises:
-        TypeError: ``model`` is not a SAC model.
-    """
-    if not isinstance(model, SAC):
-        raise TypeError(f"demonstrations need a SAC model, got {type(model).__name__}")
-    model.__class__ = DemoSAC
-    model.demo_buffer = DemoBuffer.from_demos(demos, rewards)
-    model.demo_batch_size = int(demo_batch_size)
-    model.bc_weight = float(bc_weight)
-    model.q_filter = bool(q_filter)
+    def metadata(self, plan: RunPlan) -> dict[str, Any]:
+        """The gradient steps, the final loss and the demonstrations."""
+        demos = {"dataset": self.args.demos, "episodes": len(self.demos.successes), "steps": len(self.demos)}
+        return {"bc_steps": plan.total, "bc_loss": self.loss, "demos": demos}

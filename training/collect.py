@@ -4,14 +4,14 @@
     bioscara collect --model runs/reach/model.zip --episodes 50 --dataset reach-sac
     bioscara collect --expert --env Bioscara-Reach --backend emulated --episodes 5 --dataset reach-emu
 
-With ``--expert`` the env's keyword arguments are those of the env's default
-training config (PickPlace: the DAgger entry, else the SAC one), so the
-demonstrations fit ``bioscara train --demos`` out of the box
+With ``--expert`` the env's keyword arguments are those of the packaged config
+of the task's default training method (PickPlace: the DAgger entry, else the
+SAC one), so the demonstrations fit ``bioscara train --demos`` out of the box
 (``--control-mode`` overrides); with ``--model`` they are the model's (from
-its metadata). PickPlace's expert is
-:class:`~bioscara_gym.training.dagger.ObservationExpert`, the one DAgger
-labels the learner's states with, so demonstrations and labels agree. See
-:mod:`bioscara_gym.training.demos`.
+its metadata). A task with an observation-only expert (PickPlace:
+:class:`~bioscara_gym.experts.ObservationExpert`, the one DAgger labels the
+learner's states with) is recorded acting with it, so demonstrations and
+labels agree. See :mod:`bioscara_gym.training.demos`.
 """
 
 from __future__ import annotations
@@ -23,33 +23,27 @@ from typing import Any
 import gymnasium as gym
 
 from bioscara_gym.errors import CliError, HyperparamError, TrainingError
+from bioscara_gym.tasks import task_of
 from bioscara_gym.training.extras import needed_by
 
 
 def default_env_kwargs(env_id: str) -> dict[str, Any]:
-    """The ``env_kwargs`` of ``env_id``'s default config: DAgger's entry, else SAC's (``{}``: none)."""
-    from bioscara_gym.training.hyperparams import default_config_path, load_hyperparams
+    """The ``env_kwargs`` of ``env_id``'s default config: its default method's entry (``{}``: none)."""
+    from bioscara_gym.training.methods import default_env_kwargs as method_env_kwargs
 
     try:
-        from bioscara_gym.training.dagger import default_dagger_config, has_dagger_default, load_dagger_config
-
-        if has_dagger_default(env_id):
-            return dict(load_dagger_config(default_dagger_config(), env_id).env_kwargs)
-        return dict(load_hyperparams(default_config_path("sac"), env_id).env_kwargs)
+        return method_env_kwargs(env_id)
     except HyperparamError:
         return {}
 
 
 def expert_factory(env: gym.Env) -> tuple[Any, Any]:
-    """The scripted expert of ``env``'s task and its per-episode reset (PickPlace: observation-only)."""
-    from bioscara_gym.envs.pick_place import BioscaraPickPlaceEnv
-    from bioscara_gym.experts import expert_for
-
-    if isinstance(env.unwrapped, BioscaraPickPlaceEnv):
-        from bioscara_gym.training.dagger import ObservationExpert
-
-        return ObservationExpert(env.unwrapped), lambda: None
-    expert = expert_for(env.unwrapped)
+    """The expert of ``env``'s task and its per-episode reset: the observation-only one where there is one."""
+    task = task_of(env)
+    if task.observation_expert is not None:
+        expert = task.make_observation_expert(env.unwrapped)
+    else:
+        expert = task.make_expert(env.unwrapped)
     return expert, expert.reset
 
 

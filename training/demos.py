@@ -30,12 +30,11 @@ import numpy as np
 
 import bioscara_gym  # noqa: F401 - registers the tasks (recover_environment needs them)
 from bioscara_gym.errors import TrainingError
+from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.extras import needs_extra
 
 #: Minari's dataset ids: ``(namespace/)name-v<version>``.
 VERSION_RE = re.compile(r"-v\d+$")
-GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
-Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
 def dataset_id(name: str) -> str:
@@ -111,10 +110,9 @@ def collect(
 ) -> CollectResult:
     """Record ``episodes`` episodes of a policy on ``env_id`` as the Minari dataset ``name``.
 
-    Episodes are seeded ``seed``, ``seed + 1``, ... Every step is recorded
-    (the episodes run to their time limit or a stall). Nothing is left behind
-    on failure or interruption: the episodes are written to a temporary
-    directory and moved into place only once all are recorded.
+    Episodes are seeded ``seed``, ``seed + 1``, ..., every step recorded (to the
+    time limit or a stall). Nothing is left behind on failure or interruption:
+    the dataset is moved into place only once every episode is recorded.
 
     Args:
         env_id: Registered env id.
@@ -131,49 +129,22 @@ def collect(
     Raises:
         TrainingError: ``episodes`` <= 0, or the dataset exists and ``overwrite`` is false.
     """
-    if episodes <= 0:
-        raise TrainingError(f"episodes must be > 0, got {episodes}")
-    full_id = dataset_id(name)
-    path = datasets_root() / full_id
-    if path.exists() and not overwrite:
-        raise TrainingError(f"dataset {full_id} exists at {path}; pass --overwrite to replace it")
+    full_id, path = _new_dataset(name, episodes, overwrite)
     with needs_extra("bioscara collect", "train"):
         import minari
     env = gym.make(env_id, **(env_kwargs or {}))
     collector = minari.DataCollector(env, record_infos=False)
     start = time.perf_counter()
-    successes, steps = 0, 0
     try:
         policy, on_reset = policy_factory(env)
         bar = _progress(episodes, progress, f"collect {full_id}")
-        for ep in range(episodes):
-            obs, _ = collector.reset(seed=seed + ep)
-            on_reset()
-            done, info = False, {}
-            while not done:
-                obs, _, terminated, truncated, info = collector.step(policy(obs))
-                steps += 1
-                done = terminated or truncated
-            successes += bool(info.get("is_success", False))
-            bar.update(1)
-            bar.set_postfix(success=f"{successes / (ep + 1):.0%}")
-        bar.close()
+        successes, steps = _record(collector, policy, on_reset, episodes, seed, bar)
         success_rate = successes / episodes
         text = description or (
             f"{episodes} episodes of {algorithm_name} on {env_id} ({env_kwargs or {}}); "
             f"success {success_rate:.1%}"
         )
-        if path.exists():  # --overwrite: replaced only once the new episodes are recorded
-            shutil.rmtree(path)
-        try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=r"`(author|author_email|code_permalink)` is set")
-                collector.create_dataset(
-                    dataset_id=full_id, eval_env=env.spec, algorithm_name=algorithm_name, description=text
-                )
-        except BaseException:
-            shutil.rmtree(path, ignore_errors=True)  # never a half-written dataset
-            raise
+        _write_dataset(collector, path, full_id, env.spec, algorithm_name, text)
     finally:
         collector.close()  # removes the collector's temporary directory
     return CollectResult(
@@ -185,6 +156,56 @@ def collect(
         size_bytes=_size_bytes(path),
         wall_time_s=time.perf_counter() - start,
     )
+
+
+def _new_dataset(name: str, episodes: int, overwrite: bool) -> tuple[str, Path]:
+    """The id and directory of the dataset :func:`collect` is to write, checked.
+
+    Raises:
+        TrainingError: ``episodes`` <= 0, or the dataset exists and ``overwrite`` is false.
+    """
+    if episodes <= 0:
+        raise TrainingError(f"episodes must be > 0, got {episodes}")
+    full_id = dataset_id(name)
+    path = datasets_root() / full_id
+    if path.exists() and not overwrite:
+        raise TrainingError(f"dataset {full_id} exists at {path}; pass --overwrite to replace it")
+    return full_id, path
+
+
+def _record(
+    collector: Any, policy: Policy, on_reset: Callable[[], None], episodes: int, seed: int, bar: Any
+) -> tuple[int, int]:
+    """Run the seeded episodes through Minari's collector; the successes and the steps."""
+    successes, steps = 0, 0
+    for ep in range(episodes):
+        obs, _ = collector.reset(seed=seed + ep)
+        on_reset()
+        done, info = False, {}
+        while not done:
+            obs, _, terminated, truncated, info = collector.step(policy(obs))
+            steps += 1
+            done = terminated or truncated
+        successes += bool(info.get("is_success", False))
+        bar.update(1)
+        bar.set_postfix(success=f"{successes / (ep + 1):.0%}")
+    bar.close()
+    return successes, steps
+
+
+def _write_dataset(collector: Any, path: Path, full_id: str, spec: Any, algorithm: str, text: str) -> None:
+    """Write the recorded episodes as dataset ``full_id`` at ``path``: whole, or not at all."""
+    if path.exists():  # --overwrite: replaced only once the new episodes are recorded
+        shutil.rmtree(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"`(author|author_email|code_permalink)` is set")
+            collector.create_dataset(
+                dataset_id=full_id, eval_env=spec, algorithm_name=algorithm, description=text
+            )
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)  # never a half-written dataset
+        raise
 
 
 def _progress(total: int, enabled: bool, desc: str) -> Any:

@@ -79,219 +79,68 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
-import math
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import gymnasium as gym
-import numpy as np
-from gymnasium.envs.registration import load_env_creator
 from rich.console import Console
 from rich.markup import escape
-from rich.table import Table
 
-from bioscara_gym.envs.base import check_control_freq
-from bioscara_gym.errors import DeployError, MetadataError, TrainingError
-from bioscara_gym.hardware.arm import Arm, Lifecycle
-from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.emulated_bus import FaultPlan
-from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, SitlError, StopReason
-from bioscara_gym.hardware.gripper import BaseGripper
-from bioscara_gym.hardware.joint import Joint
-from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
-from bioscara_gym.training.deploy_log import BusStats, LoopStats, RunLog
-from bioscara_gym.training.deploy_safety import CycleCheck, SafetyLayer
-from bioscara_gym.training.extras import needed_by
-from bioscara_gym.training.metadata import (
-    PolicyShapes,
-    check_metadata,
-    check_policy_shapes,
-    read_metadata,
-    resolve_env_id,
+from bioscara_gym.errors import DeployError, MetadataError
+from bioscara_gym.training.deploy_checks import (
+    DEPLOY_BACKENDS,
+    DeployArgs,
+    LoadedPolicy,
+    Policy,
+    check_args,
+    check_outputs,
+    load_policy,
+    make_env,
+    probe_policy,
 )
+from bioscara_gym.training.deploy_log import BusStats, CycleTiming, RunLog, disabled_line, print_summary
+from bioscara_gym.training.deploy_loop import ControlLoop, Target
+from bioscara_gym.training.deploy_safety import (
+    EXIT_REFUSED,
+    EXIT_SAFETY_STOP,
+    Outcome,
+    SafetyStop,
+    StopReason,
+    outcome_for,
+)
+from bioscara_gym.training.metadata import check_metadata, check_policy_shapes
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
-#: Backends deploy drives (``sim`` has no bus: use ``bioscara eval``); ``sitl`` runs the
-#: firmware's own source behind the emulated bus (``--firmware DIR``).
-DEPLOY_BACKENDS = ("i2c", "emulated", "sitl", "mock")
+__all__ = [
+    "DEPLOY_BACKENDS",
+    "EXIT_REFUSED",
+    "EXIT_SAFETY_STOP",
+    "DeployArgs",
+    "Deployment",
+    "LoadedPolicy",
+    "RunLog",
+    "cmd_deploy",
+    "load_policy",
+    "register",
+]
+
 #: Overrun warnings printed before they are only counted.
 OVERRUN_WARNINGS = 5
-#: Exit codes: refused before touching the arm, stopped by the safety layer.
-EXIT_REFUSED = 2
-EXIT_SAFETY_STOP = 3
 
-
-class Policy(Protocol):
-    """Observation -> action; ``reset()`` is called at each episode start if present."""
-
-    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """The action for ``obs``."""
-        ...
-
-
-@dataclass
-class DeployArgs:
-    """Arguments of ``bioscara deploy`` (the CLI flags map one to one).
-
-    Attributes:
-        model: A trained ``model.zip`` (metadata.json beside it).
-        onnx: An ONNX policy from ``bioscara export`` (runs without torch).
-        expert: Run the scripted expert of ``env`` instead of a policy.
-        env: Env id for ``expert``; with a policy, must match its metadata.
-        backend: ``i2c`` (the arm), ``emulated`` (real driver, emulated bus), ``sitl``
-            (the same with the joint firmware's own source behind the bus) or ``mock``.
-        bus: I2C bus number (``/dev/i2c-N``); default the config's.
-        config: Arm configuration YAML; default the packaged one.
-        episodes: Episodes to run.
-        rate: Control rate in Hz; default the policy's. Must match a trained policy's.
-        log: Run log (JSON Lines); default ``runs/deploy/deploy-<time>.jsonl``.
-        faults: Fault injection on ``emulated``, e.g. ``nack=0.01,latency_ms=2``.
-        seed: Seed of the first episode.
-        realtime: On simulated backends, pace the loop on the wall clock too.
-        state_file: Gripper state file; default the backend's (on the arm) or
-            ``gripper.json`` beside the log (simulated backends).
-        record: Bus trace: every I2C transaction as a JSON line (docs/traces.md).
-        firmware: The joint firmware's folder for ``sitl`` (``Arduino/joint/``);
-            default ``$BIOSCARA_FIRMWARE``.
-    """
-
-    model: Path | None = None
-    onnx: Path | None = None
-    expert: bool = False
-    env: str | None = None
-    backend: str = "emulated"
-    bus: int | None = None
-    config: Path | None = None
-    episodes: int = 1
-    rate: float | None = None
-    log: Path | None = None
-    faults: str | None = None
-    seed: int = 10_000
-    realtime: bool = False
-    state_file: Path | None = None
-    record: Path | None = None
-    firmware: Path | None = None
-
-
-@dataclass
-class Outcome:
-    """How a run ended: what the summary and the exit code say.
-
-    Attributes:
-        reason: Why it ended.
-        message: One line for the operator.
-        joint: The joint concerned, if one is.
-        exit_code: The CLI's exit code.
-        stop_report: What the safe stop did (``None`` if the run completed).
-    """
-
-    reason: StopReason = StopReason.COMPLETED
-    message: str = "completed"
-    joint: str | None = None
-    exit_code: int = 0
-    stop_report: SafeStopReport | None = None
-
-
-@dataclass
-class EpisodeClock:
-    """One episode's timing from cycle to cycle, on the backend's clock and the wall clock."""
-
-    prev_wall: float | None = None
-    prev_clock: float | None = None
-    deadline: float = field(default_factory=time.perf_counter)
-
-    def tick(self, clock_now: float) -> tuple[float, float | None, float | None]:
-        """Start a cycle: its wall time and its periods on both clocks (``None`` for the first)."""
-        t_wall = time.perf_counter()
-        period = None if self.prev_clock is None else clock_now - self.prev_clock
-        wall_period = None if self.prev_wall is None else t_wall - self.prev_wall
-        self.prev_wall, self.prev_clock = t_wall, clock_now
-        return t_wall, period, wall_period
-
-    def pace(self, dt: float) -> None:
-        """Sleep until the next cycle is due on the wall clock (``--realtime``)."""
-        self.deadline = max(self.deadline + dt, time.perf_counter() - dt)
-        pause = self.deadline - time.perf_counter()
-        if pause > 0:
-            time.sleep(pause)
-
-
-# ------------------------------------------------------------------ policies
-def _describe_env(env: gym.Env) -> str:
-    u = env.unwrapped
-    return f"{_env_id(env)} ({u.control_mode}, {u.control_freq:g} Hz)"
-
-
-def _env_id(env: gym.Env) -> str:
-    """The registered id of ``env`` (the unwrapped env's spec: no deep copy of the kwargs)."""
-    spec = env.unwrapped.spec
-    return spec.id if spec is not None else type(env.unwrapped).__name__
-
-
-@dataclass(frozen=True)
-class LoadedPolicy:
-    """A policy ready to be given its env.
-
-    Attributes:
-        make: Builds the policy for the env (the scripted expert needs it).
-        metadata: What the policy was trained for (``None`` for the expert).
-        description: One line for the operator.
-        shapes: What the policy itself takes and gives (``None`` for the expert).
-    """
-
-    make: Callable[[gym.Env], Policy]
-    metadata: dict[str, Any] | None
-    description: str
-    shapes: PolicyShapes | None = None
-
-
-def load_policy(args: DeployArgs) -> LoadedPolicy:
-    """Load the policy the arguments name.
-
-    Only ``--model`` imports torch and stable-baselines3, only ``--onnx`` onnxruntime.
-
-    Raises:
-        DeployError: No policy source, or more than one; ``--expert`` without ``--env``.
-        MetadataError: Missing, incomplete or unreadable metadata.
-        PolicyFileError: A ``model.zip`` that cannot be loaded.
-        ExportError: An ONNX file that cannot be loaded.
-        MissingExtraError: The extra the policy source needs is not installed.
-    """
-    sources = [s for s in (args.model is not None, args.onnx is not None, args.expert) if s]
-    if len(sources) != 1:
-        raise DeployError("deploy needs exactly one of --model PATH, --onnx FILE or --expert --env ID")
-    if args.expert:
-        if args.env is None:
-            raise DeployError("--expert needs --env ID: the task is never guessed")
-        from bioscara_gym.experts import expert_for
-
-        return LoadedPolicy(lambda env: expert_for(env.unwrapped), None, "scripted expert")
-    if args.onnx is not None:
-        from bioscara_gym.training.export import OnnxPolicy
-
-        onnx_policy = OnnxPolicy(args.onnx)
-        return LoadedPolicy(
-            lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
-        )
-    read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
-    with needed_by("deploy --model"):
-        from bioscara_gym.training.algos import load_model, sb3_policy
-
-    # What the policy was trained for is proven by its own copy, not by an editable file.
-    model, metadata = load_model(Path(args.model), require_embedded=True)
-    sb3 = sb3_policy(model)
-    shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {args.model}")
-    return LoadedPolicy(lambda env: sb3, metadata, f"{metadata['algo'].upper()} {args.model}", shapes)
 
 
 # ---------------------------------------------------------------- deployment
 class Deployment:
     """One ``bioscara deploy`` run (see the module docstring).
+
+    The env it builds is the one owner of the arm: deploy asks it to bring
+    the arm up (:meth:`Target.bring_up`, each phase printed and logged
+    through :meth:`starting` and :meth:`done`), to step, and to shut the
+    arm down or stop it safely; everything else it reads from the arm's
+    public API.
 
     Args:
         args: The run's arguments.
@@ -301,6 +150,7 @@ class Deployment:
         console: Where phases and warnings are printed.
         on_cycle: Called with ``(cycle, env)`` before each cycle's policy call
             (test hook: inject a fault mid-run).
+        backend_options: Options laid over the backend's (``bioscara replay``: its bus).
     """
 
     def __init__(
@@ -310,15 +160,18 @@ class Deployment:
         metadata: dict[str, Any] | None = None,
         console: Console | None = None,
         on_cycle: Callable[[int, gym.Env], None] | None = None,
+        backend_options: dict[str, Any] | None = None,
     ) -> None:
         """Validate the arguments; nothing is built or sent yet."""
-        _check_args(args)
+        check_args(args)
         self.args = args
         self.console = console or Console(highlight=False, soft_wrap=True)
         self.on_cycle = on_cycle
+        self._extra_options = dict(backend_options or {})
         self._policy_override = policy
         self._metadata_override = metadata
         self.env: gym.Env | None = None
+        self.target: Target | None = None
         self.summary: dict[str, Any] = {}
         self.log_path = (
             Path(args.log) if args.log else Path("runs/deploy") / time.strftime("deploy-%Y%m%d-%H%M%S.jsonl")
@@ -326,30 +179,33 @@ class Deployment:
         self.state_file = args.state_file
         if self.state_file is None and args.backend != "i2c":
             self.state_file = self.log_path.parent / "gripper.json"
-        _check_outputs({"--log": self.log_path, "--state-file": self.state_file, "--record": args.record})
+        check_outputs({"--log": self.log_path, "--state-file": self.state_file, "--record": args.record})
         self._t0 = time.perf_counter()
         self._gripper_width: float | None = None
         self._early_phases: list[dict[str, Any]] = []
         self._log: RunLog | None = None
         self._signals = SignalGuard()
-        self._guard: DeadmanGuard | None = None
-        self._stats: LoopStats | None = None
+        self._loop: ControlLoop | None = None
+        self._timing: CycleTiming | None = None
         self._bus: BusStats | None = None
-        self._counts = {"episodes": 0, "successes": 0, "cycles": 0}
 
     # --------------------------------------------------------------- output
-    def _phase(self, name: str, detail: str) -> None:
+    def done(self, phase: str, detail: str) -> None:
         """Print a phase; log it (phases before the log opens are logged when it does)."""
-        self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)}")
-        t = self.env.unwrapped.arm.backend.clock.now() if self.env is not None else None
-        record = {"type": "phase", "phase": name, "detail": detail, "t": t}
+        self.console.print(f"[bold]{phase:<10}[/bold] {escape(detail)}")
+        t = self.target.arm.clock.now() if self.target is not None else None
+        record = {"type": "phase", "phase": phase, "detail": detail, "t": t}
         if self._log is None:
             self._early_phases.append(record)
         else:
             self._log.write(record)
-            self._log_bus(name)
+            self.log_bus(phase)
 
-    def _log_bus(self, phase: str, **where: Any) -> None:
+    def starting(self, phase: str, detail: str) -> None:
+        """Print that a phase starts (a failure in it is printed right after)."""
+        self.console.print(f"[bold]{phase:<10}[/bold] {escape(detail)} ...")
+
+    def log_bus(self, phase: str, **where: Any) -> None:
         """A ``bus`` record of the retries and errors since the last record that took them, if any.
 
         Cycle records take their cycle's; this takes a phase's (configure,
@@ -362,10 +218,6 @@ class Deployment:
         if changes:
             self._log.write({"type": "bus", "phase": phase, **where, "joints": changes})
 
-    def _starting(self, name: str, detail: str) -> None:
-        """Print that a phase starts (a failure in it is printed right after)."""
-        self.console.print(f"[bold]{name:<10}[/bold] {escape(detail)} ...")
-
     # ------------------------------------------------------------------- run
     def run(self) -> dict[str, Any]:
         """Check, bring up, run, shut down. Returns the summary.
@@ -376,16 +228,23 @@ class Deployment:
             Interrupted: SIGINT/SIGTERM; the arm is safe, ``self.summary`` is set.
         """
         loaded = self._load_policy()
-        env = self.env = self._make_env(loaded.metadata)
+        env = self.env = make_env(self.args, self.state_file, loaded.metadata, self._extra_options)
+        self.target = env.unwrapped  # the Bioscara env's public API (Target)
         with warnings.catch_warnings():
             warnings.showwarning = self._show_warning  # one line each, with the phases
             try:
-                target = f"{_describe_env(env)} on {self.args.backend}"
-                self.console.print(f"[bold]deploy[/bold]     {escape(loaded.description)} -> {target}")
+                t = self.target
+                where = f"{self._env_id()} ({t.control_mode}, {t.control_freq:g} Hz) on {self.args.backend}"
+                self.console.print(f"[bold]deploy[/bold]     {escape(loaded.description)} -> {where}")
                 self._check(env, loaded)
                 return self._run(env, loaded.make(env), loaded.description)
             finally:
-                env.close()
+                env.close()  # the env shuts the arm down if it is still up (it is not, by now)
+
+    def _env_id(self) -> str:
+        """The registered id of the env (its own spec: no deep copy of the kwargs)."""
+        spec = self.target.spec if self.target is not None else None
+        return spec.id if spec is not None else type(self.target).__name__
 
     def _show_warning(self, message: Warning | str, *args: Any, **kwargs: Any) -> None:
         """Print a warning (e.g. the gripper's state file) as one line among the phases."""
@@ -403,104 +262,79 @@ class Deployment:
     def _check(self, env: gym.Env, loaded: LoadedPolicy) -> None:
         """Refuse a policy trained for another env, or one that does not fit it, before anything is sent."""
         if loaded.metadata is None:
-            self._phase("check", "no metadata to check (scripted policy)")
+            self.done("check", "no metadata to check (scripted policy)")
             return
         try:
-            check_metadata(loaded.metadata, env, _env_id(env))
+            check_metadata(loaded.metadata, env, self._env_id())
             if loaded.shapes is not None:
                 check_policy_shapes(loaded.shapes, env)
         except MetadataError as e:
             raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
-        _probe_policy(loaded, env, self.args.seed)
+        probe_policy(loaded, env, self.args.seed)
         checked = "metadata and own inputs and outputs match" if loaded.shapes else "metadata matches"
-        self._phase("check", f"policy {checked} the env, and acts finitely; nothing sent to the arm yet")
-
-    def _make_env(self, metadata: dict[str, Any] | None) -> gym.Env:
-        """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet."""
-        args = self.args
-        kwargs: dict[str, Any] = dict(metadata["env_kwargs"]) if metadata else {}
-        # With a policy the metadata names the env (--env, if given, must agree: _check);
-        # the expert has --env (load_policy).
-        try:
-            env_id = resolve_env_id(args.env if args.env is not None else metadata["env_id"])
-        except TrainingError as e:
-            raise DeployError(str(e)) from e
-        _check_env_kwargs(env_id, kwargs)
-        config = load_config(args.config)
-        if args.bus is not None:
-            config = dataclasses.replace(config, bus=args.bus)
-        kwargs.update(backend=args.backend, backend_options=self._backend_options(), config=config)
-        kwargs["render_mode"] = None
-        if args.rate is not None:
-            kwargs["control_freq"] = float(args.rate)
-        try:
-            return gym.make(env_id, **kwargs)
-        except (gym.error.Error, ValueError, TypeError, SitlError) as e:
-            raise DeployError(f"cannot make env {env_id!r}: {e}") from e
-
-    def _backend_options(self) -> dict[str, Any]:
-        """The backend's options: the gripper state file and the emulated bus's faults."""
-        args = self.args
-        options: dict[str, Any] = {}
-        if self.state_file is not None:
-            options["state_file"] = self.state_file
-        if args.faults:
-            options["faults"] = FaultPlan.parse(args.faults)  # checked in _check_args
-        if args.record is not None:  # every bus transaction to a trace (docs/traces.md)
-            from bioscara_gym.hardware.recording import Recording
-
-            options["record"] = Recording(args.record, "deploy", args)
-        if args.backend == "sitl":
-            options["firmware"] = args.firmware  # None: $BIOSCARA_FIRMWARE
-        return options
+        self.done("check", f"policy {checked} the env, and acts finitely; nothing sent to the arm yet")
 
     def _run(self, env: gym.Env, policy: Policy, description: str) -> dict[str, Any]:
         """Bring up, run and shut down; every way out makes the arm safe first."""
-        arm = env.unwrapped.arm
+        target = self.target
         try:
             self._log = RunLog(self.log_path)
         except OSError as e:
             raise DeployError(
                 f"cannot open the run log {self.log_path}: {e.strerror or e}; nothing was sent to the arm"
             ) from e
-        self._stats = LoopStats(nominal_s=env.unwrapped.dt)
-        self._bus = BusStats(arm.backend.comm_stats())
+        self._timing = CycleTiming(nominal_s=target.dt)
+        self._bus = BusStats(target.arm.comm_stats())
         outcome = Outcome()
         try:
             try:
-                self._write_header(env, description)
+                self._write_header(description)
             except SafetyStop as e:  # the log cannot be written: refuse before the arm is touched
                 raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
             with self._signals:
                 try:
-                    self._bring_up(env)
-                    self._episodes(env, policy)
-                    self._shut_down(arm)
+                    target.bring_up(self)  # configure, activate, home, each phase through done()
+                    self._loop = self._control_loop()
+                    self._loop.run(env, policy)
+                    self._shut_down()
                 except BaseException as e:
-                    outcome = self._stop_safely(e, arm)
+                    outcome = self._stop_safely(e)
                     if not isinstance(e, Exception | KeyboardInterrupt):
                         raise
                 finally:
                     with self._signals.shielded():
-                        self._finish(env, outcome)
+                        self._finish(outcome)
         finally:
             self._log.close()
         return self._report(outcome)
 
-    def _write_header(self, env: gym.Env, description: str) -> None:
+    def _control_loop(self) -> ControlLoop:
+        """The run phase's loop over this run's target, log, statistics and signal guard."""
+        return ControlLoop(
+            self.target,
+            self.args,
+            self._log,
+            self._bus,
+            self._timing,
+            self._signals,
+            self.console,
+            tell=self,
+            on_cycle=self.on_cycle,
+        )
+
+    def _write_header(self, description: str) -> None:
         """Open the log with the run's header and the phases printed before it."""
-        u = env.unwrapped
-        args = self.args
+        t, args = self.target, self.args
         self._log.write(
             {
                 "type": "header",
                 "policy": description,
-                "env_id": _env_id(env),
+                "env_id": self._env_id(),
                 "backend": args.backend,
-                "rate_hz": u.control_freq,
-                "control_mode": u.control_mode,
+                "rate_hz": t.control_freq,
+                "control_mode": t.control_mode,
                 "faults": args.faults,
-                "i2c_clock_hz": u.config.i2c_clock_hz,
+                "i2c_clock_hz": t.config.i2c_clock_hz,
                 "seed": args.seed,
                 "episodes": args.episodes,
                 "realtime": args.realtime,
@@ -510,191 +344,18 @@ class Deployment:
         for record in self._early_phases:
             self._log.write(record)
 
-    # ---------------------------------------------------------------- bring up
-    def _bring_up(self, env: gym.Env) -> None:
-        """Configure, activate and home the arm phase by phase, then claim the control mode."""
-        u = env.unwrapped
-        arm: Arm = u.arm
-        self._configure(arm)
-        homed_before = [n for n in arm.names if arm.joint_states[n].homed]
-        self._starting("activate", "enabling joints, stall detection and limits")
-        arm.activate()
-        self._phase("activate", "joints enabled, stall detection and limits set")
-        self._home(arm, [n for n in arm.names if n not in homed_before], homed_before)
-        u.bring_up()  # configured, active and homed: only the command mode's claim is left
-
-    def _configure(self, arm: Arm) -> None:
-        """Connect and ping every joint."""
-        addressed = ", ".join(
-            f"{n} {j.address:#04x}" if isinstance(j, Joint) else n for n, j in arm.joints.items()
-        )
-        self._starting("configure", f"connecting and pinging {addressed}")
-        arm.configure()
-        self._phase("configure", "every joint answered")
-
-    def _home(self, arm: Arm, todo: list[str], homed_before: list[str]) -> None:
-        """Home the joints in ``todo``; those homed before keep the offset read on configure."""
-        if homed_before:
-            self._phase("home", f"{', '.join(homed_before)} homed before: offset restored from HOMEOFFSET")
-        if todo:
-            clock = arm.backend.clock
-            t0 = clock.now()
-            self._starting("home", f"homing {', '.join(todo)}")
-            arm.home(todo)
-            self._phase("home", f"{', '.join(todo)} homed in {clock.now() - t0:.1f} s")
-
-    # -------------------------------------------------------------- episodes
-    def _episodes(self, env: gym.Env, policy: Policy) -> None:
-        """Run every episode behind the safety layer."""
-        self._guard = DeadmanGuard(env.unwrapped.arm.backend)
-        safety = SafetyLayer(env, self._guard)
-        self._phase(
-            "run",
-            f"{self.args.episodes} episode(s) at {env.unwrapped.control_freq:g} Hz, log {self.log_path}",
-        )
-        for ep in range(self.args.episodes):
-            self._run_episode(env, policy, safety, ep)
-
-    def _run_episode(self, env: gym.Env, policy: Policy, safety: SafetyLayer, ep: int) -> None:
-        """Reset, then one cycle after another until the episode ends."""
-        obs, info = env.reset(seed=self.args.seed + ep)
-        self._log_bus("reset", episode=ep)
-        if hasattr(policy, "reset"):
-            policy.reset()
-        self._guard.restart()
-        clock = EpisodeClock()
-        total, steps, done = 0.0, 0, False
-        while not done:
-            with self._signals.deferred():
-                self._signals.check()
-                obs, reward, terminated, truncated, info = self._cycle(
-                    env, policy, safety, clock, ep, steps, obs
-                )
-                total += float(reward)
-                steps += 1
-                if self.args.realtime:
-                    clock.pace(env.unwrapped.dt)
-            done = terminated or truncated
-        self._end_episode(ep, info, steps, total)
-
-    def _cycle(
-        self,
-        env: gym.Env,
-        policy: Policy,
-        safety: SafetyLayer,
-        clock: EpisodeClock,
-        ep: int,
-        step: int,
-        obs: dict[str, np.ndarray],
-    ) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        """One control cycle: the policy's action through the safety layer, accounted and logged."""
-        if self.on_cycle is not None:
-            self.on_cycle(self._counts["cycles"], env)
-        arm = env.unwrapped.arm
-        t_clock = arm.backend.clock.now()
-        t_wall, period, wall_period = clock.tick(t_clock)
-        raw = _act(policy, obs)
-        where = {"cycle": self._counts["cycles"], "episode": ep, "step": step, "t": t_clock}
-        try:
-            result, check = safety.step(raw)
-        except SafetyStop:
-            flags = {n: int(arm.joint_states[n].flags) for n in env.unwrapped.joint_names}
-            record = {"type": "cycle", **where, "action": _floats(raw), "flags": flags, "stopped": True}
-            self._log.write({**record, **self._bus_record()})
-            raise
-        timing = self._account_cycle(env, period, wall_period, time.perf_counter() - t_wall, check)
-        state = self._cycle_state(env, raw, check)
-        self._log.write(
-            {"type": "cycle", **where, **timing, **state, "reward": result[1], **self._bus_record()}
-        )
-        self._counts["cycles"] += 1
-        return result
-
-    def _bus_record(self) -> dict[str, Any]:
-        """``{"bus": ...}`` with the cycle's retries and errors per joint, or nothing if it had none."""
-        changes = self._bus.cycle()
-        return {"bus": changes} if changes else {}
-
-    def _account_cycle(
-        self, env: gym.Env, period: float | None, wall_period: float | None, work: float, check: CycleCheck
-    ) -> dict[str, Any]:
-        """Add a cycle's timing to the statistics, warn on an overrun; the cycle record's timing."""
-        paced_wall = self.args.realtime or self.args.backend == "i2c"
-        overrun = self._stats.add(period, wall_period, work, check.silence_s, paced_wall)
-        if overrun:
-            self._warn_overrun(env.unwrapped.dt, wall_period if paced_wall else period)
-        return {
-            "period_s": period,
-            "wall_period_s": wall_period,
-            "work_s": work,
-            "silence_s": check.silence_s,
-            "overrun": overrun,
-        }
-
-    @staticmethod
-    def _cycle_state(env: gym.Env, raw: Any, check: CycleCheck) -> dict[str, Any]:
-        """The cycle record's action, commands and per-joint state."""
-        arm = env.unwrapped.arm
-        names = env.unwrapped.joint_names
-        states = arm.joint_states
-        return {
-            "action": _floats(raw),
-            "clamped": check.clamped,
-            "commands": {n: arm.commands[n] for n in names},
-            "q": {n: states[n].position for n in names},
-            "qd": {n: states[n].velocity for n in names},
-            "flags": {n: int(states[n].flags) for n in names},
-        }
-
-    def _warn_overrun(self, dt: float, period: float | None) -> None:
-        """Print the first ``OVERRUN_WARNINGS`` overruns; count the rest silently."""
-        overruns = self._stats.overruns
-        if overruns > OVERRUN_WARNINGS:
-            return
-        more = " (further overruns are only counted)" if overruns == OVERRUN_WARNINGS else ""
-        self.console.print(
-            f"[yellow]warning[/yellow]: overrun at cycle {self._counts['cycles']}: period "
-            f"{(period or 0.0) * 1000:.1f} ms > {dt * 1000:.0f} ms{more}"
-        )
-
-    def _end_episode(self, ep: int, info: dict[str, Any], steps: int, total: float) -> None:
-        """Count, log and print the episode's result."""
-        success = bool(info.get("is_success", False))
-        self._counts["episodes"] += 1
-        self._counts["successes"] += success
-        self._log.write(
-            {
-                "type": "episode",
-                "episode": ep,
-                "success": success,
-                "distance": info.get("distance"),
-                "steps": steps,
-                "return": total,
-                "stalled": bool(info.get("stalled", False)),
-            }
-        )
-        self.console.print(
-            f"{'':<10} episode {ep + 1}/{self.args.episodes}: {'success' if success else 'miss'}, "
-            f"distance {info.get('distance', math.nan) * 1000:.1f} mm, {steps} steps"
-        )
-
     # ------------------------------------------------------------- shut down
-    def _shut_down(self, arm: Arm) -> None:
-        """Deactivate (gripper width saved) and clean up, signals held off."""
+    def _shut_down(self) -> None:
+        """The env's orderly end (deactivate, gripper width saved, clean up), signals held off."""
         with self._signals.shielded():
-            arm.deactivate()
-            self._gripper_width = arm.gripper.get_position()
-            saved = _gripper_saved(arm.gripper)
-            self._phase("deactivate", f"joints disabled, gripper width {self._gripper_width:.3f} m {saved}")
-            arm.cleanup()
-            self._phase("cleanup", "joints and gripper disconnected")
+            self._gripper_width = self.target.shut_down(self)
 
-    def _stop_safely(self, e: BaseException, arm: Arm) -> Outcome:
-        """Make the arm safe after ``e``, then say why it stopped."""
+    def _stop_safely(self, e: BaseException) -> Outcome:
+        """Have the env make the arm safe after ``e``, then say why it stopped."""
         with self._signals.shielded():
-            outcome = _classify(e)
-            outcome.stop_report = safe_stop(arm)  # the arm first, then the words
-            self._log_bus("safe stop")
+            outcome = outcome_for(e)
+            outcome.stop_report = self.target.safe_stop()  # the arm first, then the words
+            self.log_bus("safe stop")
             self._gripper_width = outcome.stop_report.gripper_width_m
             self.console.print(f"[bold red]{'safe stop':<10}[/bold red] {escape(outcome.message)}")
             self._log.write(
@@ -707,35 +368,32 @@ class Deployment:
             )
         return outcome
 
-    def _finish(self, env: gym.Env, outcome: Outcome) -> None:
-        """Stop watching the joints, shut the arm down if still up, log the summary."""
-        arm = env.unwrapped.arm
-        if self._guard is not None:
-            self._guard.detach()
-        if arm.state is not Lifecycle.FINALIZED:
-            arm.shutdown()
-        self._log_bus("shutdown")
-        self.summary = self._summarise(env, outcome)
+    def _finish(self, outcome: Outcome) -> None:
+        """Stop watching the joints, log the summary (the env has shut the arm down)."""
+        if self._loop is not None and self._loop.guard is not None:
+            self._loop.guard.detach()
+        self.log_bus("shutdown")
+        self.summary = self._summarise(outcome)
         self._log.write({"type": "summary", **self.summary})
 
     # --------------------------------------------------------------- summary
-    def _summarise(self, env: gym.Env, outcome: Outcome) -> dict[str, Any]:
+    def _summarise(self, outcome: Outcome) -> dict[str, Any]:
         """The summary record: counts, timing, why it stopped, the arm's final state."""
-        arm = env.unwrapped.arm
-        state = final_state(arm.backend)
-        counts, report = self._counts, outcome.stop_report
+        arm = self.target.arm
+        counts = dict(self._loop.counts) if self._loop else {"episodes": 0, "successes": 0, "cycles": 0}
+        report = outcome.stop_report
         return {
             **counts,
             "success_rate": counts["successes"] / counts["episodes"] if counts["episodes"] else None,
-            **self._stats.summary(),
+            **self._timing.summary(),
             "bus": self._bus.summary(),
             "stop_reason": outcome.reason.value,
             "message": outcome.message,
             "joint": outcome.joint,
-            "final_state": state,
+            "final_state": arm.final_state(),
             # Safe only where the joint's own disable was acknowledged: the flags are no
             # proof (a deadman trip sets NOT_ENABLED and keeps the currents). A completed
-            # run got here through deactivate(), which raises unless every disable went through.
+            # run got here through shut_down(), which raises unless every disable went through.
             "arm_disabled": not report.not_confirmed if report else True,
             "arm_state": arm.state.value,
             "problems": report.problems if report else [],
@@ -754,250 +412,13 @@ class Deployment:
 
     def _report(self, outcome: Outcome) -> dict[str, Any]:
         """Print the summary; return it, or raise what the exit code needs."""
-        self._print_summary()
+        print_summary(self.console, self.summary, self._log)
         if outcome.reason is StopReason.COMPLETED:
             return self.summary
-        self.console.print(self._disabled_line())
+        self.console.print(disabled_line(self.summary))
         if outcome.reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
             raise Interrupted(outcome.exit_code - 128)
         raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
-
-    def _disabled_line(self) -> str:
-        """Which joints acknowledged their disable, and each one that did not, named."""
-        s = self.summary
-        names = list(s["final_state"])
-        if s["arm_disabled"]:
-            return (
-                f"arm disabled: {', '.join(names)} acknowledged their disable (currents 0); "
-                "arm shut down, bus closed"
-            )
-        confirmed = [n for n in names if n not in s["not_confirmed_disabled"]]
-        lines = "; ".join(s["not_confirmed_warnings"])
-        done = f"confirmed disabled: {', '.join(confirmed)}" if confirmed else "no joint confirmed disabled"
-        done = f"; {done}"
-        return f"[red]arm NOT confirmed disabled[/red]: {escape(lines)}{done}"
-
-    def _print_summary(self) -> None:
-        """The summary as a table, and where the log is."""
-        s = self.summary
-
-        def ms(key: str) -> str:
-            v = s.get(key)
-            return "-" if v is None else f"{v * 1000:.2f} ms"
-
-        table = Table(title=f"deploy summary ({s['stop_reason']})")
-        table.add_column("metric")
-        table.add_column("value", justify="right")
-        rate = f"{s['successes']}/{s['episodes']}"
-        if s["success_rate"] is not None:
-            rate += f" ({s['success_rate']:.0%})"
-        table.add_row("episodes (successes)", rate)
-        table.add_row("cycles", str(s["cycles"]))
-        table.add_row("rate", f"{s['rate_hz']:g} Hz")
-        table.add_row("period mean / max (backend clock)", f"{ms('period_mean_s')} / {ms('period_max_s')}")
-        table.add_row("jitter (std, backend clock)", ms("period_jitter_s"))
-        table.add_row(
-            "host loop mean / jitter (wall)", f"{ms('wall_period_mean_s')} / {ms('wall_period_jitter_s')}"
-        )
-        table.add_row("host work per cycle mean / max", f"{ms('work_mean_s')} / {ms('work_max_s')}")
-        table.add_row("longest joint silence", ms("max_silence_s"))
-        table.add_row("overruns", str(s["overruns"]))
-        for name, bus in s["bus"].items():
-            errors = ", ".join(f"{k} {v}" for k, v in bus["errors"].items())
-            table.add_row(
-                f"bus {name}: transactions / retries / errors",
-                f"{bus['transactions']} / {bus['retries']} / {errors}",
-            )
-        table.add_row("stop", escape(s["message"]))
-        flags = ", ".join(f"{n} {st['flag_names']}" for n, st in s["final_state"].items())
-        table.add_row("final flags", flags)
-        self.console.print(table)
-        self.console.print(f"log        {self.log_path}", markup=False)
-        if self._log.error is not None:
-            lost = f": {', '.join(self._log.lost)}" if self._log.lost else ""
-            self.console.print(
-                f"log incomplete: {self._log.dropped} record(s) not written{lost} "
-                f"({self._log.error.strerror or self._log.error}); every line in it is a whole record",
-                markup=False,
-            )
-
-
-def _probe_policy(loaded: LoadedPolicy, env: gym.Env, seed: int) -> None:
-    """Run the policy once on an observation of the env's space, before the arm is touched.
-
-    The env's first real observation needs the arm homed, so the probe is an
-    observation drawn from the env's observation space with the run's seed: a
-    policy whose own numbers are broken (a NaN weight) gives NaN or infinity,
-    or fails inside its library, for any input.
-
-    Raises:
-        DeployError: One line naming the policy and what it gave.
-    """
-    space = env.observation_space
-    space.seed(seed)
-    probe = space.sample()
-    try:
-        action = np.asarray(loaded.make(env)(probe), dtype=np.float64)
-    except Exception as e:  # torch's distribution checks, onnxruntime: one line, not their traceback
-        raise DeployError(
-            f"refused: {loaded.description} fails on a probe observation ({type(e).__name__}: "
-            f"{_first_line(e)}); are its weights NaN or infinite? nothing was sent to the arm"
-        ) from e
-    if not np.all(np.isfinite(action)):
-        raise DeployError(
-            f"refused: {loaded.description} gives a non-finite action "
-            f"{np.array2string(action, precision=3, separator=', ')} on a probe observation; "
-            "nothing was sent to the arm"
-        )
-
-
-def _first_line(e: BaseException) -> str:
-    """The first line of an exception's message (torch's span several)."""
-    text = str(e).strip()
-    return text.splitlines()[0] if text else "no message"
-
-
-def _check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
-    """Refuse a policy's env kwargs that the env does not take, naming them.
-
-    Raises:
-        DeployError: Unknown env id, or a kwarg the env's constructor lacks.
-    """
-    try:
-        spec = gym.spec(env_id)
-    except gym.error.Error as e:
-        raise DeployError(f"cannot make env {env_id!r}: {e}") from e
-    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
-    known = _keyword_parameters(creator)
-    unknown = [k for k in kwargs if k not in known]
-    if unknown:
-        settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
-        raise DeployError(
-            f"the policy's env_kwargs has {unknown[0]!r}, which {env_id} does not take; it takes {settings}"
-        )
-
-
-def _keyword_parameters(creator: Any) -> list[str]:
-    """The keyword parameters an env class takes, following ``**kwargs`` up its bases."""
-    classes = creator.__mro__ if isinstance(creator, type) else (creator,)
-    names: list[str] = []
-    for cls in classes:
-        target = cls.__init__ if isinstance(creator, type) else cls
-        if isinstance(creator, type) and "__init__" not in vars(cls):
-            continue
-        params = inspect.signature(target).parameters.values()
-        names += [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-        if not any(p.kind is p.VAR_KEYWORD for p in params):
-            break
-    return [n for n in dict.fromkeys(names) if n != "self"]
-
-
-def _check_outputs(outputs: dict[str, Path | None]) -> None:
-    """Refuse output files that are one and the same, or that cannot be files.
-
-    The run log, the gripper state file (``None``: the backend's, on the arm)
-    and the bus trace are written side by side: one path for two of them
-    would leave neither readable.
-
-    Raises:
-        DeployError: Two options name one file, or one names a directory, a
-            device or a FIFO, or a path under something that is not a directory.
-    """
-    seen: dict[Path, str] = {}
-    for option, path in outputs.items():
-        if path is None:
-            continue
-        resolved = Path(path).resolve()
-        if resolved in seen:
-            raise DeployError(f"{seen[resolved]} and {option} name the same file {path}; each needs its own")
-        seen[resolved] = option
-        if resolved.exists() and not resolved.is_file():
-            raise DeployError(f"{option} {path} is not a regular file")
-        parent = next((p for p in resolved.parents if p.exists()), None)
-        if parent is not None and not parent.is_dir():
-            raise DeployError(f"{option} {path}: {parent} is not a directory")
-
-
-def _check_args(args: DeployArgs) -> None:
-    """Refuse a bad argument before anything is built or sent.
-
-    Raises:
-        DeployError: One line naming the argument and what was expected.
-    """
-    if args.backend not in DEPLOY_BACKENDS:
-        raise DeployError(
-            f"backend {args.backend!r} is not deployable; expected one of {', '.join(DEPLOY_BACKENDS)}"
-        )
-    if args.episodes < 1:
-        raise DeployError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.seed < 0:
-        raise DeployError(f"--seed must be >= 0, got {args.seed}")
-    if args.bus is not None and args.bus < 0:
-        raise DeployError(f"--bus must be an I2C bus number >= 0 (/dev/i2c-N), got {args.bus}")
-    if args.rate is not None:
-        try:
-            check_control_freq(args.rate, "--rate")
-        except ValueError as e:
-            raise DeployError(str(e)) from e
-    if args.firmware is not None and args.backend != "sitl":
-        raise DeployError("--firmware needs --backend sitl (the firmware in the loop)")
-    if args.faults:
-        if args.backend not in ("emulated", "sitl"):
-            raise DeployError(
-                "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)"
-            )
-        try:
-            FaultPlan.parse(args.faults)
-        except ValueError as e:
-            raise DeployError(f"--faults: {e}") from e
-
-
-def _gripper_saved(gripper: BaseGripper) -> str:
-    """Whether the gripper's width was written to its state file, in words."""
-    path = gripper.state_file
-    if path is None:
-        return "not kept (no state file)"
-    if gripper.save_error is not None:
-        return f"NOT saved to {path}: {gripper.save_error.strerror or gripper.save_error}"
-    if gripper.saved_width_m is None:
-        return f"not saved (the gripper was not enabled; {path} unchanged)"
-    return f"saved to {path}"
-
-
-def _act(policy: Policy, obs: dict[str, np.ndarray]) -> Any:
-    """The policy's action; a failure inside the policy is a safety stop in one line.
-
-    Raises:
-        SafetyStop: ``nan_action``: the policy raised (e.g. torch refusing a
-            NaN mean); the arm has not seen this cycle's action.
-    """
-    try:
-        return policy(obs)
-    except Exception as e:
-        raise SafetyStop(
-            StopReason.NAN_ACTION, f"the policy failed to act ({type(e).__name__}: {_first_line(e)})"
-        ) from e
-
-
-def _floats(action: Any) -> np.ndarray:
-    """The policy's raw action as float64, for the log."""
-    return np.asarray(action, dtype=np.float64)
-
-
-def _classify(e: BaseException) -> Outcome:
-    """Why the run stopped, from the exception that stopped it."""
-    if isinstance(e, SafetyStop):
-        return Outcome(e.reason, str(e), e.joint, EXIT_SAFETY_STOP)
-    if isinstance(e, Interrupted):
-        return Outcome(e.reason, f"{e} received", None, e.exit_code)
-    if isinstance(e, KeyboardInterrupt):
-        return Outcome(StopReason.INTERRUPTED, "SIGINT received", None, 130)
-    if isinstance(e, CommError):
-        return Outcome(StopReason.COMM_ERROR, f"communication error: {e}", e.joint, EXIT_SAFETY_STOP)
-    if isinstance(e, JointError):
-        return Outcome(StopReason.JOINT_ERROR, f"joint error: {e}", e.joint, EXIT_SAFETY_STOP)
-    return Outcome(StopReason.ERROR, f"{type(e).__name__}: {e}", None, 1)
-
 
 # ----------------------------------------------------------------------- CLI
 def _args_from_namespace(ns: argparse.Namespace) -> DeployArgs:

@@ -5,8 +5,9 @@ so the log is complete after Ctrl-C; a record it cannot write (disk full)
 stops the run, the part of it that reached the disk is cut off again (every
 line in the file stays a whole JSON record), the stop and summary records are
 then written where they still can be, and the records lost are named.
-:class:`LoopStats` gathers period, jitter, host work and overruns for the
-summary, :class:`BusStats` each joint's transactions, retries and errors.
+:class:`CycleTiming` gathers period, jitter, host work and overruns for the
+summary, :class:`BusStats` each joint's transactions, retries and errors, and
+:func:`print_summary` shows the summary record to the operator.
 """
 
 from __future__ import annotations
@@ -21,9 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
 
-from bioscara_gym.hardware.errors import SafetyStop, StopReason
 from bioscara_gym.hardware.stats import CommStats
+from bioscara_gym.training.deploy_safety import SafetyStop, StopReason
 
 #: fsync the log at least this often (every line is flushed), s.
 FSYNC_INTERVAL_S = 1.0
@@ -192,7 +196,7 @@ class BusStats:
 
 
 @dataclass
-class LoopStats:
+class CycleTiming:
     """Period, jitter and overruns of the control loop.
 
     ``period`` is on the backend's clock (simulated on ``mock``/``emulated``,
@@ -251,3 +255,62 @@ class LoopStats:
             "max_silence_s": float(np.max(self.silences)) if self.silences else None,
             "overruns": self.overruns,
         }
+
+
+def print_summary(console: Console, s: dict[str, Any], log: RunLog) -> None:
+    """The summary record as a table, where the log is, and which records it lacks."""
+
+    def ms(key: str) -> str:
+        v = s.get(key)
+        return "-" if v is None else f"{v * 1000:.2f} ms"
+
+    table = Table(title=f"deploy summary ({s['stop_reason']})")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    rate = f"{s['successes']}/{s['episodes']}"
+    if s["success_rate"] is not None:
+        rate += f" ({s['success_rate']:.0%})"
+    table.add_row("episodes (successes)", rate)
+    table.add_row("cycles", str(s["cycles"]))
+    table.add_row("rate", f"{s['rate_hz']:g} Hz")
+    table.add_row("period mean / max (backend clock)", f"{ms('period_mean_s')} / {ms('period_max_s')}")
+    table.add_row("jitter (std, backend clock)", ms("period_jitter_s"))
+    table.add_row(
+        "host loop mean / jitter (wall)", f"{ms('wall_period_mean_s')} / {ms('wall_period_jitter_s')}"
+    )
+    table.add_row("host work per cycle mean / max", f"{ms('work_mean_s')} / {ms('work_max_s')}")
+    table.add_row("longest joint silence", ms("max_silence_s"))
+    table.add_row("overruns", str(s["overruns"]))
+    for name, bus in s["bus"].items():
+        errors = ", ".join(f"{k} {v}" for k, v in bus["errors"].items())
+        table.add_row(
+            f"bus {name}: transactions / retries / errors",
+            f"{bus['transactions']} / {bus['retries']} / {errors}",
+        )
+    table.add_row("stop", escape(s["message"]))
+    flags = ", ".join(f"{n} {st['flag_names']}" for n, st in s["final_state"].items())
+    table.add_row("final flags", flags)
+    console.print(table)
+    console.print(f"log        {log.path}", markup=False)
+    if log.error is not None:
+        lost = f": {', '.join(log.lost)}" if log.lost else ""
+        console.print(
+            f"log incomplete: {log.dropped} record(s) not written{lost} "
+            f"({log.error.strerror or log.error}); every line in it is a whole record",
+            markup=False,
+        )
+
+
+def disabled_line(s: dict[str, Any]) -> str:
+    """Which joints acknowledged their disable, and each one that did not, named (the summary's words)."""
+    names = list(s["final_state"])
+    if s["arm_disabled"]:
+        return (
+            f"arm disabled: {', '.join(names)} acknowledged their disable (currents 0); "
+            "arm shut down, bus closed"
+        )
+    confirmed = [n for n in names if n not in s["not_confirmed_disabled"]]
+    lines = "; ".join(s["not_confirmed_warnings"])
+    done = f"confirmed disabled: {', '.join(confirmed)}" if confirmed else "no joint confirmed disabled"
+    done = f"; {done}"
+    return f"[red]arm NOT confirmed disabled[/red]: {escape(lines)}{done}"

@@ -15,24 +15,86 @@ silence > 50 ms           ``deadman``: a joint went longer than the firmware's d
                           (docs/firmware.md) without a transaction, on the backend's clock
 ========================  ==================================================================
 
-The arm-facing half (the deadman guard, :func:`~bioscara_gym.hardware.safety.safe_stop`
-and the final-state report) is :mod:`bioscara_gym.hardware.safety`; SIGINT and
-SIGTERM are :mod:`bioscara_gym.training.signals`.
+Why a run stopped is a :class:`StopReason`; a :class:`SafetyStop` carries it,
+and :func:`stop_for` is the one place a driver's exception becomes one. The
+arm-facing half (the deadman guard, :func:`~bioscara_gym.hardware.safety.safe_stop`
+and the final-state report) is :mod:`bioscara_gym.hardware.safety`, reached
+through the :class:`~bioscara_gym.hardware.arm.Arm`; SIGINT and SIGTERM are
+:mod:`bioscara_gym.training.signals`.
 """
 
 from __future__ import annotations
 
+import signal
 from dataclasses import dataclass
+from enum import Enum
 from typing import Any
 
 import numpy as np
 
 from bioscara_gym.hardware.arm import Arm, Lifecycle
-from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StalledError, StopReason
+from bioscara_gym.hardware.errors import CommError, DeadmanError, JointError, StalledError
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.hardware.safety import DeadmanGuard
+from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport
+from bioscara_gym.training.signals import Interrupted
 
 StepResult = tuple[Any, float, bool, bool, dict[str, Any]]
+
+
+class StopReason(Enum):
+    """Why a deployment ended."""
+
+    COMPLETED = "completed"
+    NAN_ACTION = "nan_action"
+    STALL = "stall"
+    COMM_ERROR = "comm_error"
+    JOINT_ERROR = "joint_error"
+    DEADMAN = "deadman"
+    INTERRUPTED = "interrupted"
+    TERMINATED = "terminated"
+    LOG_ERROR = "log_error"
+    ERROR = "error"
+
+
+class SafetyStop(Exception):
+    """The safety layer stopped the run; the message names the cause.
+
+    Attributes:
+        reason: What tripped.
+        joint: The joint concerned, if one is.
+    """
+
+    def __init__(self, reason: StopReason, message: str, joint: str | None = None) -> None:
+        """Record the reason, the message and the joint."""
+        super().__init__(message)
+        self.reason = reason
+        self.joint = joint
+
+
+def stop_for(error: BaseException) -> SafetyStop | None:
+    """The :class:`SafetyStop` a driver or deadman error means; ``None`` for any other exception.
+
+    ====================  ===============  ===================================
+    exception             reason           message
+    ====================  ===============  ===================================
+    ``SafetyStop``        its own          its own
+    ``DeadmanError``      ``deadman``      the guard's (joint, silence, limit)
+    ``StalledError``      ``stall``        ``j2 stalled: ...``
+    ``CommError``         ``comm_error``   ``communication error: ...``
+    other ``JointError``  ``joint_error``  ``joint error: ...``
+    ====================  ===============  ===================================
+    """
+    if isinstance(error, SafetyStop):
+        return error
+    if isinstance(error, DeadmanError):
+        return SafetyStop(StopReason.DEADMAN, str(error), error.joint)
+    if isinstance(error, StalledError):
+        return SafetyStop(StopReason.STALL, f"{error.joint or 'a joint'} stalled: {error}", error.joint)
+    if isinstance(error, CommError):
+        return SafetyStop(StopReason.COMM_ERROR, f"communication error: {error}", error.joint)
+    if isinstance(error, JointError):
+        return SafetyStop(StopReason.JOINT_ERROR, f"joint error: {error}", error.joint)
+    return None
 
 
 @dataclass(frozen=True)
@@ -50,19 +112,56 @@ class CycleCheck:
     silence_s: float
 
 
+#: Exit codes: refused before touching the arm, stopped by the safety layer.
+EXIT_REFUSED = 2
+EXIT_SAFETY_STOP = 3
+
+
+@dataclass
+class Outcome:
+    """How a run ended: what the summary and the exit code say.
+
+    Attributes:
+        reason: Why it ended.
+        message: One line for the operator.
+        joint: The joint concerned, if one is.
+        exit_code: The CLI's exit code.
+        stop_report: What the safe stop did (``None`` if the run completed).
+    """
+
+    reason: StopReason = StopReason.COMPLETED
+    message: str = "completed"
+    joint: str | None = None
+    exit_code: int = 0
+    stop_report: SafeStopReport | None = None
+
+
+def outcome_for(e: BaseException) -> Outcome:
+    """How a run ends that ``e`` stopped: the signal's, :func:`stop_for`'s, else an error (exit code 1)."""
+    if isinstance(e, Interrupted):
+        reason = StopReason.INTERRUPTED if e.signum == signal.SIGINT else StopReason.TERMINATED
+        return Outcome(reason, f"{e} received", None, e.exit_code)
+    if isinstance(e, KeyboardInterrupt):
+        return Outcome(StopReason.INTERRUPTED, "SIGINT received", None, 130)
+    stop = stop_for(e)
+    if stop is not None:
+        return Outcome(stop.reason, str(stop), stop.joint, EXIT_SAFETY_STOP)
+    return Outcome(StopReason.ERROR, f"{type(e).__name__}: {e}", None, 1)
+
+
 class SafetyLayer:
     """Checks every action before it reaches the arm and every cycle after.
 
     Args:
-        env: The Gymnasium env (wrapped as made); its ``unwrapped`` is a
-            Bioscara env with an ``arm``.
-        guard: The deadman guard over the env's backend.
+        env: The Gymnasium env (wrapped as made).
+        arm: The arm it drives.
+        guard: The deadman guard over the arm's joints (:meth:`Arm.watch_deadman`).
     """
 
-    def __init__(self, env: Any, guard: DeadmanGuard) -> None:
+    def __init__(self, env: Any, arm: Arm, guard: DeadmanGuard) -> None:
         """Bind to ``env`` and its arm."""
         self.env = env
-        self.arm: Arm = env.unwrapped.arm
+        self.arm = arm
         self.guard = guard
         self.low = np.asarray(env.action_space.low, dtype=np.float64)
         self.high = np.asarray(env.action_space.high, dtype=np.float64)
@@ -97,23 +196,15 @@ class SafetyLayer:
             SafetyStop: See the module docstring for the reasons.
         """
         safe, clamped = self.filter_action(action)
-        self.guard.check()  # the policy's own time counts on the wall clock
-        result = self._step_env(safe)
-        silence = self.guard.check()
+        try:
+            self.guard.check()  # the policy's own time counts on the wall clock
+            result = self.env.step(safe)
+            silence = self.guard.check()
+        except (DeadmanError, JointError) as e:  # the SafetyStop it means
+            raise stop_for(e) from e
         self._check_stall(result[4])
         self._check_enabled()
         return result, CycleCheck(safe, clamped, silence)
-
-    def _step_env(self, action: np.ndarray) -> StepResult:
-        """Step the env; a driver error becomes the :class:`SafetyStop` it means."""
-        try:
-            return self.env.step(action)
-        except StalledError as e:
-            raise SafetyStop(StopReason.STALL, f"{e.joint or 'a joint'} stalled: {e}", e.joint) from e
-        except CommError as e:
-            raise SafetyStop(StopReason.COMM_ERROR, f"communication error: {e}", e.joint) from e
-        except JointError as e:
-            raise SafetyStop(StopReason.JOINT_ERROR, f"joint error: {e}", e.joint) from e
 
     @staticmethod
     def _check_stall(info: dict[str, Any]) -> None:

@@ -17,10 +17,9 @@ import numpy as np
 
 from bioscara_gym.errors import MetadataError
 from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import PolicyShapes, check_metadata, check_policy_shapes, read_metadata
-
-Policy = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -172,11 +171,9 @@ def evaluate_expert(
 
     ``env_kwargs`` go to ``gym.make`` (``backend_options={"record": ...}`` records the bus).
     """
-    from bioscara_gym.experts import expert_for
-
     env = gym.make(env_id, backend=backend, render_mode="rgb_array" if video else None, **env_kwargs)
     try:
-        expert = expert_for(env.unwrapped)
+        expert = task_of(env).make_expert(env.unwrapped)
         with video_writer(video, fps=int(env.metadata.get("render_fps", 25))) as on_frame:
             return run_episodes(
                 env, expert, episodes, seed, expert.reset, on_frame=on_frame, video_episodes=video_episodes

@@ -153,32 +153,7 @@ def export_onnx(
     fd, tmp = tempfile.mkstemp(dir=onnx_path.parent, prefix=f".{onnx_path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        with warnings.catch_warnings():
-            # torch >= 2.9 defaults to the dynamo exporter, which needs onnxscript;
-            # the TorchScript exporter needs nothing more and warns that it is legacy.
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                actor,
-                (torch.zeros(1, n_obs),),
-                tmp,
-                dynamo=False,
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
-                opset_version=OPSET,
-            )
-        proto = onnx.load(tmp)
-        for key, value in (
-            (METADATA_KEY, json.dumps(metadata, sort_keys=True, default=str)),
-            (OBS_KEYS_KEY, json.dumps(layout)),
-        ):
-            entry = proto.metadata_props.add()
-            entry.key, entry.value = key, value
-        onnx.checker.check_model(proto)
-        with open(tmp, "wb") as f:
-            f.write(proto.SerializeToString())
-            f.flush()
-            os.fsync(f.fileno())
+        _write_graph(torch, onnx, actor, n_obs, tmp, metadata, layout)
         error = 0.0
         if check_samples:
             observations = _check_observations(metadata, check_samples, seed)
@@ -190,6 +165,38 @@ def export_onnx(
         Path(tmp).unlink(missing_ok=True)
         raise
     return ExportResult(onnx_path, layout, error, check_samples)
+
+
+def _write_graph(
+    torch: Any, onnx: Any, actor: Any, n_obs: int, path: str, metadata: dict[str, Any], layout: list
+) -> None:
+    """Export ``actor`` to ``path``, the metadata and observation layout in its props; checked, synced."""
+    with warnings.catch_warnings():
+        # torch >= 2.9 defaults to the dynamo exporter, which needs onnxscript;
+        # the TorchScript exporter needs nothing more and warns that it is legacy.
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            actor,
+            (torch.zeros(1, n_obs),),
+            path,
+            dynamo=False,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            opset_version=OPSET,
+        )
+    proto = onnx.load(path)
+    for key, value in (
+        (METADATA_KEY, json.dumps(metadata, sort_keys=True, default=str)),
+        (OBS_KEYS_KEY, json.dumps(layout)),
+    ):
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(proto)
+    with open(path, "wb") as f:
+        f.write(proto.SerializeToString())
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def _check_observations(metadata: dict[str, Any], n: int, seed: int) -> list[dict[str, np.ndarray]]:

@@ -13,7 +13,7 @@ entries unchanged.
 
 Values that are strings of Python calls such as ``"dict(net_arch=[256, 256])"``
 are parsed with :mod:`ast` for literals and the few class names in
-:data:`NAMES` (``nn.ReLU``, ``GoalErrorExtractor``), never evaluated; dotted
+:data:`~bioscara_gym.training.literals.NAMES` (``nn.ReLU``, ``GoalErrorExtractor``), never evaluated; dotted
 paths are imported, as rl-zoo3 does. Files of the older, bioscara-only form
 (``env_kwargs`` as a ``dict(...)`` string, ``eval_freq``/``eval_episodes``/
 ``target_success`` at the top of an entry) are still read; rl-zoo3 refuses them.
@@ -27,11 +27,10 @@ them could not be evaluated, exported or deployed on the plain env. Counts
 
 from __future__ import annotations
 
-import ast
-import difflib
-import importlib
+import dataclasses
 import inspect
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -40,6 +39,8 @@ from typing import Any
 import yaml
 
 from bioscara_gym.errors import HyperparamError
+from bioscara_gym.hardware.errors import closest_name
+from bioscara_gym.training.literals import import_dotted, parse_literal_call
 
 #: Keys of an entry that are not the algorithm's constructor arguments.
 EXTRA_KEYS = (
@@ -66,16 +67,6 @@ SUCCESS_CALLBACK = "bioscara_gym.training.zoo.SuccessEvalCallback"
 
 #: Its arguments that have fields of their own in :class:`Hyperparams`.
 EVAL_FIELDS = ("eval_freq", "eval_episodes", "target_success")
-
-
-#: Names a value may use (rl-zoo3 writes ``activation_fn=nn.ReLU``), as ``module:attribute``.
-NAMES = {
-    "nn.ReLU": "torch.nn:ReLU",
-    "nn.Tanh": "torch.nn:Tanh",
-    "nn.ELU": "torch.nn:ELU",
-    "nn.LeakyReLU": "torch.nn:LeakyReLU",
-    "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
-}
 
 
 @dataclass(frozen=True)
@@ -145,58 +136,23 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
-def parse_literal_call(text: str, where: str) -> Any:
-    """Parse ``"dict(a=1, b=[2, 3])"`` or a literal; names only from :data:`NAMES`.
-
-    Raises:
-        HyperparamError: Anything but literals, nested ``dict(...)`` calls and
-            the names of :data:`NAMES`.
-    """
-    try:
-        node = ast.parse(text, mode="eval").body
-    except SyntaxError as e:
-        raise HyperparamError(f"{where}: {text!r} is not a Python literal or dict(...)") from e
-
-    def convert(n: ast.AST) -> Any:
-        if (
-            isinstance(n, ast.Call)
-            and isinstance(n.func, ast.Name)
-            and n.func.id == "dict"
-            and not n.args
-            and all(kw.arg is not None for kw in n.keywords)  # no **mapping
-        ):
-            return {kw.arg: convert(kw.value) for kw in n.keywords}
-        if isinstance(n, ast.List):
-            return [convert(e) for e in n.elts]
-        if isinstance(n, ast.Tuple):
-            return tuple(convert(e) for e in n.elts)
-        if isinstance(n, ast.Dict):
-            return {convert(k): convert(v) for k, v in zip(n.keys, n.values, strict=True)}
-        if isinstance(n, ast.Name | ast.Attribute) and ast.unparse(n) in NAMES:
-            module, attribute = NAMES[ast.unparse(n)].split(":")
-            return getattr(importlib.import_module(module), attribute)
-        try:
-            return ast.literal_eval(n)
-        except ValueError as e:
-            raise HyperparamError(
-                f"{where}: {ast.unparse(n)!r} is not allowed; use literals, dict(...) "
-                f"and the names {', '.join(NAMES)}"
-            ) from e
-
-    return convert(node)
-
-
 def default_config_path(algo: str) -> Path:
     """The packaged hyperparameter file of ``algo`` (``training/configs/ALGO.yaml``)."""
     return Path(str(resources.files("bioscara_gym.training") / "configs" / f"{algo}.yaml"))
 
 
-def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
-    """Read ``env_id``'s entry from a hyperparameter file.
+def read_entry(path: str | Path, env_id: str, kind: str = "") -> dict[str, Any]:
+    """``env_id``'s entry of the YAML file ``path``: what every hyperparameter file's reading shares.
+
+    Args:
+        path: The file (rl-zoo3's format, or ``dagger.yaml``).
+        env_id: The entry's key.
+        kind: Named in the message when there is no entry (``"DAgger "``).
 
     Raises:
-        HyperparamError: Unreadable file, not YAML, no entry for ``env_id``,
-            or a malformed value; the message names the file and key.
+        HyperparamError: Unreadable file, not YAML, not a mapping of env ids,
+            no entry for ``env_id`` (the entries are listed), or an entry
+            that is not a mapping; the message names the file.
     """
     path = Path(path)
     try:
@@ -214,10 +170,40 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
         raise HyperparamError(f"config {path}: expected a mapping of env ids, got {type(data).__name__}")
     if env_id not in data:
         known = ", ".join(sorted(map(str, data))) or "none"
-        raise HyperparamError(f"config {path} has no entry for {env_id}; entries: {known}")
+        raise HyperparamError(f"config {path} has no {kind}entry for {env_id}; entries: {known}")
     entry = data[env_id]
     if not isinstance(entry, dict):
         raise HyperparamError(f"config {path}: entry {env_id} must be a mapping")
+    return dict(entry)
+
+
+def refuse_unknown_keys(
+    keys: Iterable[Any], known: Sequence[str], where: str, what: str, otherwise: str, near: Sequence[str] = ()
+) -> None:
+    """Refuse the first key not in ``known``, with the closest known one (or ``near`` one) if any.
+
+    The message is ``{where}.{key} is not {what}; did you mean '...'?``, or
+    ends in ``otherwise`` when no name is close.
+
+    Raises:
+        HyperparamError: One line.
+    """
+    for key in keys:
+        if key not in known:
+            close = closest_name(key, [*known, *near])
+            hint = f"did you mean {close!r}?" if close else otherwise
+            raise HyperparamError(f"{where}.{key} is not {what}; {hint}")
+
+
+def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
+    """Read ``env_id``'s entry from a hyperparameter file (rl-zoo3's format).
+
+    Raises:
+        HyperparamError: Unreadable file, not YAML, no entry for ``env_id``,
+            or a malformed value; the message names the file and key.
+    """
+    path = Path(path)
+    entry = read_entry(path, env_id)
     values: dict[str, Any] = {}
     for key, value in entry.items():
         where = f"config {path}: {env_id}.{key}"
@@ -363,30 +349,14 @@ def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         return
     known = [name for name in parameters if name not in ("policy", "env")]
-    for key in hp.algo_kwargs:
-        if key not in known:
-            close = difflib.get_close_matches(str(key), [*known, *EXTRA_KEYS], n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"see the {algo_cls.__name__} documentation"
-            raise HyperparamError(
-                f"config {hp.source}: {env_id}.{key} is not a hyperparameter of {algo_cls.__name__}; {hint}"
-            )
-
-
-def import_dotted(name: str, where: str) -> Any:
-    """The attribute a dotted path ``package.module.Name`` names (imported, as rl-zoo3 does).
-
-    Raises:
-        HyperparamError: Not a dotted path, or nothing importable by that name.
-    """
-    module, _, attribute = name.rpartition(".")
-    if not module or not attribute:
-        raise HyperparamError(f"{where}: {name!r} is not a dotted path package.module.Name")
-    try:
-        return getattr(importlib.import_module(module), attribute)
-    except ImportError as e:
-        raise HyperparamError(f"{where}: cannot import {module}: {e}") from e
-    except AttributeError as e:
-        raise HyperparamError(f"{where}: {module} has no {attribute}") from e
+    refuse_unknown_keys(
+        hp.algo_kwargs,
+        known,
+        f"config {hp.source}: {env_id}",
+        f"a hyperparameter of {algo_cls.__name__}",
+        f"see the {algo_cls.__name__} documentation",
+        near=EXTRA_KEYS,
+    )
 
 
 def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple[type, dict[str, Any]], ...]]:
@@ -423,3 +393,102 @@ def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple
         else:
             others.append((cls, dict(kwargs)))
     return eval_kwargs or {}, tuple(others)
+
+
+# ------------------------------------------------------------------ DAgger
+@dataclass(frozen=True)
+class DaggerConfig:
+    """One env's entry of ``training/configs/dagger.yaml``, checked on load.
+
+    Not an rl-zoo3 file (rl-zoo3 has no imitation learning), read by
+    :func:`load_dagger_config` with the same :func:`read_entry` and
+    :func:`refuse_unknown_keys` as rl-zoo3's files.
+
+    Attributes:
+        source: File the entry came from.
+        n_timesteps: Budget in env steps, the expert's episodes included.
+        env_kwargs: Keyword arguments for ``gym.make``.
+        net_arch: Hidden layers of the actor.
+        features: Keyword arguments of the task's features extractor
+            (PickPlace: :class:`~bioscara_gym.training.features.PickPlaceExtractor`).
+        demo_episodes: Expert episodes cloned first (iteration 0).
+        episodes_per_iteration: Learner episodes labelled per iteration.
+        bc_steps_first: Gradient steps of the first cloning.
+        bc_steps: Gradient steps after each aggregation (warm-started).
+        batch_size: Labelled states per gradient step.
+        learning_rate: Adam's learning rate.
+        beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
+        eval_episodes: Episodes of the confirming success evaluation.
+        target_success: Success rate at which training stops.
+    """
+
+    source: str
+    n_timesteps: int = 72_000
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    net_arch: tuple[int, ...] = (256, 256)
+    features: dict[str, float] = field(default_factory=dict)
+    demo_episodes: int = 60
+    episodes_per_iteration: int = 20
+    bc_steps_first: int = 3000
+    bc_steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    beta: float = 0.5
+    eval_episodes: int = 100
+    target_success: float = 0.9
+
+    def __post_init__(self) -> None:
+        """Refuse counts below 1 and rates outside their range.
+
+        Raises:
+            HyperparamError: The first bad value, named with the file.
+        """
+        where = f"config {self.source}"
+        counts = ("n_timesteps", "demo_episodes", "episodes_per_iteration", "bc_steps_first", "batch_size")
+        for name in (*counts, "eval_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise HyperparamError(f"{where}: {name} is {value!r}; expected a whole number >= 1")
+        if isinstance(self.bc_steps, bool) or not isinstance(self.bc_steps, int) or self.bc_steps < 0:
+            raise HyperparamError(f"{where}: bc_steps is {self.bc_steps!r}; expected a whole number >= 0")
+        if not 0.0 < self.target_success <= 1.0:
+            raise HyperparamError(f"{where}: target_success is {self.target_success!r}; expected (0, 1]")
+        if not 0.0 <= self.beta < 1.0:
+            raise HyperparamError(f"{where}: beta is {self.beta!r}; expected [0, 1)")
+        if not self.learning_rate > 0:
+            raise HyperparamError(f"{where}: learning_rate is {self.learning_rate!r}; expected > 0")
+        if not self.net_arch or any(
+            isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch
+        ):
+            raise HyperparamError(f"{where}: net_arch is {list(self.net_arch)!r}; expected layer widths >= 1")
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-friendly view (for the metadata)."""
+        out = dataclasses.asdict(self)
+        out["net_arch"] = list(self.net_arch)
+        return out
+
+
+def load_dagger_config(path: str | Path, env_id: str) -> DaggerConfig:
+    """``env_id``'s entry of DAgger file ``path``.
+
+    Raises:
+        HyperparamError: Unreadable, not YAML, no entry, an unknown key (with
+            the closest known one), or a bad value.
+    """
+    entry = read_entry(path, env_id, kind="DAgger ")
+    names = [f.name for f in dataclasses.fields(DaggerConfig) if f.name != "source"]
+    refuse_unknown_keys(
+        entry, names, f"config {path}: {env_id}", "a DAgger setting", f"known keys: {', '.join(names)}"
+    )
+    for key in ("env_kwargs", "features"):
+        if not isinstance(entry.get(key, {}), dict):
+            raise HyperparamError(f"config {path}: {env_id}.{key} must be a mapping")
+    if "net_arch" in entry:
+        if not isinstance(entry["net_arch"], list):
+            raise HyperparamError(f"config {path}: {env_id}.net_arch must be a list of layer widths")
+        entry["net_arch"] = tuple(entry["net_arch"])
+    value = entry.get("n_timesteps")  # YAML writes 3e5 as a float
+    if isinstance(value, float) and value.is_integer():
+        entry["n_timesteps"] = int(value)
+    return DaggerConfig(source=str(path), **entry)

@@ -1,23 +1,17 @@
-"""What a training run is: its arguments, its result, its files' names, how it ends early.
+"""What a training run is: its arguments, its result, how it ends early.
 
-Shared by :mod:`~bioscara_gym.training.train` (SB3 algorithms, ``bc``) and
-:mod:`~bioscara_gym.training.dagger` (PickPlace's default), which train.py
-hands PickPlace runs to; neither imports the other for these.
+Shared by the skeleton (:mod:`~bioscara_gym.training.base`), every method
+and the CLI, none of which needs torch for these. The run's files are
+:mod:`~bioscara_gym.training.checkpoints`'.
 """
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.signals import Interrupted
-
-#: The run's state file in its output directory (what ``--resume`` reads).
-STATE_NAME = "train_state.json"
-#: A checkpoint's file name; the group is its env step count.
-CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
 
 
 @dataclass
@@ -26,9 +20,10 @@ class TrainArgs:
 
     Attributes:
         env: Env id (``Bioscara-Reach`` or a versioned id).
-        algo: ``sac``, ``td3``, ``ppo``, ``bc`` (behaviour cloning) or ``dagger``;
-            ``None``: the env's default (DAgger on PickPlace unless a ``config``
-            is given, SAC elsewhere), or on ``resume`` the run's own.
+        algo: A method of :data:`~bioscara_gym.training.methods.METHODS` (``sac``,
+            ``td3``, ``ppo``, ``bc``, ``dagger``); ``None``: the task's default
+            (DAgger on PickPlace unless a ``config`` is given, SAC elsewhere),
+            or on ``resume`` the run's own.
         config: Hyperparameter file (rl-zoo3 format); default the packaged one.
         timesteps: Training budget; default the config's ``n_timesteps``.
         seed: Seed of the model, the envs and the evaluation episodes.
@@ -41,7 +36,7 @@ class TrainArgs:
             contends with it (measured 20x slower matrix products).
         verbose: Print each evaluation.
         demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
-            2018, see :mod:`bioscara_gym.training.bc`; ``bc``: cloned alone).
+            2018, see :mod:`bioscara_gym.training.imitation`; ``bc``: cloned alone).
     """
 
     env: str = "Bioscara-Reach"

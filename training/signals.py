@@ -16,8 +16,6 @@ from collections.abc import Iterator
 from types import FrameType
 from typing import Any
 
-from bioscara_gym.hardware.errors import StopReason
-
 
 class Interrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM arrived; ``exit_code`` is 128 + the signal number."""
@@ -32,10 +30,6 @@ class Interrupted(KeyboardInterrupt):
         """130 for SIGINT, 143 for SIGTERM."""
         return 128 + self.signum
 
-    @property
-    def reason(self) -> StopReason:
-        """``interrupted`` for SIGINT, ``terminated`` otherwise."""
-        return StopReason.INTERRUPTED if self.signum == signal.SIGINT else StopReason.TERMINATED
 
 
 class SignalGuard:

@@ -193,7 +193,7 @@ class SuccessEvalCallback(BaseCallback):
 
 
 class DemonstrationCallback(BaseCallback):
-    """Learn from demonstrations: BC pre-training, then SAC with demos (:mod:`bioscara_gym.training.bc`).
+    """Learn from demonstrations: BC, then SAC with demos (:mod:`bioscara_gym.training.imitation`).
 
     At the start of training it loads the Minari dataset ``dataset`` or, with
     none, records ``episodes`` successful episodes of the env's scripted
@@ -241,9 +241,9 @@ class DemonstrationCallback(BaseCallback):
         self.pretrain_s = 0.0
 
     def _on_training_start(self) -> None:
-        from bioscara_gym.experts import expert_for
-        from bioscara_gym.training.bc import attach_demos, bc_pretrain
+        from bioscara_gym.tasks import task_of
         from bioscara_gym.training.demos import check_demos, load_demos, rollout_demos
+        from bioscara_gym.training.imitation import attach_demos, bc_pretrain
 
         env = env_like(self.training_env)
         try:
@@ -252,7 +252,7 @@ class DemonstrationCallback(BaseCallback):
                 self.demos = load_demos(self.dataset, successful_only=True)
                 check_demos(self.demos, env)
             else:
-                expert = expert_for(env.unwrapped)
+                expert = task_of(env).make_expert(env.unwrapped)
                 self.demos = rollout_demos(env, expert, expert.reset, self.episodes, seed=self.seed)
             self.collect_s = time.perf_counter() - start
             d = self.demos

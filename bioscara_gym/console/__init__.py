@@ -1,4 +1,4 @@
-"""The operator console: ``bioscara status``, ``ping``, ``enable``, ``home``, ``move``, ``monitor``.
+"""The operator console: ``bioscara status``, ``enable``, ``home``, ``move``, ``monitor``, ``emulate``.
 
 Modules, each importing only those above it:
 
@@ -9,4 +9,5 @@ Modules, each importing only those above it:
   one command's hold on backend, arm and state file.
 - :mod:`~bioscara_gym.console.dashboard`: the live ``monitor``.
 - :mod:`~bioscara_gym.console.commands`: the subcommands and ``register``.
+- :mod:`~bioscara_gym.console.emulate`: ``bioscara emulate dynamixel``, emulated servos on a pty.
 """

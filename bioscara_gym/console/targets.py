@@ -12,9 +12,10 @@ from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import InvalidArgumentError
 from bioscara_gym.hardware.recording import Recording
+from bioscara_gym.hardware.registry import backend_names
 
 #: Backends whose state ``--state`` can keep.
-PERSISTENT_BACKENDS = ("emulated", "sim")
+PERSISTENT_BACKENDS = backend_names("persistent")
 #: ``--direction`` to the Arm's homing direction: ``+`` to the max end stop, ``-`` to min.
 HOMING_DIRECTIONS = {"+": 1, "-": -1}
 

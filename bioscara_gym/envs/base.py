@@ -20,7 +20,6 @@ backends that simulate and by a renderer.
 from __future__ import annotations
 
 import contextlib
-import numbers
 from collections import deque
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -40,17 +39,21 @@ from bioscara_gym.envs.actions import (
     to_unit,
 )
 from bioscara_gym.envs.randomization import DomainRandomization, PhysicsRandomizer
-from bioscara_gym.hardware.arm import Arm, CommandMode, Lifecycle
+from bioscara_gym.hardware.arm import (
+    MAX_CONTROL_FREQ,
+    MIN_CONTROL_FREQ,
+    Arm,
+    CommandMode,
+    Lifecycle,
+    PhaseObserver,
+    check_control_freq,
+)
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.errors import JointError, StalledError
-from bioscara_gym.hardware.registers import TICK_S, Flag
+from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.safety import SafeStopReport
 
-#: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor.
-MIN_CONTROL_FREQ = 20.0
-#: The firmware runs its loop (stall detection, deadman) once per 10 ms tick, and
-#: one cycle's bus traffic takes milliseconds: 100 Hz is the ceiling.
-MAX_CONTROL_FREQ = 1.0 / TICK_S
 #: Joint command interface each control mode uses (prefer :attr:`BioscaraEnv.command_mode`).
 JOINT_MODE = MappingProxyType(
     {
@@ -69,28 +72,8 @@ __all__ = [
     "REWARD_TYPES",
     "BioscaraEnv",
     "DomainRandomization",
+    "check_control_freq",
 ]
-
-
-def check_control_freq(control_freq: object, name: str = "control_freq") -> float:
-    """``control_freq`` as a float, if it is a rate the arm can be commanded at.
-
-    Raises:
-        ValueError: Not a number, or outside ``MIN_CONTROL_FREQ``-``MAX_CONTROL_FREQ``; the
-            message names ``name``.
-    """
-    if isinstance(control_freq, bool) or not isinstance(control_freq, numbers.Real):
-        raise ValueError(f"{name} must be a rate in Hz, got {control_freq!r}")
-    if not MIN_CONTROL_FREQ <= control_freq <= MAX_CONTROL_FREQ:  # NaN fails both
-        why = (
-            "the joint firmware's loop runs every 10 ms"
-            if control_freq > MAX_CONTROL_FREQ
-            else "the joints' 50 ms deadman would stop them between commands"
-        )
-        raise ValueError(
-            f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
-        )
-    return float(control_freq)
 
 
 class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
@@ -116,7 +99,13 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     and ``render_mode``.
 
     Public operations besides the Gymnasium API: :meth:`bring_up` (what the
-    first ``reset`` does to make the arm ready) and :meth:`tcp_position`.
+    first ``reset`` does to make the arm ready), :meth:`shut_down` (the
+    orderly end), :meth:`safe_stop` (the end after a failure) and
+    :meth:`tcp_position`. The env is the one owner of the arm's lifecycle:
+    it brings the arm up (here or on ``reset``) and shuts it down (here, in
+    :meth:`safe_stop`, or on ``close``); ``bioscara deploy`` calls these and
+    reads the rest from :attr:`arm`'s public API (clock, bus statistics,
+    deadman guard, final state).
     """
 
     metadata = {"render_modes": list(rendering.RENDER_MODES), "render_fps": 25}
@@ -157,7 +146,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         height: int = 480,
     ) -> None:
         """Create the env; the backend is built now, the arm is brought up on reset."""
-        if isinstance(backend, str) and backend not in BACKENDS:
+        if isinstance(backend, str) and backend not in BACKENDS:  # the registry's for the Bioscara's joints
             raise ValueError(f"backend {backend!r} is unknown; expected one of {', '.join(BACKENDS)}")
         if control_mode not in CONTROL_MODES:
             raise ValueError(f"control_mode {control_mode!r} must be one of {', '.join(CONTROL_MODES)}")
@@ -224,7 +213,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """The joint command interface the control mode uses (position for cartesian)."""
         return JOINT_MODE[self.control_mode]
 
-    def bring_up(self) -> None:
+    def bring_up(self, observer: PhaseObserver | None = None) -> None:
         """Make the arm ready to take the policy's commands; each step only if needed.
 
         Configure, activate, home the joints not yet homed (through the home
@@ -232,10 +221,36 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         on every joint the policy commands. ``reset`` calls it when the arm
         is not active or a joint is not homed.
 
+        Args:
+            observer: Told when each step (configure, activate, home) starts and ends.
+
         Raises:
             JointError: A step failed (see :meth:`~bioscara_gym.hardware.arm.Arm.bring_up`).
         """
-        self.arm.bring_up(self.command_mode, self.joint_names)
+        self.arm.bring_up(self.command_mode, self.joint_names, observer)
+
+    def shut_down(self, observer: PhaseObserver | None = None) -> float | None:
+        """End the session in order: joints disabled (gripper width saved), disconnected, bus closed.
+
+        The env cannot step afterwards. See :meth:`~bioscara_gym.hardware.arm.Arm.shut_down`.
+
+        Args:
+            observer: Told each step (deactivate, cleanup).
+
+        Returns:
+            The gripper's width after deactivating, m (``None`` if the arm was not active).
+
+        Raises:
+            JointError: A joint's disable was not acknowledged; call :meth:`safe_stop`.
+        """
+        return self.arm.shut_down(observer)
+
+    def safe_stop(self) -> SafeStopReport:
+        """End the session after a failure: every joint stopped and disabled whatever its flags say.
+
+        See :func:`~bioscara_gym.hardware.safety.safe_stop`. The env cannot step afterwards.
+        """
+        return self.arm.safe_stop()
 
     def tcp_position(self) -> np.ndarray:
         """TCP position (m) from the measured joints, as on the real arm."""

@@ -10,6 +10,7 @@ from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, HomingConfig, JointConfig, load_config
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, Fault, FaultPlan
 from bioscara_gym.hardware.errors import (
+    AlreadyInitializedError,
     CommError,
     ConfigError,
     ErrType,
@@ -32,6 +33,7 @@ from bioscara_gym.hardware.registers import BrakeMode, Flag, Reg
 from bioscara_gym.hardware.stats import CommStats
 
 __all__ = [
+    "AlreadyInitializedError",
     "ArmConfig",
     "BaseGripper",
     "BaseJoint",

@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any, Protocol
 
 from bioscara_gym.hardware.backends import Backend
+from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, JointConfig
 from bioscara_gym.hardware.errors import (
     ArmStateError,
@@ -35,7 +38,59 @@ from bioscara_gym.hardware.errors import (
     JointError,
     NotHomedError,
 )
-from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.registers import DEADMAN_S, TICK_S, Flag, Reg
+from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
+from bioscara_gym.hardware.stats import CommStats
+
+#: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor of a
+#: control loop's rate.
+MIN_CONTROL_FREQ = 20.0
+#: The firmware runs its loop (stall detection, deadman) once per 10 ms tick, and
+#: one cycle's bus traffic takes milliseconds: 100 Hz is the ceiling.
+MAX_CONTROL_FREQ = 1.0 / TICK_S
+
+
+def check_control_freq(control_freq: object, name: str = "control_freq") -> float:
+    """``control_freq`` as a float, if it is a rate the arm can be commanded at.
+
+    Raises:
+        ValueError: Not a number, or outside ``MIN_CONTROL_FREQ``-``MAX_CONTROL_FREQ``; the
+            message names ``name``.
+    """
+    if isinstance(control_freq, bool) or not isinstance(control_freq, numbers.Real):
+        raise ValueError(f"{name} must be a rate in Hz, got {control_freq!r}")
+    if not MIN_CONTROL_FREQ <= control_freq <= MAX_CONTROL_FREQ:  # NaN fails both
+        why = (
+            "the joint firmware's loop runs every 10 ms"
+            if control_freq > MAX_CONTROL_FREQ
+            else "the joints' 50 ms deadman would stop them between commands"
+        )
+        raise ValueError(
+            f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
+        )
+    return float(control_freq)
+
+
+class PhaseObserver(Protocol):
+    """Told about each step of :meth:`Arm.bring_up` and :meth:`Arm.shut_down` (a display, a run log)."""
+
+    def starting(self, phase: str, detail: str) -> None:
+        """A step starts (it may take seconds: a homing)."""
+        ...
+
+    def done(self, phase: str, detail: str) -> None:
+        """A step is done."""
+        ...
+
+
+class _Unobserved:
+    """A :class:`PhaseObserver` that is told nothing."""
+
+    def starting(self, phase: str, detail: str) -> None:
+        """Nothing."""
+
+    def done(self, phase: str, detail: str) -> None:
+        """Nothing."""
 
 
 class Lifecycle(Enum):
@@ -870,15 +925,24 @@ class Arm:
         st = self.joint_states[name]
         return abs(st.position - target) <= tol and abs(st.velocity) <= tol / 10
 
-    def bring_up(self, mode: CommandMode | str, names: Iterable[str] | None = None) -> None:
+    def bring_up(
+        self,
+        mode: CommandMode | str,
+        names: Iterable[str] | None = None,
+        observer: PhaseObserver | None = None,
+    ) -> None:
         """Configure, activate and home the arm as needed, then claim ``mode`` on the joints.
 
         Each step runs only if needed: a configured arm is not configured
-        again, an active one not re-enabled, homed joints not homed again.
+        again, an active one not re-enabled, homed joints not homed again
+        (a joint homed before a host restart kept its offset, read back from
+        HOMEOFFSET on configure). ``observer`` is told each step: configure,
+        activate, home.
 
         Args:
             mode: The command interface to claim (position or velocity).
             names: The joints (default: all).
+            observer: Told when each step starts and ends.
 
         Raises:
             JointError: A step failed; the arm fell back as the step's
@@ -886,15 +950,95 @@ class Arm:
         """
         mode = CommandMode(mode)
         names = self.names if names is None else tuple(names)
+        tell = observer or _Unobserved()
         if self.state is Lifecycle.UNCONFIGURED:
+            tell.starting("configure", f"connecting and pinging {self.describe_joints()}")
             self.configure()
+            tell.done("configure", "every joint answered")
         if self.state is Lifecycle.INACTIVE:
+            tell.starting("activate", "enabling joints, stall detection and limits")
             self.activate()
-        self.home(names, only_unhomed=True)
+            tell.done("activate", "joints enabled, stall detection and limits set")
+        self._home_unhomed(names, tell)
         for name in names:
             if self.modes[name] is not mode:
                 self.release(name)
                 self.claim(name, mode)
+
+    def _home_unhomed(self, names: tuple[str, ...], tell: PhaseObserver) -> None:
+        """Home the joints of ``names`` not homed yet, telling ``tell`` which were and how long it took."""
+        for name in names:
+            self._mode(name)  # unknown names: InvalidArgumentError listing the joints
+        homed = [n for n in names if self.joints[n].is_homed()]
+        todo = [n for n in names if n not in homed]
+        if homed:
+            tell.done("home", f"{', '.join(homed)} homed before: offset restored from HOMEOFFSET")
+        if todo:
+            start = self.clock.now()
+            tell.starting("home", f"homing {', '.join(todo)}")
+            self.home(todo)
+            tell.done("home", f"{', '.join(todo)} homed in {self.clock.now() - start:.1f} s")
+
+    def shut_down(self, observer: PhaseObserver | None = None) -> float | None:
+        """The orderly end of a session: deactivate, clean up, finalize, each step only if needed.
+
+        ``observer`` is told each step (deactivate, with the gripper's width
+        and where it was saved; cleanup). A failure leaves the arm as the
+        step's transition says: make it safe with :meth:`safe_stop`.
+
+        Returns:
+            The gripper's width after deactivating, m (``None`` if the arm was not active).
+
+        Raises:
+            JointError: A joint's disable was not acknowledged.
+        """
+        tell = observer or _Unobserved()
+        width = None
+        if self.state is Lifecycle.ACTIVE:
+            self.deactivate()
+            width = self.gripper.get_position()
+            saved = self.gripper.save_status()
+            tell.done("deactivate", f"joints disabled, gripper width {width:.3f} m {saved}")
+        if self.state is Lifecycle.INACTIVE:
+            self.cleanup()
+            tell.done("cleanup", "joints and gripper disconnected")
+        if self.state is not Lifecycle.FINALIZED:
+            self.shutdown()
+        return width
+
+    # ------------------------------------------------- what a deployment reads
+    @property
+    def clock(self) -> Clock:
+        """The backend's time source: simulated on sim, mock and emulated; the wall clock on the arm."""
+        return self.backend.clock
+
+    def comm_stats(self) -> dict[str, CommStats]:
+        """Each joint's bus statistics (transactions, retries, errors by kind); empty without a bus."""
+        return self.backend.comm_stats()
+
+    def describe_joints(self) -> str:
+        """The joints, each with its bus address where it has one: ``"j1 0x11, j2 0x12, ..."``."""
+        return ", ".join(
+            n if j.address is None else f"{n} {j.address:#04x}" for n, j in self.joints.items()
+        )
+
+    def watch_deadman(self, limit_s: float = DEADMAN_S) -> DeadmanGuard:
+        """A :class:`~bioscara_gym.hardware.safety.DeadmanGuard` on every joint (``detach()`` it after)."""
+        return DeadmanGuard(self.backend, limit_s)
+
+    def safe_stop(self) -> SafeStopReport:
+        """After a failure: every joint stopped and disabled whatever its flags say, the arm finalized.
+
+        See :func:`~bioscara_gym.hardware.safety.safe_stop`; best effort, never raises a driver error.
+        """
+        return safe_stop(self)
+
+    def final_state(self) -> dict[str, dict[str, Any]]:
+        """Each joint's flags (and currents) from the device side where it can be seen.
+
+        See :func:`~bioscara_gym.hardware.safety.final_state`.
+        """
+        return final_state(self.backend)
 
     def cycle(self, dt: float) -> Mapping[str, JointState]:
         """One control cycle: write the commands, let ``dt`` pass, read the state."""

@@ -26,6 +26,7 @@ call (``sim``) has already advanced them by its wire time at the configured
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import importlib
 import os
@@ -42,22 +43,15 @@ from bioscara_gym.hardware.firmware import JointFirmware
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
-from bioscara_gym.hardware.recording import RECORDABLE_BACKENDS, BusWrapper, Recording, recorder
+from bioscara_gym.hardware.recording import BusWrapper, Recording, recorder
 from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.registry import BACKENDS as REGISTRY
 from bioscara_gym.hardware.stats import CommStats
 
-BACKENDS = ("sim", "mock", "emulated", "i2c", "sitl")
-#: Backends of this package built from a module of their own, imported when made:
-#: the firmware in the loop needs MuJoCo and, the first time, a C++ compiler.
-LAZY_BACKENDS = {"sitl": "bioscara_gym.hardware.sitl.arm:SitlBackend"}
-#: Backends of optional subpackages, name to ``module:class``, imported when built
-#: (as ``EXTRA_COMMAND_MODULES`` in ``cli.py``): an arm of Dynamixel servos (docs/dynamixel.md).
-EXTRA_BACKENDS = {
-    "dynamixel": "bioscara_gym.hardware.dynamixel.backend:DynamixelBackend",
-    "dynamixel-emulated": "bioscara_gym.hardware.dynamixel.backend:EmulatedDynamixelBackend",
-}
-#: Every backend name :func:`make_backend` accepts.
-ALL_BACKENDS = (*BACKENDS, *EXTRA_BACKENDS)
+#: The backends of the Bioscara's own joints (:data:`~bioscara_gym.hardware.registry.BACKENDS`).
+BACKENDS = tuple(n for n, spec in REGISTRY.items() if spec.bioscara)
+#: Every backend name :func:`make_backend` accepts, optional subpackages' included.
+ALL_BACKENDS = tuple(REGISTRY)
 
 
 def with_i2c_clock(config: ArmConfig, i2c_clock_hz: float | None) -> ArmConfig:
@@ -117,15 +111,34 @@ def _i2c_joint(j: JointConfig, bus: I2CBus, retries: int, clock: Clock) -> Joint
     )
 
 
-class Backend:
-    """Joints, gripper and clock of one arm.
+class Backend(abc.ABC):
+    """Joints, gripper and clock of one arm: what the :class:`~bioscara_gym.hardware.arm.Arm` drives.
+
+    The contract every backend keeps (the Arm, the envs, the console and
+    deploy rely on nothing else):
+
+    - :attr:`joints` holds one :class:`~bioscara_gym.hardware.base_joint.BaseJoint`
+      per configured joint, by name, in configuration order; :attr:`gripper`
+      one :class:`~bioscara_gym.hardware.gripper.BaseGripper`. Nothing is
+      sent to a device before the Arm calls ``init()``.
+    - :attr:`clock` is the one time source of the joints, the gripper and
+      :meth:`step`: simulated (``sim``, ``mock``, ``emulated``, ``sitl``) or
+      the wall clock (the arm), in seconds.
+    - :meth:`step` lets one control period pass, on that clock, without drift.
+    - :meth:`device_flags` and :meth:`device_currents` look into a device
+      without a transaction where the backend can (a simulation, a mirror),
+      else return ``None``; :meth:`comm_stats` and :meth:`loop_stats` are empty
+      without a bus or sync loops.
+    - :meth:`close` releases what the backend holds (bus handles, ports,
+      loaded firmware); the Arm calls it once, on ``shutdown()``. A backend
+      is a context manager that closes on leaving the ``with`` block.
 
     Attributes:
-        name: Backend name.
+        name: Backend name, as :func:`make_backend` takes it.
         config: The arm configuration.
         joints: Joint name to joint, in configuration order.
         gripper: The gripper.
-        clock: The backend's time source.
+        clock: The backend's time source, s.
         sim: The MuJoCo arm where there is one, else ``None``.
         schedule: The control loop's deadlines on ``clock`` (:meth:`step`).
     """
@@ -194,8 +207,9 @@ class Backend:
         """
         return {}
 
+    @abc.abstractmethod
     def close(self) -> None:
-        """Release resources (bus handles)."""
+        """Release what the backend holds (bus handles, ports, loaded firmware); sends nothing."""
 
     def __enter__(self) -> Backend:
         """Use as a context manager."""
@@ -244,6 +258,9 @@ class SimBackend(Backend):
             sim,
             sim.schedule,
         )
+
+    def close(self) -> None:
+        """Nothing to release: the MuJoCo arm holds no handle."""
 
 
 class EmulatedBackend(Backend):
@@ -318,6 +335,9 @@ class MockBackend(Backend):
         }
         super().__init__(config, joints, mock_gripper(config, state_file), clock)
 
+    def close(self) -> None:
+        """Nothing to release: the mirrors hold no handle."""
+
     def device_flags(self, name: str) -> Flag | None:
         """The mirror's own flags (see :meth:`Backend.device_flags`)."""
         return Flag(self.joints[name].device_flags)  # type: ignore[attr-defined]
@@ -390,25 +410,18 @@ def make_backend(
     """
     if not isinstance(config, ArmConfig):
         config = load_config(config)
-    classes: dict[str, type[Backend]] = {
-        "sim": SimBackend,
-        "mock": MockBackend,
-        "emulated": EmulatedBackend,
-        "i2c": I2CBackend,
-    }
-    lazy = LAZY_BACKENDS.get(name) or EXTRA_BACKENDS.get(name)
-    if lazy is not None:
-        if name in LAZY_BACKENDS:
-            require_extra("mujoco", f"the {name} backend", "sim")
-        module, _, cls = lazy.partition(":")
-        classes[name] = getattr(importlib.import_module(module), cls)
-    if name not in classes:
+    spec = REGISTRY.get(name)
+    if spec is None:
         raise ValueError(f"unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
+    if spec.needs is not None:
+        require_extra(spec.needs[0], f"the {name} backend", spec.needs[1])
+    module, _, cls_name = spec.entry_point.partition(":")
+    cls: type[Backend] = getattr(importlib.import_module(module), cls_name)
     record = options.pop("record", None)
     if record is not None:
-        if name not in RECORDABLE_BACKENDS:
+        if not spec.records:
             raise ValueError(f"--record needs a backend with an I2C bus (i2c, emulated); {name} has none")
         if not isinstance(record, Recording):
             record = Recording(Path(record), "")  # type: ignore[arg-type]
         options["wrap_bus"] = recorder(record, name, config)
-    return classes[name](config, **options)  # type: ignore[arg-type]
+    return cls(config, **options)  # type: ignore[arg-type]

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.codec import pack_bytes
 from bioscara_gym.hardware.errors import (
+    AlreadyInitializedError,
     CommError,
     IncorrectStateError,
     InvalidArgumentError,
@@ -164,6 +165,8 @@ class BaseJoint(abc.ABC):
                 joint=self.name,
             )
 
+    #: The joint's bus address where it has one (the I2C driver's, e.g. 0x11); ``None`` elsewhere.
+    address: int | None = None
     #: Whether the subclass reports each delivered bus transfer itself (retries included).
     _reports_transfers = False
     #: Extra attempts after a failed transaction (bus drivers set it; simulated joints never fail).
@@ -352,14 +355,25 @@ class BaseJoint(abc.ABC):
 
     # ------------------------------------------------------------ lifecycle
     def init(self) -> None:
-        """Open the connection, PING the joint and restore the homing offset.
+        """Open the connection, PING the joint and restore the homing offset (:meth:`_init`).
 
         If the joint reports homed (it kept power while the host restarted),
-        the offset is read back from HOMEOFFSET so positions stay valid.
+        the offset is read back from HOMEOFFSET so positions stay valid. A
+        failed ``init()`` leaves the joint uninitialized.
 
         Raises:
+            AlreadyInitializedError: The joint is initialized already (``deinit()`` first);
+                nothing is sent.
             CommError: No answer, or PING did not answer ``'O'``.
         """
+        if self._initialized:
+            raise AlreadyInitializedError(
+                "joint already initialized; call deinit() before init() again", joint=self.name
+            )
+        self._init()
+
+    def _init(self) -> None:
+        """The driver's connection: open, PING, restore the homing offset (see :meth:`init`)."""
         self._open()
         self._initialized = True
         self._enable_needed = False  # a new session: the joint's own flags decide

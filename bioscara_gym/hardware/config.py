@@ -59,7 +59,6 @@ A group may name groups listed before it (the MH5's nested groups).
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -79,7 +78,7 @@ from bioscara_gym.hardware.drive import (
     noise_from_dict,
     noise_to_dict,
 )
-from bioscara_gym.hardware.errors import ConfigError, UnknownJointError
+from bioscara_gym.hardware.errors import ConfigError, UnknownJointError, closest_name
 from bioscara_gym.hardware.i2c_timing import (
     WIRE_ONLY,
     TransactionTiming,
@@ -100,6 +99,7 @@ from bioscara_gym.hardware.registers import (
     MOTOR_RPM_MAX,
     SENSITIVITY_MAX,
 )
+from bioscara_gym.hardware.registry import DRIVERS
 from bioscara_gym.hardware.transmission import rate_to_degrees, velocity_to_rpm
 
 __all__ = [
@@ -122,8 +122,9 @@ GRIPPER_NAME = "gripper"
 #: Allowed values of :attr:`JointConfig.joint_type`.
 JOINT_TYPES = ("revolute", "prismatic")
 
-#: Allowed values of :attr:`JointConfig.type`: the Bioscara's I2C stepper joint, a Dynamixel servo.
-DRIVER_TYPES = ("i2c", "dynamixel")
+#: Allowed values of :attr:`JointConfig.type`: the joint types of the registry
+#: (:data:`~bioscara_gym.hardware.registry.DRIVERS`: the Bioscara's I2C stepper joint, a Dynamixel servo).
+DRIVER_TYPES = tuple(DRIVERS)
 #: Sync loops of a Dynamixel bus and their default rates, Hz (the MH5's defaults; see
 #: ``bioscara_gym/hardware/dynamixel/control_table.py``).
 DYNAMIXEL_LOOP_RATES = {"pvl_reader": 100.0, "tv_reader": 1.0, "pv_writer": 100.0, "t_writer": 2.0}
@@ -702,9 +703,9 @@ def _check_fields(
     allowed = (*required, *optional)
     for key in data:
         if key not in allowed:
-            close = difflib.get_close_matches(str(key), allowed, n=1)
+            close = closest_name(key, allowed)
             hint = (
-                f" (did you mean {prefix + close[0]!r}?)"
+                f" (did you mean {prefix + close!r}?)"
                 if close
                 else f"; allowed: {', '.join(prefix + a for a in allowed)}"
             )

@@ -1,5 +1,11 @@
 """An I2C bus in memory that serves emulated joint firmware, with fault injection.
 
+:class:`FaultPlan` is the one fault plan of the emulated buses: this I2C bus
+and the Dynamixel servos' RS-485 bus
+(:class:`~bioscara_gym.hardware.dynamixel.emulator.EmulatedRS485Bus`) take it,
+each refusing the faults it cannot inject (:data:`I2C_FAULTS`,
+:data:`RS485_FAULTS`).
+
 It plays the role of pyserial's ``loop://``: the real :class:`Joint` driver
 runs unchanged against it, byte for byte. With a bus clock, every transaction
 takes its time on the wire (:mod:`~bioscara_gym.hardware.i2c_timing`) plus
@@ -14,6 +20,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
+from types import MappingProxyType
 
 import numpy as np
 
@@ -28,12 +35,54 @@ MAX_DRIFT_PPM = 10_000.0
 
 
 class Fault(Enum):
-    """A fault the bus can inject into one transaction."""
+    """A fault an emulated bus can inject into one transaction."""
 
     NACK = "nack"  # the address is not acknowledged: OSError, nothing delivered
     SHORT_READ = "short_read"  # the command is delivered, the reply comes back short
     CORRUPT = "corrupt"  # the command is delivered, one reply bit is flipped
     LATENCY = "latency"  # the transaction takes ``latency_s`` longer
+    DROP = "drop"  # the command is delivered and executed, its reply lost (a status packet)
+
+
+@dataclass(frozen=True)
+class FaultKinds:
+    """The faults one emulated bus injects, and how its ``--faults`` specification names them.
+
+    Attributes:
+        bus: The bus, for messages.
+        rates: The :class:`FaultPlan` rates it injects (``nack``, ``drop``, ...).
+        durations: The specification's time names to :class:`FaultPlan`'s
+            (``NAME_ms``/``NAME_s`` in the specification; ``delay`` is the
+            RS-485 bus's name for ``latency``).
+        numbers: Further fields taken as they are (``drift_ppm``).
+        scheduled: The faults a schedule may name.
+    """
+
+    bus: str
+    rates: tuple[str, ...]
+    durations: Mapping[str, str]
+    numbers: tuple[str, ...]
+    scheduled: frozenset[Fault]
+
+
+#: What the emulated I2C bus injects.
+I2C_FAULTS = FaultKinds(
+    "I2C",
+    ("nack", "short_read", "corrupt"),
+    MappingProxyType({"latency": "latency", "jitter": "jitter"}),
+    ("drift_ppm",),
+    frozenset({Fault.NACK, Fault.SHORT_READ, Fault.CORRUPT, Fault.LATENCY}),
+)
+#: What the emulated RS-485 bus of Dynamixel servos injects (into status packets).
+RS485_FAULTS = FaultKinds(
+    "RS-485",
+    ("drop", "corrupt"),
+    MappingProxyType({"delay": "latency"}),
+    (),
+    frozenset({Fault.DROP, Fault.CORRUPT, Fault.LATENCY}),
+)
+#: Every rate of a plan.
+_RATES = ("nack", "short_read", "corrupt", "drop")
 
 
 @dataclass(frozen=True)
@@ -44,6 +93,8 @@ class FaultPlan:
         nack: Probability that a transaction is not acknowledged.
         short_read: Probability that a reply is cut short.
         corrupt: Probability that one bit of a reply is flipped.
+        drop: Probability that a reply is lost after the command was executed
+            (a Dynamixel status packet).
         latency_s: Extra time every transaction takes, seconds.
         jitter_s: Further extra time per transaction, drawn uniformly from
             ``[0, jitter_s]`` by the fault generator, seconds.
@@ -59,6 +110,7 @@ class FaultPlan:
     nack: float = 0.0
     short_read: float = 0.0
     corrupt: float = 0.0
+    drop: float = 0.0
     latency_s: float = 0.0
     jitter_s: float = 0.0
     drift_ppm: float = 0.0
@@ -66,8 +118,12 @@ class FaultPlan:
     seed: int | None = 0
 
     def __post_init__(self) -> None:
-        """Validate rates, latency, jitter and drift."""
-        for name in ("nack", "short_read", "corrupt"):
+        """Validate rates, latency, jitter, drift and the schedule's faults."""
+        for index, kind in self.schedule.items():
+            if not isinstance(kind, Fault):
+                known = ", ".join(f"Fault.{f.name}" for f in Fault)
+                raise ValueError(f"schedule[{index}] = {kind!r}: expected one of {known}")
+        for name in _RATES:
             rate = getattr(self, name)
             if not 0.0 <= rate <= 1.0:
                 raise ValueError(f"fault rate {name}={rate} must be within 0-1")
@@ -86,19 +142,38 @@ class FaultPlan:
         return 1.0 + self.drift_ppm * 1e-6
 
     @classmethod
-    def parse(cls, spec: str, seed: int | None = 0) -> FaultPlan:
-        """Parse ``"nack=0.01,short_read=0.001,corrupt=0,latency_ms=2,jitter_ms=3,drift_ppm=50"``.
+    def parse(cls, spec: str, seed: int | None = 0, kinds: FaultKinds = I2C_FAULTS) -> FaultPlan:
+        """Parse a ``--faults`` specification in ``kinds``' names.
+
+        The I2C bus's: ``"nack=0.01,short_read=0.001,corrupt=0,latency_ms=2,jitter_ms=3,drift_ppm=50"``;
+        the RS-485 bus's (:data:`RS485_FAULTS`): ``"drop=0.01,corrupt=0.001,delay_ms=2"``.
 
         Raises:
             ValueError: Unknown key (the message lists the known ones) or a
                 value that is not a number.
         """
-        return cls(
-            seed=seed,
-            **parse_fault_spec(
-                spec, ("nack", "short_read", "corrupt"), ("latency", "jitter"), numbers=("drift_ppm",)
-            ),
-        )
+        kwargs = parse_fault_spec(spec, kinds.rates, tuple(kinds.durations), numbers=kinds.numbers)
+        for name, stem in kinds.durations.items():
+            if f"{name}_s" in kwargs:
+                kwargs[f"{stem}_s"] = kwargs.pop(f"{name}_s")
+        return cls(seed=seed, **kwargs)
+
+    def check_for(self, kinds: FaultKinds) -> None:
+        """Refuse a fault the bus of ``kinds`` cannot inject (it would be silently ignored).
+
+        Raises:
+            ValueError: One line naming the fault and what the bus injects.
+        """
+        given = [n for n in _RATES if getattr(self, n)] + [
+            n for n in ("latency", "jitter") if getattr(self, f"{n}_s")
+        ]
+        given += ["drift_ppm"] if self.drift_ppm else []
+        given += [f"schedule {f.value}" for f in self.schedule.values() if f not in kinds.scheduled]
+        known = (*kinds.rates, *kinds.durations.values(), *kinds.numbers)
+        for name in given:
+            if name not in known:
+                injects = ", ".join(known)
+                raise ValueError(f"the emulated {kinds.bus} bus cannot inject {name}; it injects {injects}")
 
 
 def parse_fault_spec(
@@ -193,6 +268,7 @@ class EmulatedI2CBus:
                 )
         self.devices = dict(devices)
         self.faults = faults or FaultPlan()
+        self.faults.check_for(I2C_FAULTS)
         self._rng = np.random.default_rng(self.faults.seed)
         if clock is None and self.devices:
             clock = next(iter(self.devices.values())).clock

@@ -7,7 +7,9 @@ every :class:`JointError` carries its :class:`ErrType` in ``.code``.
 
 from __future__ import annotations
 
-from enum import Enum, IntEnum
+import difflib
+from collections.abc import Iterable
+from enum import IntEnum
 
 
 class ErrType(IntEnum):
@@ -163,6 +165,10 @@ class IncorrectStateError(JointError):
     code = ErrType.INCORRECT_STATE
 
 
+class AlreadyInitializedError(IncorrectStateError):
+    """``init()`` on a joint already initialized: ``deinit()`` it first (LeRobot's ``connect()`` twice)."""
+
+
 class ArmStateError(IncorrectStateError):
     """A request that the arm's lifecycle state or command mode does not allow."""
 
@@ -202,6 +208,16 @@ def require_extra(module: str, what: str, extra: str) -> None:
         raise MissingExtraError(what, extra) from e
 
 
+def closest_name(name: object, known: Iterable[str]) -> str | None:
+    """The name of ``known`` closest to a misspelt ``name``, if one is close enough ("did you mean").
+
+    The one rule behind every "did you mean" the package prints: the
+    configuration's fields, the hyperparameters, the DAgger settings.
+    """
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    return close[0] if close else None
+
+
 class UnknownJointError(InvalidArgumentError, ConfigError):
     """A joint name that the configuration does not have; the message lists the known ones.
 
@@ -211,34 +227,28 @@ class UnknownJointError(InvalidArgumentError, ConfigError):
     """
 
 
-class StopReason(Enum):
-    """Why a deployment ended."""
+class DeadmanError(Exception):
+    """The host's deadman guard saw a joint go longer than the firmware's deadman without a transaction.
 
-    COMPLETED = "completed"
-    NAN_ACTION = "nan_action"
-    STALL = "stall"
-    COMM_ERROR = "comm_error"
-    JOINT_ERROR = "joint_error"
-    DEADMAN = "deadman"
-    INTERRUPTED = "interrupted"
-    TERMINATED = "terminated"
-    LOG_ERROR = "log_error"
-    ERROR = "error"
-
-
-class SafetyStop(Exception):
-    """The safety layer stopped the run; the message names the cause.
+    Its firmware would have stopped it (docs/firmware.md, deadman). Raised by
+    :meth:`~bioscara_gym.hardware.safety.DeadmanGuard.check`; ``bioscara
+    deploy`` stops on it (``deadman``).
 
     Attributes:
-        reason: What tripped.
-        joint: The joint concerned, if one is.
+        joint: The joint silent the longest.
+        silence_s: How long it was silent, s.
+        limit_s: The longest silence allowed, s.
     """
 
-    def __init__(self, reason: StopReason, message: str, joint: str | None = None) -> None:
-        """Record the reason, the message and the joint."""
-        super().__init__(message)
-        self.reason = reason
+    def __init__(self, joint: str, silence_s: float, limit_s: float) -> None:
+        """Say which joint was silent, how long, and the limit."""
+        super().__init__(
+            f"deadman guard: {joint} went {silence_s * 1000:.1f} ms without a transaction "
+            f"(limit {limit_s * 1000:.0f} ms); its firmware would stop it"
+        )
         self.joint = joint
+        self.silence_s = silence_s
+        self.limit_s = limit_s
 
 
 class SitlError(RuntimeError):

@@ -335,6 +335,17 @@ class BaseGripper(abc.ABC):
         """Path of the last-width file, or ``None`` without persistence."""
         return self._state_file
 
+    def save_status(self) -> str:
+        """Whether the last :meth:`disable` wrote the width to the state file, in words (for operators)."""
+        path = self._state_file
+        if path is None:
+            return "not kept (no state file)"
+        if self.save_error is not None:
+            return f"NOT saved to {path}: {self.save_error.strerror or self.save_error}"
+        if self.saved_width_m is None:
+            return f"not saved (the gripper was not enabled; {path} unchanged)"
+        return f"saved to {path}"
+
     @property
     def is_initialized(self) -> bool:
         """Whether :meth:`init` ran and :meth:`deinit` has not."""

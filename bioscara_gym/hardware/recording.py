@@ -35,6 +35,7 @@ from typing import IO, Any
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.config import ArmConfig, config_to_dict
+from bioscara_gym.hardware.registry import backend_names
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
 #: Version 2 added the per-line ``digest``; version 1 traces have none.
@@ -44,7 +45,7 @@ TRACE_VERSION = 2
 #: found, not a forgery resisted: anyone can recompute a digest).
 DIGEST_HEX = 16
 #: Backends whose joints talk over an I2C bus, so they can be recorded.
-RECORDABLE_BACKENDS = ("i2c", "emulated")
+RECORDABLE_BACKENDS = backend_names("records")
 
 #: Wraps a backend's bus before its joints get it: ``(bus, clock) -> bus``.
 BusWrapper = Callable[[I2CBus, Clock], I2CBus]

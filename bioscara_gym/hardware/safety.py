@@ -8,7 +8,7 @@ piece                  what it does
 =====================  ==================================================================
 :class:`DeadmanGuard`  the longest silence of each joint on the backend's clock; more than
                        the firmware's deadman (:data:`DEADMAN_S`, docs/firmware.md) raises
-                       :class:`SafetyStop` (``deadman``) naming the joint
+                       :class:`~bioscara_gym.hardware.errors.DeadmanError` naming the joint
 :func:`safe_stop`      speed 0 to every joint, every joint disabled (currents 0,
                        freewheel) whatever its flags say, the gripper disabled (its width
                        saved to its state file), the arm shut down and the bus closed; a
@@ -19,19 +19,25 @@ piece                  what it does
                        currents where the emulator holds them
 =====================  ==================================================================
 
-The policy-facing half (NaN check, action clamp) is
-:mod:`bioscara_gym.training.deploy_safety`.
+The :class:`~bioscara_gym.hardware.arm.Arm` offers each of them
+(:meth:`~bioscara_gym.hardware.arm.Arm.watch_deadman`,
+:meth:`~bioscara_gym.hardware.arm.Arm.safe_stop`,
+:meth:`~bioscara_gym.hardware.arm.Arm.final_state`), so a deployment needs
+nothing but the arm. The policy-facing half (NaN check, action clamp, why a
+run stopped) is :mod:`bioscara_gym.training.deploy_safety`.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
-from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import Backend
-from bioscara_gym.hardware.errors import CommError, JointError, SafetyStop, StopReason
+from bioscara_gym.hardware.base_joint import BaseJoint
+from bioscara_gym.hardware.errors import CommError, DeadmanError, JointError
+from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
@@ -86,18 +92,13 @@ class DeadmanGuard:
         """Raise if a joint was silent too long; return the longest silence and start anew.
 
         Raises:
-            SafetyStop: ``deadman``, naming the joint silent the longest.
+            DeadmanError: Naming the joint silent the longest.
         """
         silences = self.silences()
         name = max(silences, key=silences.__getitem__)
         worst = silences[name]
         if worst > self.limit_s + 1e-9:
-            raise SafetyStop(
-                StopReason.DEADMAN,
-                f"deadman guard: {name} went {worst * 1000:.1f} ms without a transaction "
-                f"(limit {self.limit_s * 1000:.0f} ms); its firmware would stop it",
-                joint=name,
-            )
+            raise DeadmanError(name, worst, self.limit_s)
         self._max = dict.fromkeys(self.names, 0.0)
         return worst
 
@@ -140,7 +141,19 @@ class SafeStopReport:
         ]
 
 
-def safe_stop(arm: Arm) -> SafeStopReport:
+class StoppableArm(Protocol):
+    """What :func:`safe_stop` needs of an :class:`~bioscara_gym.hardware.arm.Arm`."""
+
+    joints: Mapping[str, BaseJoint]
+    gripper: BaseGripper
+    names: tuple[str, ...]
+
+    def shutdown(self) -> None:
+        """Finalize: every device disabled and disconnected, the bus closed."""
+        ...
+
+
+def safe_stop(arm: StoppableArm) -> SafeStopReport:
     """Speed 0 to every joint, cut every joint's current, disable the gripper, shut the arm down.
 
     Best effort: each step is tried on every device even if another failed.
@@ -192,7 +205,7 @@ def _why(error: JointError) -> str:
     return f"disable not acknowledged ({error})"
 
 
-def _reconnect_joints(arm: Arm, why: dict[str, str]) -> list[str]:
+def _reconnect_joints(arm: StoppableArm, why: dict[str, str]) -> list[str]:
     """Connect again the joints an on-error transition disconnected; the failures."""
     problems = []
     for name, joint in arm.joints.items():
@@ -205,7 +218,7 @@ def _reconnect_joints(arm: Arm, why: dict[str, str]) -> list[str]:
     return problems
 
 
-def _stop_joints(arm: Arm) -> list[str]:
+def _stop_joints(arm: StoppableArm) -> list[str]:
     """Speed 0 to every connected joint; the failures."""
     problems = []
     for name, joint in arm.joints.items():
@@ -217,7 +230,7 @@ def _stop_joints(arm: Arm) -> list[str]:
     return problems
 
 
-def _disable_joints(arm: Arm, why: dict[str, str]) -> tuple[set[str], list[str]]:
+def _disable_joints(arm: StoppableArm, why: dict[str, str]) -> tuple[set[str], list[str]]:
     """Disable every connected joint; the joints whose disable was acknowledged, and the failures."""
     disabled, problems = set(), []
     for name, joint in arm.joints.items():
@@ -232,7 +245,7 @@ def _disable_joints(arm: Arm, why: dict[str, str]) -> tuple[set[str], list[str]]
     return disabled, problems
 
 
-def _disable_gripper(arm: Arm) -> list[str]:
+def _disable_gripper(arm: StoppableArm) -> list[str]:
     """Disable the gripper if it is driven; the failure, if any."""
     if not arm.gripper.is_enabled:
         return []

@@ -16,12 +16,11 @@ through the SDK import it when a bus is built, and a missing SDK is one
 """
 
 from bioscara_gym.hardware.dynamixel.bus import DynamixelBus, LoopStats, SyncLoop, load_sdk
-from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
+from bioscara_gym.hardware.dynamixel.emulator import XL430, EmulatedRS485Bus
 from bioscara_gym.hardware.dynamixel.joint import DynamixelJoint
 
 __all__ = [
     "XL430",
-    "DxlFaultPlan",
     "DynamixelBus",
     "DynamixelJoint",
     "EmulatedRS485Bus",

@@ -28,8 +28,9 @@ from bioscara_gym.hardware.clock import Clock, ManualClock, WallClock
 from bioscara_gym.hardware.config import ArmConfig, DynamixelBusConfig, JointConfig
 from bioscara_gym.hardware.dynamixel.bus import DynamixelBus, LoopStats, load_sdk, port_module
 from bioscara_gym.hardware.dynamixel.control_table import position_to_raw
-from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
+from bioscara_gym.hardware.dynamixel.emulator import XL430, EmulatedRS485Bus
 from bioscara_gym.hardware.dynamixel.joint import DynamixelJoint
+from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.stats import CommStats
 
@@ -143,7 +144,7 @@ class EmulatedDynamixelBackend(DynamixelBackend):
     def __init__(
         self,
         config: ArmConfig,
-        faults: DxlFaultPlan | None = None,
+        faults: FaultPlan | None = None,
         initial_q: Mapping[str, float] | None = None,
         clock: Clock | None = None,
         **kwargs: object,

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,7 +49,7 @@ from bioscara_gym.hardware.dynamixel.control_table import (
     to_unsigned,
 )
 from bioscara_gym.hardware.dynamixel.protocol import Packet, PacketParser
-from bioscara_gym.hardware.emulated_bus import parse_fault_spec
+from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, Fault, FaultPlan
 
 #: rad per position unit of the emulated motor (2*pi / 4096).
 _RAD_PER_UNIT = 2 * math.pi / 4096
@@ -347,47 +346,6 @@ class XL430:
         return reply(StatusError.INSTRUCTION)
 
 
-@dataclass(frozen=True)
-class DxlFaultPlan:
-    """Faults the emulated RS-485 bus injects into status packets, by rate and/or schedule.
-
-    Attributes:
-        drop: Probability that a status packet is lost (the instruction was executed).
-        corrupt: Probability that one bit of a status packet is flipped (its CRC then fails).
-        delay_s: Extra time before every status packet, s.
-        schedule: Status packet index (bus-wide, from 0) to ``"drop"``,
-            ``"corrupt"`` or ``"delay"``, for deterministic tests.
-        seed: Seed of the fault generator.
-    """
-
-    drop: float = 0.0
-    corrupt: float = 0.0
-    delay_s: float = 0.0
-    schedule: Mapping[int, str] = field(default_factory=dict)
-    seed: int | None = 0
-
-    def __post_init__(self) -> None:
-        """Validate the rates and the schedule."""
-        for name in ("drop", "corrupt"):
-            rate = getattr(self, name)
-            if not 0.0 <= rate <= 1.0:
-                raise ValueError(f"fault rate {name}={rate} must be within 0-1")
-        if not self.delay_s >= 0.0:
-            raise ValueError(f"delay_s={self.delay_s} must be >= 0")
-        for index, kind in self.schedule.items():
-            if kind not in ("drop", "corrupt", "delay"):
-                raise ValueError(f"schedule[{index}] = {kind!r}: expected drop, corrupt or delay")
-
-    @classmethod
-    def parse(cls, spec: str, seed: int | None = 0) -> DxlFaultPlan:
-        """Parse ``"drop=0.01,corrupt=0.001,delay_ms=2"``.
-
-        Raises:
-            ValueError: Unknown key or a value that is not a finite number.
-        """
-        return cls(seed=seed, **parse_fault_spec(spec, ("drop", "corrupt"), "delay"))
-
-
 class EmulatedRS485Bus:
     """Servos on one half-duplex RS-485 bus, seen as a byte stream.
 
@@ -404,7 +362,7 @@ class EmulatedRS485Bus:
     """
 
     def __init__(
-        self, servos: Iterable[XL430], faults: DxlFaultPlan | None = None, clock: Clock | None = None
+        self, servos: Iterable[XL430], faults: FaultPlan | None = None, clock: Clock | None = None
     ) -> None:
         """Attach the servos."""
         self.servos: dict[int, XL430] = {}
@@ -412,7 +370,8 @@ class EmulatedRS485Bus:
             if servo.id in self.servos:
                 raise ValueError(f"two servos with ID {servo.id}")
             self.servos[servo.id] = servo
-        self.faults = faults or DxlFaultPlan()
+        self.faults = faults or FaultPlan()
+        self.faults.check_for(RS485_FAULTS)
         self._rng = np.random.default_rng(self.faults.seed)
         if clock is None:
             clock = next(iter(self.servos.values())).clock if self.servos else ManualClock()
@@ -553,14 +512,14 @@ class EmulatedRS485Bus:
         self.statuses += 1
         plan = self.faults
         scheduled = plan.schedule.get(index)
-        delay = plan.delay_s + (0.001 if scheduled == "delay" and not plan.delay_s else 0.0)
+        delay = plan.latency_s + (0.001 if scheduled is Fault.LATENCY and not plan.latency_s else 0.0)
         if delay:
             self.pending_delay_s += delay
             if isinstance(self.clock, ManualClock):
                 self.clock.sleep(delay)
-        if scheduled == "drop" or (plan.drop > 0 and self._rng.random() < plan.drop):
+        if scheduled is Fault.DROP or (plan.drop > 0 and self._rng.random() < plan.drop):
             return b""
-        if scheduled == "corrupt" or (plan.corrupt > 0 and self._rng.random() < plan.corrupt):
+        if scheduled is Fault.CORRUPT or (plan.corrupt > 0 and self._rng.random() < plan.corrupt):
             data = bytearray(status)
             i = int(self._rng.integers(7, len(data)))  # body or CRC: the host must see a bad CRC
             data[i] ^= 1 << int(self._rng.integers(0, 8))

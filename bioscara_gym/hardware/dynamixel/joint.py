@@ -216,7 +216,7 @@ class DynamixelJoint(BaseJoint):
         return position_from_raw(raw) / self.reduction + self.offset
 
     # ------------------------------------------------------------ lifecycle
-    def init(self) -> None:
+    def _init(self) -> None:
         """Open the port, PING (5 tries), then read torque, hardware error and operating mode.
 
         Raises:

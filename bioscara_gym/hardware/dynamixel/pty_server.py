@@ -20,7 +20,8 @@ import tty
 from pathlib import Path
 
 from bioscara_gym.hardware.clock import WallClock
-from bioscara_gym.hardware.dynamixel.emulator import XL430, DxlFaultPlan, EmulatedRS485Bus
+from bioscara_gym.hardware.dynamixel.emulator import XL430, EmulatedRS485Bus
+from bioscara_gym.hardware.emulated_bus import FaultPlan
 
 #: Largest servo ID (protocol 2.0: 253 is reserved, 254 broadcast; the control table's ID item).
 MAX_ID = 252
@@ -133,7 +134,7 @@ class PtyServer:
         self.stop()
 
 
-def make_bus(ids: list[int], faults: DxlFaultPlan | None = None) -> EmulatedRS485Bus:
+def make_bus(ids: list[int], faults: FaultPlan | None = None) -> EmulatedRS485Bus:
     """Servos with ``ids`` on the wall clock, at 1 Mbps, centred."""
     clock = WallClock()
     return EmulatedRS485Bus([XL430(i, clock) for i in ids], faults=faults, clock=clock)

@@ -21,12 +21,12 @@ from bioscara_gym.errors import CliError
 
 def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
     """Serve emulated servos on a pty until SIGINT/SIGTERM."""
-    from bioscara_gym.hardware.dynamixel.emulator import DxlFaultPlan
     from bioscara_gym.hardware.dynamixel.pty_server import PtyServer, make_bus, parse_ids
+    from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, FaultPlan
 
     try:
         ids = parse_ids(args.ids)
-        faults = DxlFaultPlan.parse(args.faults) if args.faults else None
+        faults = FaultPlan.parse(args.faults, kinds=RS485_FAULTS) if args.faults else None
     except ValueError as e:
         raise CliError(str(e)) from None
     link = Path(args.link)

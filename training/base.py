@@ -1,0 +1,251 @@
+"""The skeleton every training method fills in: one run as named steps, in order.
+
+As SB3's ``BaseAlgorithm.learn`` and Gymnasium-Robotics' ``robot_env``:
+:meth:`TrainingMethod.run` is the loop, a method module fills in the hooks.
+
+====================  =============================================================
+step                  what it does
+====================  =============================================================
+:meth:`~TrainingMethod.plan`         check every input, settle the config and the budget;
+                                     on ``--resume`` read the run's state (nothing written)
+:meth:`~TrainingMethod.make_envs`    the training env(s) and the evaluation env
+:meth:`~TrainingMethod.callbacks`    what runs alongside learning (SB3 callbacks)
+:meth:`~TrainingMethod.build_model`  a new model, or the newest checkpoint that loads
+(the run's state)                    ``train_state.json``: the first file written
+:meth:`~TrainingMethod.learn`        train until the target or the budget
+:meth:`~TrainingMethod.evaluate`     the final success rate
+(save)                               ``model.zip`` and ``metadata.json``, atomically,
+                                     signals held off
+====================  =============================================================
+
+SIGINT and SIGTERM at any step save a checkpoint (:meth:`~TrainingMethod.checkpoint`)
+and raise :class:`~bioscara_gym.training.run.TrainingInterrupted`; bad input
+is a :class:`~bioscara_gym.errors.TrainingError` before anything is written.
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+
+from bioscara_gym.errors import TrainingError
+from bioscara_gym.training.checkpoints import (
+    checkpoint_dir,
+    newest_checkpoint,
+    read_run_state,
+    write_run_state,
+)
+from bioscara_gym.training.evaluate import EvalStats
+from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.metadata import build_metadata, save_policy
+from bioscara_gym.training.methods import MethodSpec
+from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
+from bioscara_gym.training.signals import Interrupted, SignalGuard
+
+with needs_train():
+    import torch
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run will do, settled before anything is built or written.
+
+    Attributes:
+        config: The method's configuration (a ``Hyperparams``, a ``DaggerConfig``).
+        env_kwargs: Keyword arguments of ``gym.make``.
+        total: Training budget (env steps; ``bc``: gradient steps).
+        state: The ``train_state.json`` to write once the model is built
+            (``None``: the method cannot resume, nothing is written for it).
+    """
+
+    config: Any
+    env_kwargs: dict[str, Any]
+    total: int
+    state: dict[str, Any] | None
+
+
+@dataclass(frozen=True)
+class Resumed:
+    """What ``--resume`` continues, read from the run's ``train_state.json`` and checked.
+
+    Attributes:
+        seed: The run's seed.
+        total: Its budget.
+        config: Its hyperparameter file (``None``: the packaged one).
+        demos: Its demonstration dataset.
+    """
+
+    seed: int
+    total: int
+    config: str | None
+    demos: str | None
+
+
+class TrainingMethod(abc.ABC):
+    """One way of training a policy: the hooks :meth:`run` calls (see the module docstring).
+
+    Args:
+        args: The run's arguments (``seed`` and ``demos`` are settled by :meth:`plan`).
+        env_id: The registered, versioned env id.
+        spec: The method's entry in :data:`~bioscara_gym.training.methods.METHODS`.
+
+    Attributes:
+        model: The model, once :meth:`build_model` made it.
+        reached_at: Env steps at which the target was reached (``None``: not reached).
+        reached_after_s: Seconds it took.
+    """
+
+    def __init__(self, args: TrainArgs, env_id: str, spec: MethodSpec) -> None:
+        """Bind to the run; nothing is checked or built yet."""
+        self.args = args
+        self.env_id = env_id
+        self.spec = spec
+        self.out = Path(args.out)
+        self.model: Any = None
+        self.reached_at: int | None = None
+        self.reached_after_s: float | None = None
+        self.start = time.perf_counter()
+
+    # ------------------------------------------------------------- the steps
+    @abc.abstractmethod
+    def plan(self) -> RunPlan:
+        """Check every input and settle the config and budget; nothing is written.
+
+        Raises:
+            TrainingError: Bad input, one line.
+        """
+
+    @abc.abstractmethod
+    def make_envs(self, plan: RunPlan, stack: contextlib.ExitStack) -> gym.Env:
+        """Make the envs (``stack`` closes them); return the one the metadata describes."""
+
+    def callbacks(self, plan: RunPlan) -> list[Any]:
+        """What runs alongside :meth:`learn` (SB3 callbacks); none by default.
+
+        Raises:
+            TrainingError: A callback the config describes cannot be made.
+        """
+        return []
+
+    @abc.abstractmethod
+    def build_model(self, plan: RunPlan) -> Any:
+        """A new model, or on ``--resume`` the newest checkpoint that loads."""
+
+    @abc.abstractmethod
+    def learn(self, plan: RunPlan, callbacks: list[Any], guard: SignalGuard) -> None:
+        """Train until the target or the budget (checkpoints on the way, signals held off while saving)."""
+
+    @abc.abstractmethod
+    def evaluate(self, plan: RunPlan) -> EvalStats:
+        """The final success rate (the stopping evaluation's, when it reached the target)."""
+
+    def checkpoint(self) -> Path | None:
+        """Save a checkpoint now (SIGINT or SIGTERM); ``None`` if there is nothing to save."""
+        return None
+
+    @property
+    @abc.abstractmethod
+    def timesteps(self) -> int:
+        """Env steps trained on so far."""
+
+    def metadata(self, plan: RunPlan) -> dict[str, Any]:
+        """What the metadata records of the run besides the env, the spaces and the final evaluation."""
+        return {}
+
+    # --------------------------------------------------------------- the loop
+    def run(self) -> TrainResult:
+        """Plan, make the envs, build the model, learn, evaluate, save (see the module docstring).
+
+        Raises:
+            TrainingError: Bad input (nothing trained, nothing written).
+            TrainingInterrupted: SIGINT or SIGTERM (a checkpoint saved, if there was a model).
+        """
+        plan = self.plan()
+        torch.set_num_threads(self.args.threads or 1)
+        self.start = time.perf_counter()
+        with SignalGuard() as guard, contextlib.ExitStack() as stack:
+            try:
+                env = self.make_envs(plan, stack)
+                callbacks = self.callbacks(plan)
+                self.model = self.build_model(plan)
+                if plan.state is not None:
+                    write_run_state(self.out, plan.state)
+                self.learn(plan, callbacks, guard)
+                final = self.evaluate(plan)
+            except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM through the guard
+                with guard.shielded():
+                    saved = self.checkpoint() if self.model is not None else None
+                signum = e.signum if isinstance(e, Interrupted) else signal.SIGINT
+                raise TrainingInterrupted(signum, saved, self.out) from None
+            with guard.shielded():  # a signal now would cut the final model in half
+                metadata = self._metadata(env, plan, final)
+                model_path, metadata_path = save_policy(self.model, self.out, metadata)
+        return TrainResult(
+            model_path=model_path,
+            metadata_path=metadata_path,
+            timesteps=self.timesteps,
+            wall_time_s=time.perf_counter() - self.start,
+            final_eval=final,
+            target_reached_at=self.reached_at,
+            target_reached_after_s=self.reached_after_s,
+        )
+
+    def _metadata(self, env: gym.Env, plan: RunPlan, final: EvalStats) -> dict[str, Any]:
+        """``metadata.json``: the env, the method (as it loads), the run's facts, the final evaluation."""
+        method = {} if self.spec.algo == self.spec.name else {"method": self.spec.name}
+        return build_metadata(
+            env,
+            self.env_id,
+            plan.env_kwargs,
+            algo=self.spec.algo,
+            **method,
+            seed=self.args.seed,
+            timesteps=self.timesteps,
+            config=plan.config.as_dict(),
+            final_eval=final.as_dict(),
+            **self.metadata(plan),
+        )
+
+    # ------------------------------------------------------- shared by plans
+    def resumed(self) -> Resumed:
+        """The run ``--resume`` continues: its state, checked against the arguments; seed and demos set.
+
+        Raises:
+            TrainingError: No or a damaged state, a run of another env or
+                method, a ``--timesteps`` that would change its budget, no checkpoint.
+        """
+        args, out = self.args, self.out
+        saved = read_run_state(out)
+        if saved["env_id"] != self.env_id or saved["algo"] != self.spec.name:
+            held = f"{saved['algo']} run on {saved['env_id']}"
+            raise TrainingError(f"{out} holds a {held}, not {self.spec.name} on {self.env_id}")
+        total = saved["total_timesteps"]
+        if args.timesteps is not None and args.timesteps != total:
+            raise TrainingError(
+                f"--resume continues {out}'s budget of {total} steps; --timesteps {args.timesteps} "
+                "would change it (drop it, or train a new run with --out elsewhere)"
+            )
+        if newest_checkpoint(checkpoint_dir(out)) is None:
+            raise TrainingError(f"nothing to resume in {checkpoint_dir(out)}: no checkpoint")
+        args.seed = saved["seed"]
+        args.demos = args.demos or saved["demos"]
+        config = saved["config"] or (str(args.config) if args.config else None)
+        return Resumed(seed=saved["seed"], total=total, config=config, demos=saved["demos"])
+
+    def run_state(self, total: int, config: str | None, demos: str | None) -> dict[str, Any]:
+        """The ``train_state.json`` of this run."""
+        return {
+            "env_id": self.env_id,
+            "algo": self.spec.name,
+            "seed": self.args.seed,
+            "total_timesteps": int(total),
+            "config": config,
+            "demos": demos,
+        }

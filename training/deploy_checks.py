@@ -1,0 +1,315 @@
+"""What ``bioscara deploy`` checks before a byte reaches the arm: its arguments, its outputs, its policy.
+
+Every argument is checked (:func:`check_args`, :func:`check_outputs`), the
+policy loaded (:func:`load_policy`: the one ``--model``, ``--onnx`` or
+``--expert`` names), its env's keyword arguments checked against the env's
+constructor (:func:`check_env_kwargs`) and the policy run once on a probe
+observation (:func:`probe_policy`). A refusal is one
+:class:`~bioscara_gym.errors.DeployError` line; nothing has been sent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.registration import load_env_creator
+
+from bioscara_gym.errors import DeployError, TrainingError
+from bioscara_gym.hardware.arm import check_control_freq
+from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.emulated_bus import FaultPlan
+from bioscara_gym.hardware.errors import SitlError
+from bioscara_gym.hardware.registry import backend_names
+from bioscara_gym.tasks import Policy, task_of
+from bioscara_gym.training.extras import needed_by
+from bioscara_gym.training.metadata import PolicyShapes, read_metadata, resolve_env_id
+
+#: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
+#: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
+DEPLOY_BACKENDS = backend_names("deployable")
+
+
+@dataclass
+class DeployArgs:
+    """Arguments of ``bioscara deploy`` (the CLI flags map one to one).
+
+    Attributes:
+        model: A trained ``model.zip`` (metadata.json beside it).
+        onnx: An ONNX policy from ``bioscara export`` (runs without torch).
+        expert: Run the scripted expert of ``env`` instead of a policy.
+        env: Env id for ``expert``; with a policy, must match its metadata.
+        backend: ``i2c`` (the arm), ``emulated`` (real driver, emulated bus), ``sitl``
+            (the same with the joint firmware's own source behind the bus) or ``mock``.
+        bus: I2C bus number (``/dev/i2c-N``); default the config's.
+        config: Arm configuration YAML; default the packaged one.
+        episodes: Episodes to run.
+        rate: Control rate in Hz; default the policy's. Must match a trained policy's.
+        log: Run log (JSON Lines); default ``runs/deploy/deploy-<time>.jsonl``.
+        faults: Fault injection on ``emulated``, e.g. ``nack=0.01,latency_ms=2``.
+        seed: Seed of the first episode.
+        realtime: On simulated backends, pace the loop on the wall clock too.
+        state_file: Gripper state file; default the backend's (on the arm) or
+            ``gripper.json`` beside the log (simulated backends).
+        record: Bus trace: every I2C transaction as a JSON line (docs/traces.md).
+        firmware: The joint firmware's folder for ``sitl`` (``Arduino/joint/``);
+            default ``$BIOSCARA_FIRMWARE``.
+    """
+
+    model: Path | None = None
+    onnx: Path | None = None
+    expert: bool = False
+    env: str | None = None
+    backend: str = "emulated"
+    bus: int | None = None
+    config: Path | None = None
+    episodes: int = 1
+    rate: float | None = None
+    log: Path | None = None
+    faults: str | None = None
+    seed: int = 10_000
+    realtime: bool = False
+    state_file: Path | None = None
+    record: Path | None = None
+    firmware: Path | None = None
+
+
+@dataclass(frozen=True)
+class LoadedPolicy:
+    """A policy ready to be given its env.
+
+    Attributes:
+        make: Builds the policy for the env (the scripted expert needs it).
+        metadata: What the policy was trained for (``None`` for the expert).
+        description: One line for the operator.
+        shapes: What the policy itself takes and gives (``None`` for the expert).
+    """
+
+    make: Callable[[gym.Env], Policy]
+    metadata: dict[str, Any] | None
+    description: str
+    shapes: PolicyShapes | None = None
+
+
+def load_policy(args: DeployArgs) -> LoadedPolicy:
+    """Load the policy the arguments name.
+
+    Only ``--model`` imports torch and stable-baselines3, only ``--onnx`` onnxruntime.
+
+    Raises:
+        DeployError: No policy source, or more than one; ``--expert`` without ``--env``.
+        MetadataError: Missing, incomplete or unreadable metadata.
+        PolicyFileError: A ``model.zip`` that cannot be loaded.
+        ExportError: An ONNX file that cannot be loaded.
+        MissingExtraError: The extra the policy source needs is not installed.
+    """
+    sources = [s for s in (args.model is not None, args.onnx is not None, args.expert) if s]
+    if len(sources) != 1:
+        raise DeployError("deploy needs exactly one of --model PATH, --onnx FILE or --expert --env ID")
+    if args.expert:
+        if args.env is None:
+            raise DeployError("--expert needs --env ID: the task is never guessed")
+        return LoadedPolicy(lambda env: task_of(env).make_expert(env.unwrapped), None, "scripted expert")
+    if args.onnx is not None:
+        from bioscara_gym.training.export import OnnxPolicy
+
+        onnx_policy = OnnxPolicy(args.onnx)
+        return LoadedPolicy(
+            lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
+        )
+    read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
+    with needed_by("deploy --model"):
+        from bioscara_gym.training.algos import load_model, sb3_policy
+
+    # What the policy was trained for is proven by its own copy, not by an editable file.
+    model, metadata = load_model(Path(args.model), require_embedded=True)
+    sb3 = sb3_policy(model)
+    shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {args.model}")
+    return LoadedPolicy(lambda env: sb3, metadata, f"{metadata['algo'].upper()} {args.model}", shapes)
+
+
+def probe_policy(loaded: LoadedPolicy, env: gym.Env, seed: int) -> None:
+    """Run the policy once on an observation of the env's space, before the arm is touched.
+
+    The env's first real observation needs the arm homed, so the probe is an
+    observation drawn from the env's observation space with the run's seed: a
+    policy whose own numbers are broken (a NaN weight) gives NaN or infinity,
+    or fails inside its library, for any input.
+
+    Raises:
+        DeployError: One line naming the policy and what it gave.
+    """
+    space = env.observation_space
+    space.seed(seed)
+    probe = space.sample()
+    try:
+        action = np.asarray(loaded.make(env)(probe), dtype=np.float64)
+    except Exception as e:  # torch's distribution checks, onnxruntime: one line, not their traceback
+        raise DeployError(
+            f"refused: {loaded.description} fails on a probe observation ({type(e).__name__}: "
+            f"{first_line(e)}); are its weights NaN or infinite? nothing was sent to the arm"
+        ) from e
+    if not np.all(np.isfinite(action)):
+        raise DeployError(
+            f"refused: {loaded.description} gives a non-finite action "
+            f"{np.array2string(action, precision=3, separator=', ')} on a probe observation; "
+            "nothing was sent to the arm"
+        )
+
+
+def first_line(e: BaseException) -> str:
+    """The first line of an exception's message (torch's span several)."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else "no message"
+
+
+def check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
+    """Refuse a policy's env kwargs that the env does not take, naming them.
+
+    Raises:
+        DeployError: Unknown env id, or a kwarg the env's constructor lacks.
+    """
+    try:
+        spec = gym.spec(env_id)
+    except gym.error.Error as e:
+        raise DeployError(f"cannot make env {env_id!r}: {e}") from e
+    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
+    known = keyword_parameters(creator)
+    unknown = [k for k in kwargs if k not in known]
+    if unknown:
+        settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
+        raise DeployError(
+            f"the policy's env_kwargs has {unknown[0]!r}, which {env_id} does not take; it takes {settings}"
+        )
+
+
+def keyword_parameters(creator: Any) -> list[str]:
+    """The keyword parameters an env class takes, following ``**kwargs`` up its bases."""
+    classes = creator.__mro__ if isinstance(creator, type) else (creator,)
+    names: list[str] = []
+    for cls in classes:
+        target = cls.__init__ if isinstance(creator, type) else cls
+        if isinstance(creator, type) and "__init__" not in vars(cls):
+            continue
+        params = inspect.signature(target).parameters.values()
+        names += [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return [n for n in dict.fromkeys(names) if n != "self"]
+
+
+def check_outputs(outputs: dict[str, Path | None]) -> None:
+    """Refuse output files that are one and the same, or that cannot be files.
+
+    The run log, the gripper state file (``None``: the backend's, on the arm)
+    and the bus trace are written side by side: one path for two of them
+    would leave neither readable.
+
+    Raises:
+        DeployError: Two options name one file, or one names a directory, a
+            device or a FIFO, or a path under something that is not a directory.
+    """
+    seen: dict[Path, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise DeployError(f"{seen[resolved]} and {option} name the same file {path}; each needs its own")
+        seen[resolved] = option
+        if resolved.exists() and not resolved.is_file():
+            raise DeployError(f"{option} {path} is not a regular file")
+        parent = next((p for p in resolved.parents if p.exists()), None)
+        if parent is not None and not parent.is_dir():
+            raise DeployError(f"{option} {path}: {parent} is not a directory")
+
+
+def check_args(args: DeployArgs) -> None:
+    """Refuse a bad argument before anything is built or sent.
+
+    Raises:
+        DeployError: One line naming the argument and what was expected.
+    """
+    if args.backend not in DEPLOY_BACKENDS:
+        raise DeployError(
+            f"backend {args.backend!r} is not deployable; expected one of {', '.join(DEPLOY_BACKENDS)}"
+        )
+    if args.episodes < 1:
+        raise DeployError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        raise DeployError(f"--seed must be >= 0, got {args.seed}")
+    if args.bus is not None and args.bus < 0:
+        raise DeployError(f"--bus must be an I2C bus number >= 0 (/dev/i2c-N), got {args.bus}")
+    if args.rate is not None:
+        try:
+            check_control_freq(args.rate, "--rate")
+        except ValueError as e:
+            raise DeployError(str(e)) from e
+    if args.firmware is not None and args.backend != "sitl":
+        raise DeployError("--firmware needs --backend sitl (the firmware in the loop)")
+    if args.faults:
+        if args.backend not in ("emulated", "sitl"):
+            raise DeployError(
+                "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)"
+            )
+        try:
+            FaultPlan.parse(args.faults)
+        except ValueError as e:
+            raise DeployError(f"--faults: {e}") from e
+
+
+def make_env(
+    args: DeployArgs,
+    state_file: Path | None,
+    metadata: dict[str, Any] | None,
+    extra_options: dict[str, Any] | None = None,
+) -> gym.Env:
+    """Build the policy's env (or ``--env``'s) on the chosen backend; nothing is sent yet.
+
+    ``extra_options`` are laid over the backend's options (a replay's bus).
+
+    Raises:
+        DeployError: An unknown env, env kwargs it does not take, or an env that cannot be made.
+    """
+    kwargs: dict[str, Any] = dict(metadata["env_kwargs"]) if metadata else {}
+    # With a policy the metadata names the env (--env, if given, must agree: Deployment._check);
+    # the expert has --env (load_policy).
+    try:
+        env_id = resolve_env_id(args.env if args.env is not None else metadata["env_id"])
+    except TrainingError as e:
+        raise DeployError(str(e)) from e
+    check_env_kwargs(env_id, kwargs)
+    config = load_config(args.config)
+    if args.bus is not None:
+        config = dataclasses.replace(config, bus=args.bus)
+    options = {**backend_options(args, state_file), **(extra_options or {})}
+    kwargs.update(backend=args.backend, backend_options=options, config=config)
+    kwargs["render_mode"] = None
+    if args.rate is not None:
+        kwargs["control_freq"] = float(args.rate)
+    try:
+        return gym.make(env_id, **kwargs)
+    except (gym.error.Error, ValueError, TypeError, SitlError) as e:
+        raise DeployError(f"cannot make env {env_id!r}: {e}") from e
+
+
+def backend_options(args: DeployArgs, state_file: Path | None) -> dict[str, Any]:
+    """The backend's options: the gripper state file, the emulated bus's faults, the trace, the firmware."""
+    options: dict[str, Any] = {}
+    if state_file is not None:
+        options["state_file"] = state_file
+    if args.faults:
+        options["faults"] = FaultPlan.parse(args.faults)  # checked in check_args
+    if args.record is not None:  # every bus transaction to a trace (docs/traces.md)
+        from bioscara_gym.hardware.recording import Recording
+
+        options["record"] = Recording(args.record, "deploy", args)
+    if args.backend == "sitl":
+        options["firmware"] = args.firmware  # None: $BIOSCARA_FIRMWARE
+    return options
