@@ -248,3 +248,42 @@ def test_calibrate_refuses_a_missing_output_folder_before_fitting(tmp_path: Path
     assert (
         proc.stderr.strip() == f"bioscara calibrate: error: --out {out}: folder {out.parent} does not exist"
     )
+
+
+def test_calibrate_refuses_zero_workers_in_one_line(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym", "calibrate", "--out", str(tmp_path / "a.yml"), "--workers=0"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "bioscara calibrate: error: --workers must be >= 1, got 0"
+
+
+def test_calibrate_fits_joints_in_worker_processes_with_the_same_result(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The drive fit itself is slow; a stand-in marks which process fitted which joint.
+    import os
+
+    from bioscara_gym.validation import calibrate as cal
+
+    def fake_fit(config, joint, runs, limits=(), *, seed, maxiter, progress=None):
+        (tmp_path / f"{joint}.{os.getpid()}").touch()
+        return config.joint(joint).drive.with_values(pullout_accel=1000.0 * int(joint[1]) + seed + maxiter)
+
+    monkeypatch.setattr(cal, "fit_drive", fake_fit)
+    monkeypatch.setattr(cal, "block_events", lambda signals: [])  # no swing fit
+    rec = find_recordings(None)
+    serial = cal.calibrate(CONFIG, rec, seed=3, maxiter=5, workers=1)
+    forked = cal.calibrate(CONFIG, rec, seed=3, maxiter=5, workers=2)
+    assert forked.config == serial.config
+    assert [forked.config.joint(j).drive.pullout_accel for j in ("j1", "j2", "j3", "j4")] == [
+        1008.0,
+        2008.0,
+        3008.0,
+        4008.0,
+    ]
+    pids = {p.suffix for p in tmp_path.iterdir()}
+    assert f".{os.getpid()}" in pids and len(pids) >= 2  # the serial fit here, the forked ones elsewhere

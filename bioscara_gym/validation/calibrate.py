@@ -27,8 +27,11 @@ recordings (every other value is the input configuration's):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import multiprocessing
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -413,6 +416,14 @@ def fit_drive(
 
 
 # ------------------------------------------------------------------ it all
+_FORKED_FIT: Callable[[str], DriveParams] | None = None
+
+
+def _forked_fit(joint: str) -> DriveParams:
+    assert _FORKED_FIT is not None, "set by calibrate() before the pool forks"
+    return _FORKED_FIT(joint)
+
+
 @dataclass
 class Calibration:
     """What :func:`calibrate` produced, with the costs before and after."""
@@ -430,9 +441,14 @@ def calibrate(
     *,
     seed: int = 0,
     maxiter: int = 40,
+    workers: int = 1,
     progress: Callable[[str], None] | None = None,
 ) -> Calibration:
-    """Fit every parameter the recordings identify; return the calibrated configuration."""
+    """Fit every parameter the recordings identify; return the calibrated configuration.
+
+    ``workers`` above 1 fits the joints' drives in that many processes (the
+    result does not depend on it).
+    """
     timing = config.bus_timing
     if rec.transactions and rec.handler_times:
         timing = fit_bus_timing(rec.transactions, rec.handler_times)
@@ -444,22 +460,32 @@ def calibrate(
     if noise is not None:
         config = config.with_drives(noise=noise)
     limits = README_LIMITS if rec.root.resolve() == _packaged_root() else ()
-    before, after = {}, {}
-    for joint in sorted({r.joint for r in rec.max_accel} | {lim.joint for lim in limits}):
-        if joint not in config.names:
-            continue
-        before[joint] = drive_cost(
-            config,
-            [r for r in rec.max_accel if r.joint == joint],
-            [lim for lim in limits if lim.joint == joint],
-        )
-        drive = fit_drive(config, joint, rec.max_accel, limits, seed=seed, maxiter=maxiter, progress=progress)
-        config = _with_drive(config, joint, drive)
-        after[joint] = drive_cost(
-            config,
-            [r for r in rec.max_accel if r.joint == joint],
-            [lim for lim in limits if lim.joint == joint],
-        )
+    named = {r.joint for r in rec.max_accel} | {lim.joint for lim in limits}
+    joints = [j for j in sorted(named) if j in config.names]
+
+    def own(joint: str) -> tuple[list[MaxAccelRun], list[Limit]]:
+        return [r for r in rec.max_accel if r.joint == joint], [lim for lim in limits if lim.joint == joint]
+
+    before = {joint: drive_cost(config, *own(joint)) for joint in joints}
+    # Each run moves one joint, so the joints' fits are independent: one process each.
+    fit = functools.partial(fit_drive, config, runs=rec.max_accel, limits=limits, seed=seed, maxiter=maxiter)
+    if workers > 1 and len(joints) > 1:
+        # Forked workers inherit the fit (the configuration does not pickle) and
+        # print plain lines: they cannot reach the caller's console.
+        global _FORKED_FIT
+        plain = functools.partial(print, flush=True) if progress else None
+        _FORKED_FIT = functools.partial(fit, progress=plain)
+        fork = multiprocessing.get_context("fork")
+        try:
+            with ProcessPoolExecutor(min(workers, len(joints)), mp_context=fork) as pool:
+                drives = dict(zip(joints, pool.map(_forked_fit, joints), strict=True))
+        finally:
+            _FORKED_FIT = None
+    else:
+        drives = {joint: fit(joint, progress=progress) for joint in joints}
+    for joint in joints:
+        config = _with_drive(config, joint, drives[joint])
+    after = {joint: drive_cost(config, *own(joint)) for joint in joints}
     # Last: the blocks are replayed on the joint's fitted drive.
     events = block_events(rec.stall_signal) if rec.stall_signal else []
     if events:

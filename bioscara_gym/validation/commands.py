@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from rich.console import Console
@@ -77,11 +78,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise CliError(f"--maxiter must be >= 1, got {args.maxiter}")
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if args.workers < 1:
+        raise CliError(f"--workers must be >= 1, got {args.workers}")
     config = load_config(args.config)
     rec = find_recordings(args.dir)  # a folder without recordings fails here, before the fit
     con = _console()
     before = validate(args.dir, config)
-    result = calibrate(config, rec, seed=args.seed, maxiter=args.maxiter, progress=con.print)
+    result = calibrate(
+        config, rec, seed=args.seed, maxiter=args.maxiter, workers=args.workers, progress=con.print
+    )
     after = validate(args.dir, result.config)
     con.print("experiment                               rows passing before -> after")
     by_experiment: dict[str, list[int]] = {}
@@ -139,4 +144,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, help="configuration to start from (default: the packaged one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the optimizer")
     p.add_argument("--maxiter", type=int, default=40, help="generations of the drive fit per joint")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes fitting joints' drives side by side (default: one per CPU; same result)",
+    )
     p.set_defaults(func=cmd_calibrate)
