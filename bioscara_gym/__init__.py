@@ -9,7 +9,7 @@ or torch installed.
 =========================  =============================================  =================
 id                         entry point                                    max_episode_steps
 =========================  =============================================  =================
-``Bioscara-Reach-v1``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
+``Bioscara-Reach-v0``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
 ``Bioscara-PickPlace-v1``  ``bioscara_gym.envs.pick_place:...``           200 (8 s)
 =========================  =============================================  =================
 
