@@ -296,3 +296,28 @@ def test_a_cartesian_step_that_is_not_three_positive_lengths_is_one_line(bad: An
         ValueError, match=r"^cartesian_step .* must be one length or \(x, y, z\), each > 0 \(m\)$"
     ):
         gym.make(REACH, backend="mock", cartesian_step=bad)
+
+
+def test_soft_limits_brake_from_where_the_joint_is_when_the_command_lands() -> None:
+    # j4 (30 rad/s^2) 0.4 rad before its upper command limit: the speed allowed is the one
+    # that can be held a period (0.04 s) and still brake within the room. A reading 10 ms
+    # old at 10 rad/s leaves 0.1 rad less room by the time the command lands.
+    m = _action_map("velocity")
+    room = 0.4
+    q = np.array([0.0, 0.1, 0.0, m.high[3] - room])
+    qd = np.array([0.0, 0.0, 0.0, 10.0])
+    a = np.array([0.0, 0.0, 0.0, 1.0])
+    fresh = m.velocity(a, q)[3]
+    aged = m.velocity(a, q, qd, age_s=0.01)[3]
+    # v dt + v^2 / (2 a) = room: 30 (sqrt(0.04^2 + 2 room / 30) - 0.04)
+    assert fresh == pytest.approx(30 * (math.sqrt(0.0016 + 2 * 0.4 / 30) - 0.04))
+    assert aged == pytest.approx(30 * (math.sqrt(0.0016 + 2 * 0.3 / 30) - 0.04))
+
+
+def test_the_arm_counts_the_bus_time_of_a_cycle(make_env: MakeEnv) -> None:
+    # 12 transactions a Reach cycle on the emulated bus: 4 joints x (a command, a position,
+    # a velocity read), each about 0.86 ms at 100 kHz (RW_test/position_100kHz: 860.3 us).
+    env = make_env(REACH, backend="emulated")
+    env.reset(seed=0)
+    env.step(np.zeros(4, dtype=np.float32))
+    assert env.unwrapped.arm.cycle_bus_s == pytest.approx(12 * 860.3e-6, rel=0.15)

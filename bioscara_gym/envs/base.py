@@ -412,7 +412,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             # Until the first command has come through the delay line, hold the arm.
             ready = len(self._latency) > self._latency_steps
             a = self._latency.popleft() if ready else self._neutral_action()
-        cmds = self._action_map.commands(a, self._q, self._tcp)
+        cmds = self._action_map.commands(a, self._q, self._tcp, self._qd, self.arm.cycle_bus_s)
         for name, value in zip(self.joint_names, cmds, strict=True):
             self.arm.set_command(name, float(value))
         if self.uses_gripper:

@@ -150,6 +150,10 @@ class Arm:
         self.commands: dict[str, float] = dict.fromkeys(self.names, 0.0)
         self.joint_states: dict[str, JointState] = {n: JointState() for n in self.names}
         self.gripper_command = self.config.gripper.backup_init_pos
+        #: Bus time of the last :meth:`cycle` (its write and its read, on the
+        #: backend's clock): how old a reading is, at most, when the next
+        #: cycle's command reaches the joint.
+        self.cycle_bus_s = 0.0
         self._homing: set[str] = set()
 
     # ------------------------------------------------------------ lifecycle
@@ -1042,9 +1046,15 @@ class Arm:
 
     def cycle(self, dt: float) -> Mapping[str, JointState]:
         """One control cycle: write the commands, let ``dt`` pass, read the state."""
+        clock = self.backend.clock
+        start = clock.now()
         self.write()
+        written = clock.now()
         self.backend.step(dt)
-        return self.read()
+        stepped = clock.now()
+        states = self.read()
+        self.cycle_bus_s = (written - start) + (clock.now() - stepped)
+        return states
 
 
 #: A move is reached within this many rad (revolute) or m (prismatic), at rest.
