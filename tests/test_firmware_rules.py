@@ -14,6 +14,7 @@ import pytest
 from rigs import FakeMotor
 
 from bioscara_gym.hardware.clock import ManualClock
+from bioscara_gym.hardware.drive import IDEAL_DRIVE
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, FirmwareCore, JointFirmware, StallRule
 from bioscara_gym.hardware.motor import POLE_PITCH_DEG, KinematicStepper
 
@@ -582,14 +583,22 @@ def test_sustained_jump_above_100_stays_filtered_after_it_settles(
 
 
 # ------------------------------------------ the spike filter's blind spot
-def _blocked_at(rpm: float, rule: StallRule) -> float | None:
-    """Seconds from blocking the rotor at ``rpm`` until STALL (None: not within 3 s)."""
+def _blocked_at(rpm: float, rule: StallRule, swing: bool = True) -> float | None:
+    """Seconds from blocking the rotor at ``rpm`` until STALL (None: not within 3 s).
+
+    ``swing=False``: homed as usual, the rotor is then held without the
+    pole-slip swing (``kick_accel`` 0), so its PID error grows by the field's
+    travel each pass. (With the swing it rises in smaller steps as well, and
+    the packaged rule trips after 0.12 s.)
+    """
     fw = JointFirmware(KinematicStepper(0.0, -1e9, 360.0), ManualClock(), stall_rule=rule)
     home(fw)
     host_limits(fw)
     send(fw, ENABLESTALLGUARD_6)
     send(fw, bytes([0x11]) + struct.pack("<f", rpm))
     talk(fw, 60)
+    if not swing:
+        fw.motor.drive = IDEAL_DRIVE.with_values(kick_accel=0.0)
     fw.motor.blocked = True
     for i in range(300):
         ticks(fw)
@@ -602,7 +611,7 @@ def test_a_rotor_blocked_at_more_than_100_microsteps_a_pass_is_not_detected() ->
     # -150 RPM is 900 deg/s: the blocked rotor shows 900 x 0.001 x 51,200/360 = 128
     # microsteps a pass (the library's closed loop), a jump of more than the spike
     # limit of 100 from the following rotor's error: dropped, and so every pass after.
-    assert _blocked_at(-150.0, FIRMWARE_STALL_RULE) is None
+    assert _blocked_at(-150.0, FIRMWARE_STALL_RULE, swing=False) is None
 
 
 def test_the_recorded_builds_spike_limit_detects_the_same_block_within_50_ms() -> None:
