@@ -342,14 +342,17 @@ class PushExpert:
     ``phi`` its bearing from straight behind the block), decided afresh every
     step, so it labels any state (DAgger) and is its own observation expert:
 
-    | phase | when                                             | TCP target                                 |
-    |-------|--------------------------------------------------|--------------------------------------------|
-    | push  | behind (``s <= -PUSH_S``), ``abs(t) <= ALIGN_M`` | on along ``u`` as far as the block has to  |
-    |       |                                                  | go, and back onto the line                 |
-    | orbit | otherwise                                        | round the block on a circle of ``ORBIT_M`` |
-    |       |                                                  | toward straight behind it, ``ORBIT_RAD``   |
-    |       |                                                  | ahead                                      |
-    | hold  | the block within ``DONE_M`` of the target         | stay                                       |
+    | phase | when                                               | TCP target                               |
+    |-------|----------------------------------------------------|------------------------------------------|
+    | push  | behind (``s <= -PUSH_S``), ``abs(t) < BACK_OFF_M`` | on along ``u`` as far as the block has   |
+    |       |                                                    | to go (``abs(t) <= ALIGN_M``), or back   |
+    |       |                                                    | to the orbit's point behind the block    |
+    |       |                                                    | (``BACK_OFF_M``), blended between; and   |
+    |       |                                                    | back onto the line                       |
+    | orbit | otherwise                                          | round the block on a circle of           |
+    |       |                                                    | ``ORBIT_M`` toward straight behind it,   |
+    |       |                                                    | ``ORBIT_RAD`` ahead                      |
+    | hold  | the block within ``DONE_M`` of the target           | stay                                     |
 
     The orbit is one continuous field: its target turns into the point
     straight behind the block as ``phi`` goes to 0, where the push begins.
@@ -366,14 +369,17 @@ class PushExpert:
     PUSH_S = 0.02
     #: Off the line by at most this much (m), the TCP pushes (and steers back onto it):
     #: the pusher is 6 cm wide, the block 3 cm.
-    ALIGN_M = 0.02
+    ALIGN_M = 0.01
+    #: Off the line by this much (m), it backs off to the orbit's point behind the block
+    #: (between the two, a blend of both).
+    BACK_OFF_M = 0.03
     #: Radius (m) of the orbit round the block: the pusher's corner (3.2 cm from the TCP),
     #: half the block's diagonal (2.1 cm) and 1.2 cm to spare.
     ORBIT_M = 0.065
     #: How far ahead on the orbit the target lies, rad.
     ORBIT_RAD = 0.5
     #: The block counts as there within this distance of the target (m): stop pushing.
-    DONE_M = 0.003
+    DONE_M = 0.005
     #: Longest TCP step (m) a control step asks for: the cartesian step, and the waypoint
     #: that keeps velocity and position control on the planned lines.
     WAYPOINT_M = 0.02
@@ -409,11 +415,15 @@ class PushExpert:
         u = e / dist
         v = np.array([-u[1], u[0]])
         along, across = float(rel @ u), float(rel @ v)
-        if along <= -self.PUSH_S and abs(across) <= self.ALIGN_M:
+        if along <= -self.PUSH_S and abs(across) < self.BACK_OFF_M:
             # On along the line as far as the block still has to go (whatever the pusher's
-            # turn, it carries the block as far as it moves), and back onto the line.
+            # turn, it carries the block as far as it moves), and back onto the line; off
+            # the line, back to the orbit's point behind the block instead, blended
+            # (no edge for a learner to stall at).
             ahead = min(dist, self.PUSH_STEP_M / self.STEP_GAIN)
-            return "push", tcp + ahead * u - across * v, u
+            off = min(max((abs(across) - self.ALIGN_M) / (self.BACK_OFF_M - self.ALIGN_M), 0.0), 1.0)
+            forward = (1.0 - off) * ahead + off * (-self.ORBIT_M - along)
+            return "push", tcp + forward * u - across * v, u
         phi = math.atan2(across, -along)  # 0: straight behind the block
         side = math.copysign(1.0, phi) if phi else 1.0
         for _ in range(2):
