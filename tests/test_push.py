@@ -1,4 +1,4 @@
-"""Bioscara-Push-v0: registration, the documented spaces, goal sampling, the success rule, the physics, the expert.
+"""Bioscara-Push-v0: registration, documented spaces, goal sampling, success rule, physics, expert.
 
 Expected values are the docstring's (``BioscaraPushEnv``) and the scene's
 (``assets/scene.xml``, ``assets/bioscara.xml``): a 3 cm block, the gripper
@@ -66,7 +66,8 @@ def test_documented_observation_layout_is_obs_slices() -> None:
 
 
 def test_push_takes_reachs_kwargs_but_the_goal_ones() -> None:
-    assert "Reach's kwargs but ``goal_radius`` and ``goal_horizon_s``" in " ".join(BioscaraPushEnv.__doc__.split())
+    doc = " ".join(BioscaraPushEnv.__doc__.split())
+    assert "Reach's kwargs but ``goal_radius`` and ``goal_horizon_s``" in doc
     documented = _documented_kwargs(BioscaraReachEnv.__doc__)
     for goal_kwarg in ("goal_radius", "goal_horizon_s"):
         documented.pop(goal_kwarg)

@@ -1,4 +1,4 @@
-"""Bioscara-Stack-v0: registration, the documented spaces, goal sampling, the success rule, the physics, the expert.
+"""Bioscara-Stack-v0: registration, documented spaces, goal sampling, success rule, physics, expert.
 
 Expected values are the docstring's (``BioscaraStackEnv``) and the scene's:
 3 cm blocks, so a block resting on the table has its centre 15 mm high and
@@ -81,7 +81,8 @@ def test_obs_slices_hold_each_block(make_env: MakeEnv) -> None:
     for which, body in (("lower", "block"), ("upper", "block2")):
         np.testing.assert_array_equal(o[s[f"{which}_pos"]], u.sim.data.joint(body).qpos[:3])
         np.testing.assert_allclose(o[s[f"{which}_from_tcp"]], o[s[f"{which}_pos"]] - o[s["tcp"]])
-    np.testing.assert_array_equal(obs["achieved_goal"], np.concatenate((o[s["lower_pos"]], o[s["upper_pos"]])))
+    both = np.concatenate((o[s["lower_pos"]], o[s["upper_pos"]]))
+    np.testing.assert_array_equal(obs["achieved_goal"], both)
 
 
 # ------------------------------------------------------------- goal sampling
@@ -94,7 +95,7 @@ def test_targets_and_blocks_lie_where_the_docstring_says(make_env: MakeEnv) -> N
         obs, _ = env.reset(seed=seed)
         target, above = obs["desired_goal"][:3], obs["desired_goal"][3:]
         lower, upper = obs["achieved_goal"][:3], obs["achieved_goal"][3:]
-        np.testing.assert_allclose(above, target + [0.0, 0.0, 0.03])
+        np.testing.assert_allclose(above, target + np.array([0.0, 0.0, 0.03]))
         assert target[2] == lower[2] == upper[2] == pytest.approx(0.015)
         assert 0.25 - 1e-9 <= math.hypot(*target[:2]) <= 0.55 + 1e-9, f"seed {seed}: target radius"
         assert 0.07 <= np.linalg.norm(upper[:2] - target[:2]) <= 0.15, f"seed {seed}: upper block"
@@ -136,7 +137,7 @@ def test_success_is_both_blocks_resting_in_their_places(
 
 
 def test_rewards_are_per_block_and_vectorized(make_env: MakeEnv) -> None:
-    achieved = np.stack([TARGET, TARGET + [0.03, 0.04, 0, 0, 0, 0.012]])
+    achieved = np.stack([TARGET, TARGET + np.array([0.03, 0.04, 0, 0, 0, 0.012])])
     desired = np.stack([TARGET, TARGET])
     dense = make_env(STACK, backend="mock").unwrapped
     np.testing.assert_allclose(dense.compute_reward(achieved, desired, {}), [0.0, -(0.05 + 0.012)])
@@ -165,7 +166,7 @@ def _drop_upper_block(env: gym.Env, offset_xy: tuple[float, float]) -> None:
     lower = u.sim.data.body("block").xpos.copy()
     m, d = u.sim.model, u.sim.data
     a = m.jnt_qposadr[m.joint("block2").id]
-    d.qpos[a : a + 3] = lower + [offset_xy[0], offset_xy[1], 0.04]
+    d.qpos[a : a + 3] = lower + np.array([offset_xy[0], offset_xy[1], 0.04])
     d.qpos[a + 3 : a + 7] = [1, 0, 0, 0]
     d.qvel[m.jnt_dofadr[m.joint("block2").id] : m.jnt_dofadr[m.joint("block2").id] + 6] = 0.0
     mujoco.mj_forward(m, d)
