@@ -137,7 +137,7 @@ TASKS: dict[str, TaskSpec] = {
     "Bioscara-Push-v0": TaskSpec(
         id="Bioscara-Push-v0",
         entry_point="bioscara_gym.envs.push:BioscaraPushEnv",
-        max_episode_steps=150,
+        max_episode_steps=200,
         expert="bioscara_gym.experts:PushExpert",
         observation_expert="bioscara_gym.experts:PushExpert",
         extractor="bioscara_gym.training.features:PushExtractor",
