@@ -33,8 +33,8 @@ MakeEnv = Callable[..., gym.Env]
 # ---------------------------------------------------------------- registration
 
 
-def test_push_is_registered_with_150_steps_and_dagger_by_default() -> None:
-    assert gym.spec(PUSH).max_episode_steps == 150
+def test_push_is_registered_with_200_steps_and_dagger_by_default() -> None:
+    assert gym.spec(PUSH).max_episode_steps == 200
     assert gym.spec(PUSH).entry_point == "bioscara_gym.envs.push:BioscaraPushEnv"
     assert TASKS[PUSH].default_method == "dagger"
 

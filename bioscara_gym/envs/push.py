@@ -141,7 +141,7 @@ class BioscaraPushEnv(BioscaraPickPlaceEnv):
     lifted, or tipped onto an edge, is not a success.
 
     ## Episode end, arguments
-    As Reach: a stall ends the episode, ``max_episode_steps`` 150 (6 s at
+    As Reach: a stall ends the episode, ``max_episode_steps`` 200 (8 s at
     25 Hz); Reach's kwargs but ``goal_radius`` and ``goal_horizon_s``
     (``distance_threshold`` default 0.01 m).
 
