@@ -352,7 +352,8 @@ class PushExpert:
     | orbit | otherwise                                          | round the block on a circle of           |
     |       |                                                    | ``ORBIT_M`` toward straight behind it,   |
     |       |                                                    | ``ORBIT_RAD`` ahead                      |
-    | hold  | the block within ``DONE_M`` of the target           | stay                                     |
+    | hold  | the block within ``DONE_M`` of the target           | ``STANDOFF_M`` from the block, on the    |
+    |       |                                                    | side the TCP is                          |
 
     The orbit is one continuous field: its target turns into the point
     straight behind the block as ``phi`` goes to 0, where the push begins.
@@ -380,6 +381,8 @@ class PushExpert:
     ORBIT_RAD = 0.5
     #: The block counts as there within this distance of the target (m): stop pushing.
     DONE_M = 0.005
+    #: Then the TCP steps back to this far from the block's centre (m), clear of it.
+    STANDOFF_M = 0.06
     #: Longest TCP step (m) a control step asks for: the cartesian step, and the waypoint
     #: that keeps velocity and position control on the planned lines.
     WAYPOINT_M = 0.02
@@ -410,8 +413,9 @@ class PushExpert:
         e = obs["desired_goal"][:2] - block
         dist = math.hypot(e[0], e[1])
         rel = tcp - block
-        if dist < self.DONE_M:
-            return "hold", tcp.copy(), -rel / max(math.hypot(rel[0], rel[1]), 1e-9)
+        if dist < self.DONE_M:  # there: step back from the block, so nothing nudges it on
+            away = rel / max(math.hypot(rel[0], rel[1]), 1e-9)
+            return "hold", block + self.STANDOFF_M * away, -away
         u = e / dist
         v = np.array([-u[1], u[0]])
         along, across = float(rel @ u), float(rel @ v)
