@@ -1,7 +1,7 @@
 """The scene's blocks as a task sees them: placed and read through their free joints.
 
 ``assets/scene.xml`` holds two 3 cm cubes, ``block`` (blue, on the table) and
-``block2`` (orange, parked under the floor, weightless and intangible until a
+``block2`` (yellow, parked under the floor, weightless and intangible until a
 task takes it: :meth:`SimBlock.bring_in`). Only the backends that simulate
 have them; a task on ``mock`` or ``i2c`` keeps a kinematic stand-in instead
 (PickPlace's :class:`~bioscara_gym.envs.pick_place.KinematicBlock`, Push's

@@ -59,12 +59,12 @@ class KinematicStack:
 
 
 class BioscaraStackEnv(BioscaraPickPlaceEnv):
-    """Stack two 3 cm blocks at a target on the table: the blue one below, the orange one on it.
+    """Stack two 3 cm blocks at a target on the table: the blue one below, the yellow one on it.
 
     ## Description
     Same arm, backends, gripper and conventions as ``Bioscara-PickPlace``
     (see :class:`~bioscara_gym.envs.pick_place.BioscaraPickPlaceEnv`), with
-    two blocks: the lower (blue, ``block``) and the upper (orange,
+    two blocks: the lower (blue, ``block``) and the upper (yellow,
     ``block2``). The target lies on the table 0.25-0.55 m from the j1 axis
     where j1 is within 1 rad of the start pose's (with the start pose's
     elbow); the upper block 7-15 cm from it. In half the episodes the lower
