@@ -11,6 +11,8 @@ id                         entry point                                    max_ep
 =========================  =============================================  =================
 ``Bioscara-Reach-v1``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
 ``Bioscara-PickPlace-v1``  ``bioscara_gym.envs.pick_place:...``           200 (8 s)
+``Bioscara-Push-v0``       ``bioscara_gym.envs.push:BioscaraPushEnv``     200 (8 s)
+``Bioscara-Stack-v0``      ``bioscara_gym.envs.stack:BioscaraStackEnv``   300 (12 s)
 =========================  =============================================  =================
 
 ``gym.make("Bioscara-Reach")`` (no version) makes the latest version. Gymnasium

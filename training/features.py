@@ -108,6 +108,10 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
 
     #: The task whose observation layout (``OBS_SLICES``) the features are read from.
     TASK = "Bioscara-PickPlace-v1"
+    #: Its entries in m (or m/s), scaled by ``coarse_m``.
+    LENGTHS: tuple[str, ...] = LENGTH_SLICES
+    #: Its entries also seen in ``fine_m``, before the goal error.
+    FINE: tuple[str, ...] = ("block_from_tcp",)
 
     def __init__(
         self,
@@ -119,31 +123,111 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
         """Check the space and build the scale vector."""
         slices = task(self.TASK).obs_slices()
         n_obs = max(s.stop for s in slices.values())
+        name = type(self).__name__
         if not isinstance(observation_space, spaces.Dict) or any(
             k not in observation_space.spaces for k in GOAL_KEYS
         ):
-            raise ValueError(f"PickPlaceExtractor needs a goal env's Dict space, got {observation_space}")
+            raise ValueError(f"{name} needs a goal env's Dict space, got {observation_space}")
         if observation_space["observation"].shape != (n_obs,):
             raise ValueError(
-                f"PickPlaceExtractor: observation has shape {observation_space['observation'].shape}, "
-                f"PickPlace's is ({n_obs},)"
+                f"{name}: observation has shape {observation_space['observation'].shape}, "
+                f"{self.TASK}'s is ({n_obs},)"
             )
         if not (coarse_m > 0 and fine_m > 0 and fine_clip > 0):
-            raise ValueError(f"PickPlaceExtractor: scales {coarse_m}, {fine_m}, {fine_clip} must be > 0")
+            raise ValueError(f"{name}: scales {coarse_m}, {fine_m}, {fine_clip} must be > 0")
         n_goal = observation_space["desired_goal"].shape[0]
-        super().__init__(observation_space, features_dim=n_obs + 2 * n_goal + 3)
+        self._fine = [slices[name] for name in self.FINE]
+        n_fine = sum(s.stop - s.start for s in self._fine)
+        super().__init__(observation_space, features_dim=n_obs + 2 * n_goal + n_fine)
         scale = th.ones(n_obs)
-        for name in LENGTH_SLICES:
+        for name in self.LENGTHS:
             scale[slices[name]] = 1.0 / coarse_m
         self.register_buffer("scale", scale)
-        self._bft = slices["block_from_tcp"]
         self.coarse_m, self.fine_m, self.fine_clip = float(coarse_m), float(fine_m), float(fine_clip)
 
     def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
         """Features of a batch of dict observations."""
         o = observations["observation"]
         error = observations["desired_goal"] - observations["achieved_goal"]
-        fine = th.cat((o[:, self._bft], error), dim=1) / self.fine_m
+        fine = th.cat([o[:, part] for part in self._fine] + [error], dim=1) / self.fine_m
         return th.cat(
             (o * self.scale, error / self.coarse_m, th.clamp(fine, -self.fine_clip, self.fine_clip)), dim=1
         )
+
+
+class PushExtractor(PickPlaceExtractor):
+    """PickPlace's features of Push's observation, plus the geometry of the push.
+
+    Pushing is decided in the frame of the push, ``u`` from the block to the
+    target and ``v`` to its left: how far behind the block the TCP is (``s``)
+    and how far off the line (``t``), and how far the pushing face is turned
+    from ``u``. On raw coordinates a network has to rotate the workspace
+    into that frame itself. Added after PickPlace's features: ``u``, the
+    block's distance to the target, ``s`` and ``t`` over ``coarse_m`` and over
+    ``fine_m`` (clipped to ``+-fine_clip``), and the cosine and sine of twice
+    the face's turn from ``u`` (the face pushes either way round).
+    """
+
+    TASK = "Bioscara-Push-v0"
+    #: Features added to PickPlace's.
+    N_PUSH = 9
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        coarse_m: float = 0.1,
+        fine_m: float = 0.005,
+        fine_clip: float = 3.0,
+    ) -> None:
+        """PickPlace's checks and scales, and the slices of the push's geometry."""
+        super().__init__(observation_space, coarse_m, fine_m, fine_clip)
+        slices = task(self.TASK).obs_slices()
+        self._tcp, self._tool = slices["tcp"], slices["tool_dir"]
+        self._features_dim += self.N_PUSH
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """PickPlace's features and the push's geometry."""
+        o = observations["observation"]
+        block, goal = observations["achieved_goal"][:, :2], observations["desired_goal"][:, :2]
+        error = goal - block
+        dist = th.linalg.vector_norm(error, dim=1, keepdim=True)
+        u = error / th.clamp(dist, min=1e-6)
+        v = th.stack((-u[:, 1], u[:, 0]), dim=1)
+        rel = o[:, self._tcp][:, :2] - block
+        st = th.stack(((rel * u).sum(dim=1), (rel * v).sum(dim=1)), dim=1)
+        c, s = o[:, self._tool][:, 0], o[:, self._tool][:, 1]
+        cos_turn, sin_turn = c * u[:, 0] + s * u[:, 1], s * u[:, 0] - c * u[:, 1]
+        double = th.stack((cos_turn**2 - sin_turn**2, 2 * cos_turn * sin_turn), dim=1)
+        push = th.cat(
+            (
+                u,
+                dist / self.coarse_m,
+                st / self.coarse_m,
+                th.clamp(st / self.fine_m, -self.fine_clip, self.fine_clip),
+                double,
+            ),
+            dim=1,
+        )
+        return th.cat((super().forward(observations), push), dim=1)
+
+
+class StackExtractor(PickPlaceExtractor):
+    """PickPlace's features of Stack's observation: both blocks' lengths in ``coarse_m``, both fine views.
+
+    Features, in order: ``observation`` with every length over ``coarse_m``;
+    the goal error (both blocks, 6 values) over ``coarse_m``; then each
+    block's position from the TCP and the goal error over ``fine_m``, clipped
+    to ``+-fine_clip``.
+    """
+
+    TASK = "Bioscara-Stack-v0"
+    LENGTHS = (
+        "tcp",
+        "lower_pos",
+        "lower_from_tcp",
+        "lower_vel",
+        "upper_pos",
+        "upper_from_tcp",
+        "upper_vel",
+    )
+    FINE = ("lower_from_tcp", "upper_from_tcp")
