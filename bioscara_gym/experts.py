@@ -389,7 +389,8 @@ class PushExpert:
     at :data:`~bioscara_gym.envs.push.PUSH_Z`. Each step asks for
     ``STEP_GAIN`` of the way to the target, cut to ``WAYPOINT_M``
     (``PUSH_STEP_M`` pushing) along its line, so every control mode follows
-    the planned lines.
+    the planned lines; in cartesian mode the step then brakes for it as the
+    other experts' do (:meth:`JointSpaceController.cartesian_action`).
     """
 
     #: Behind the block from here (m) the TCP pushes when on the line.
@@ -479,7 +480,7 @@ class PushExpert:
         xyz = np.array([tcp[0] + step[0], tcp[1] + step[1], PUSH_Z])
         q4_target = q[3] if phase == "hold" else self._wrist_for(q, math.atan2(u[1], u[0]))
         if self.env.control_mode == "cartesian":
-            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target).astype(np.float32)
+            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q).astype(np.float32)
         elbow = 1.0 if q[2] >= 0 else -1.0
         target = self.ctrl.solve(xyz, q, elbow)
         target = q.copy() if target is None else target
