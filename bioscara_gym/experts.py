@@ -30,6 +30,7 @@ import numpy as np
 from bioscara_gym import kinematics
 from bioscara_gym.envs.actions import WRIST_STEP, to_range, to_unit
 from bioscara_gym.envs.base import BioscaraEnv
+from bioscara_gym.envs.insert import INSERT_DEPTH, PEG_TIP_BELOW_TCP
 from bioscara_gym.envs.pick_place import BLOCK_SIZE
 from bioscara_gym.tasks import Expert, task_of
 
@@ -329,6 +330,74 @@ class ObservationExpert(PickPlaceExpert):
         else:
             target[3] = q[3]
         return np.append(self.ctrl.action(q, target), width_u).astype(np.float32)
+
+
+class InsertExpert:
+    """Align the peg over the hole (x, y and the wrist), then lower it down the hole.
+
+    Its action is a function of the observation alone, so it is both the
+    task's scripted expert and the one DAgger labels a learner's states
+    with. Decided afresh every step, by name from ``OBS_SLICES``:
+
+    | phase  | when                                                  | does                      |
+    |--------|-------------------------------------------------------|---------------------------|
+    | insert | the tip below the fixture's top, or within            | x, y and wrist held; the  |
+    |        | ``ALIGN_M`` and ``ALIGN_RAD`` of the hole             | tip down to the goal      |
+    | align  | otherwise                                             | x, y, wrist to the hole;  |
+    |        |                                                       | the tip ``HOVER_M`` above |
+    |        |                                                       | the fixture's top         |
+
+    The tolerances leave the 1 mm clearance a margin: a peg 0.25 mm off
+    and 0.015 rad (0.86 degrees) turned is 0.8 mm wider than itself
+    (2 x 0.25 mm + 20 mm x 0.015).
+    """
+
+    #: Horizontal tip-goal distance (m) and yaw error (rad) within which the peg goes down.
+    ALIGN_M = 0.00025
+    ALIGN_RAD = 0.015
+    #: The tip's height above the fixture's top while aligning, m.
+    HOVER_M = 0.002
+
+    def __init__(self, env: BioscaraEnv) -> None:
+        """Bind to ``env`` (use ``env.unwrapped``)."""
+        self.env = env
+        self.ctrl = JointSpaceController(env)
+        self._slices = env.OBS_SLICES
+        self.phase = "align"
+
+    def reset(self) -> None:
+        """Nothing to forget: the action is a function of the observation."""
+        self.phase = "align"
+
+    def phase_of(self, obs: dict[str, np.ndarray]) -> str:
+        """The phase ``obs`` is in (see the class docstring)."""
+        o, s = obs["observation"], self._slices
+        to_goal, yaw = o[s["goal_from_tip"]], o[s["yaw_error"]][0]
+        aligned = math.hypot(to_goal[0], to_goal[1]) < self.ALIGN_M and abs(yaw) < self.ALIGN_RAD
+        return "insert" if aligned or o[s["above_top"]][0] < 0.0 else "align"
+
+    def _wrist_for(self, q4: float, error: float) -> float:
+        """j4 that squares the peg: the quarter turn nearest ``q4 + error`` within j4's command range."""
+        lo, hi = self.ctrl.cmd_lo[3], self.ctrl.cmd_hi[3]
+        candidates = [q4 + error + k * math.pi / 2 for k in range(-4, 5)]
+        return min((c for c in candidates if lo <= c <= hi), key=lambda c: abs(c - q4))
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Action for ``obs``."""
+        o, s = obs["observation"], self._slices
+        q = self.ctrl.joints(o)
+        goal = obs["desired_goal"]
+        phase = self.phase = self.phase_of(obs)
+        tip_z = goal[2] if phase == "insert" else goal[2] + INSERT_DEPTH + self.HOVER_M
+        xyz = np.array([goal[0], goal[1], tip_z + PEG_TIP_BELOW_TCP])
+        q4_target = self._wrist_for(q[3], float(o[s["yaw_error"]][0]))
+        if self.env.control_mode == "cartesian":
+            return self.ctrl.cartesian_action(o[s["tcp"]], xyz, q[3], q4_target).astype(np.float32)
+        elbow = 1.0 if q[2] >= 0 else -1.0
+        target = self.ctrl.solve(xyz, q, elbow)
+        target = q.copy() if target is None else target
+        target[3] = q4_target
+        return self.ctrl.action(q, target).astype(np.float32)
 
 
 def expert_for(env: BioscaraEnv) -> Expert:
