@@ -372,15 +372,9 @@ class InsertExpert:
     def phase_of(self, obs: dict[str, np.ndarray]) -> str:
         """The phase ``obs`` is in (see the class docstring)."""
         o, s = obs["observation"], self._slices
-        to_goal, yaw = o[s["goal_from_tip"]], o[s["yaw_error"]][0]
+        to_goal, yaw = o[s["goal_from_tip"]], o[s["wrist_turn"]][0]
         aligned = math.hypot(to_goal[0], to_goal[1]) < self.ALIGN_M and abs(yaw) < self.ALIGN_RAD
         return "insert" if aligned or o[s["above_top"]][0] < 0.0 else "align"
-
-    def _wrist_for(self, q4: float, error: float) -> float:
-        """j4 that squares the peg: the quarter turn nearest ``q4 + error`` within j4's command range."""
-        lo, hi = self.ctrl.cmd_lo[3], self.ctrl.cmd_hi[3]
-        candidates = [q4 + error + k * math.pi / 2 for k in range(-4, 5)]
-        return min((c for c in candidates if lo <= c <= hi), key=lambda c: abs(c - q4))
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Action for ``obs``."""
@@ -390,7 +384,7 @@ class InsertExpert:
         phase = self.phase = self.phase_of(obs)
         tip_z = goal[2] if phase == "insert" else goal[2] + INSERT_DEPTH + self.HOVER_M
         xyz = np.array([goal[0], goal[1], tip_z + PEG_TIP_BELOW_TCP])
-        q4_target = self._wrist_for(q[3], float(o[s["yaw_error"]][0]))
+        q4_target = q[3] + float(o[s["wrist_turn"]][0])
         if self.env.control_mode == "cartesian":
             return self.ctrl.cartesian_action(o[s["tcp"]], xyz, q[3], q4_target).astype(np.float32)
         elbow = 1.0 if q[2] >= 0 else -1.0

@@ -147,9 +147,30 @@ def test_observation_holds_what_its_names_say(make_env: MakeEnv, backend: str) -
         np.testing.assert_array_equal(obs["achieved_goal"], o[s["peg_tip"]])
         np.testing.assert_allclose(o[s["goal_from_tip"]], obs["desired_goal"] - o[s["peg_tip"]], atol=1e-12)
         assert o[s["above_top"]][0] == pytest.approx(tcp[2] - 0.03 - TOP_Z)
-        turn = u.hole_yaw - (q[0] + q[2] + q[3])
-        assert abs(o[s["yaw_error"]][0]) <= math.pi / 4
-        assert math.remainder(turn - o[s["yaw_error"]][0], math.pi / 2) == pytest.approx(0.0, abs=1e-9)
+        turn = o[s["wrist_turn"]][0]
+        misfit = u.hole_yaw - (q[0] + q[2] + q[3]) - turn  # whole quarter turns: the peg is square
+        assert math.remainder(misfit, math.pi / 2) == pytest.approx(0.0, abs=1e-9)
+        assert u.command_low[3] <= q[3] + turn <= u.command_high[3]
+
+
+def test_the_wrist_turns_the_short_way_unless_j4_would_pass_its_range(make_env: MakeEnv) -> None:
+    env = make_env(INSERT)
+    u = env.unwrapped
+    s = u.OBS_SLICES["wrist_turn"]
+    short = long = 0
+    for seed in range(60):
+        obs, _ = env.reset(seed=seed)
+        q4, turn = u.arm.joint_states["j4"].position, obs["observation"][s][0]
+        err = yaw_error(u.hole_yaw, u.peg_yaw())
+        if u.command_low[3] <= q4 + err <= u.command_high[3]:
+            assert turn == pytest.approx(err)  # at most an eighth of a turn
+            assert abs(turn) <= math.pi / 4
+            short += 1
+        else:  # the quarter turn back
+            assert turn == pytest.approx(err - math.copysign(math.pi / 2, err))
+            assert math.pi / 4 <= abs(turn) <= 3 * math.pi / 4
+            long += 1
+    assert short >= 40 and long >= 1
 
 
 def test_goal_and_start_are_drawn_as_documented(make_env: MakeEnv) -> None:

@@ -162,7 +162,7 @@ class InsertExtractor(BaseFeaturesExtractor):
     :data:`INSERT_LENGTH_SLICES` divided by ``coarse_m`` (the rest is in
     [-1, 1] or rad); the goal error ``desired - achieved`` over ``coarse_m``;
     then its x and y and the tip's height above the fixture's top over
-    ``fine_m``, and the yaw error over ``fine_rad``, clipped to
+    ``fine_m``, and the wrist turn over ``fine_rad``, clipped to
     ``+-fine_clip``. The peg goes in only within 0.5 mm and about 3
     degrees, and the expert lowers it at 0.25 mm and 0.86 degrees: in metres
     and radians those are inputs of 1e-4 to 1e-2.
@@ -212,7 +212,7 @@ class InsertExtractor(BaseFeaturesExtractor):
             scale[slices[name]] = 1.0 / coarse_m
         self.register_buffer("scale", scale)
         xy = slices["goal_from_tip"]
-        self._fine = [xy.start, xy.start + 1, slices["above_top"].start, slices["yaw_error"].start]
+        self._fine = [xy.start, xy.start + 1, slices["above_top"].start, slices["wrist_turn"].start]
         self.register_buffer("fine_scale", th.tensor([1.0 / fine_m] * 3 + [1.0 / fine_rad]))
         self.coarse_m, self.fine_clip = float(coarse_m), float(fine_clip)
 

@@ -76,10 +76,11 @@ class BioscaraInsertEnv(BioscaraEnv):
     phases, ``benchmarks/insert_jam.py``). At the arm's own settings the
     firmware would not notice: its j2 sensitivity 12 (threshold 120) catches
     no jam at 6 or 10 mm/s and 7 of 16 at 15 mm/s, and at the lift's
-    30 mm/s the blocked error, 383 a pass, is always dropped by the spike
-    filter. Until the STALL the lift presses with up to 90 % of its 314 N
-    (40 % current); a lift commanded slower than about 5 mm/s (velocity
-    mode) may press unnoticed, as on the arm. In ``cartesian`` mode (the
+    30 mm/s the blocked error, 384 a pass, is always dropped by the spike
+    filter. Until the STALL the lift presses with its drive's full force,
+    314 N at its 40 % current (329 N on the fixture with the 15 N it
+    carries); a lift commanded slower than about 5 mm/s (velocity mode)
+    may press unnoticed, as on the arm. In ``cartesian`` mode (the
     default here) every command more than 0.1 mm downward runs the lift at
     ``lift_speed``, so a jam is always felt.
 
@@ -106,10 +107,13 @@ class BioscaraInsertEnv(BioscaraEnv):
     | 9-11  | tcp           | TCP position x, y, z, from the measured joints          | m    |
     | 12-14 | peg_tip       | peg tip x, y, z: the TCP 30 mm lower                    | m    |
     | 15-17 | goal_from_tip | the goal minus the peg tip                              | m    |
-    | 18    | yaw_error     | hole yaw minus peg yaw (j1 + j3 + j4), in [-pi/4, pi/4) | rad  |
+    | 18    | wrist_turn    | the j4 turn that squares the peg to the hole, see below | rad  |
     | 19    | above_top     | peg tip height above the fixture's top (< 0: in hole)   | m    |
 
-    The peg is rigid in the gripper, so its tip and yaw follow from the
+    The wrist turn is the hole's yaw minus the peg's (j1 + j3 + j4),
+    wrapped to [-pi/4, pi/4) (the peg is square), unless that would take j4
+    beyond its command range: then the quarter turn the other way (up to
+    3 pi/4). The peg is rigid in the gripper, so its tip and yaw follow from the
     joints on every backend, the real arm included; the hole's pose is the
     fixture's (drawn per episode, or ``fixture_pose`` where it is bolted).
     On ``mock`` there is no fixture and nothing to jam on.
@@ -161,7 +165,7 @@ class BioscaraInsertEnv(BioscaraEnv):
             **BioscaraEnv.OBS_SLICES,
             "peg_tip": slice(12, 15),
             "goal_from_tip": slice(15, 18),
-            "yaw_error": slice(18, 19),
+            "wrist_turn": slice(18, 19),
             "above_top": slice(19, 20),
         }
     )
@@ -277,11 +281,22 @@ class BioscaraInsertEnv(BioscaraEnv):
         """The peg's yaw about z (rad): the tool's, j1 + j3 + j4, from the measured joints."""
         return float(self._q[0] + self._q[2] + self._q[3])
 
+    def wrist_turn(self) -> float:
+        """The j4 turn (rad) that squares the peg to the hole: of the quarter turns j4 can make, the smallest.
+
+        That is the yaw error in [-pi/4, pi/4) (:func:`yaw_error`), unless
+        it would take j4 past its command range; then a quarter turn less
+        the other way.
+        """
+        q4, lo, hi = float(self._q[3]), self.command_low[3], self.command_high[3]
+        err = float(yaw_error(self.hole_yaw, self.peg_yaw()))
+        turns = [err + k * QUARTER_TURN for k in range(-4, 5) if lo <= q4 + err + k * QUARTER_TURN <= hi]
+        return min(turns, key=abs)
+
     def _get_obs(self) -> dict[str, np.ndarray]:
         tip = self.peg_tip()
-        err = yaw_error(self.hole_yaw, self.peg_yaw())
         above = tip[2] - (self.goal[2] + INSERT_DEPTH)
-        observation = np.concatenate((self._joint_obs(), tip, self.goal - tip, (err, above)))
+        observation = np.concatenate((self._joint_obs(), tip, self.goal - tip, (self.wrist_turn(), above)))
         return {"observation": observation, "achieved_goal": tip, "desired_goal": self.goal.copy()}
 
     def _get_info(
