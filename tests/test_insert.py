@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -367,3 +368,81 @@ def test_numbers_the_docstring_quotes_are_the_codes() -> None:
     assert "x and y move by up to 5 mm per step" in doc
     assert "``lift_speed`` (6 mm/s" in doc and "(4: threshold 40 microsteps)" in doc
     assert "``truncated`` after ``max_episode_steps`` (150, 6 s at 25 Hz)" in doc
+
+
+# ------------------------------------------------------------------ learning
+#: A run small enough for the default suite: mock backend, a 16x16 network, one-episode iterations.
+TINY_DAGGER = {
+    "n_timesteps": 600,
+    "env_kwargs": {"backend": "mock"},
+    "net_arch": [16, 16],
+    "demo_episodes": 2,
+    "episodes_per_iteration": 1,
+    "bc_steps_first": 20,
+    "bc_steps": 10,
+    "batch_size": 32,
+    "eval_episodes": 1,
+}
+
+
+def test_insert_trains_with_dagger_by_default_on_its_extractor(tmp_path: Path) -> None:
+    import yaml
+
+    from bioscara_gym.training.algos import load_model
+    from bioscara_gym.training.features import InsertExtractor
+    from bioscara_gym.training.hyperparams import default_config_path, load_dagger_config
+    from bioscara_gym.training.train import TrainArgs, choose_method, train
+
+    packaged = load_dagger_config(default_config_path("dagger"), INSERT)
+    assert packaged.env_kwargs == {"control_mode": "cartesian"} and packaged.target_success == 0.9
+    assert choose_method(TrainArgs(env="Bioscara-Insert", out=tmp_path), INSERT).name == "dagger"
+    config = tmp_path / "dagger.yaml"
+    config.write_text(yaml.safe_dump({INSERT: TINY_DAGGER}), encoding="utf-8")
+    run = TrainArgs(env="Bioscara-Insert", algo="dagger", config=config, out=tmp_path / "r", progress=False)
+    result = train(run)
+    model, metadata = load_model(result.model_path)
+    assert metadata["method"] == "dagger" and metadata["env_id"] == INSERT
+    assert isinstance(model.actor.features_extractor, InsertExtractor)
+
+
+def test_extractor_sees_the_alignment_in_millimetres_and_hundredths_of_a_radian(make_env: MakeEnv) -> None:
+    import torch as th
+
+    from bioscara_gym.training.features import InsertExtractor
+
+    env = make_env(INSERT, backend="mock")
+    ext = InsertExtractor(env.observation_space)
+    obs, _ = env.reset(seed=0)
+    obs["observation"][env.unwrapped.OBS_SLICES["goal_from_tip"]] = [0.0004, -0.02, -0.015]
+    obs["observation"][env.unwrapped.OBS_SLICES["wrist_turn"]] = [0.005]
+    obs["observation"][env.unwrapped.OBS_SLICES["above_top"]] = [0.0015]
+    features = ext({k: th.as_tensor(v[None], dtype=th.float32) for k, v in obs.items()})
+    assert features.shape == (1, 20 + 3 + 4)
+    # x 0.4 mm, y 20 mm clipped at 3, 1.5 mm above the top, 0.005 rad: in 1 mm and 0.01 rad.
+    np.testing.assert_allclose(features[0, -4:].numpy(), [0.4, -3.0, 1.5, 0.5], rtol=1e-5)
+    with pytest.raises(ValueError, match="Insert's is \\(20,\\)"):
+        InsertExtractor(make_env("Bioscara-Reach-v0", backend="mock").observation_space)
+    with pytest.raises(ValueError, match="must be > 0"):
+        InsertExtractor(env.observation_space, fine_m=0.0)
+
+
+def test_the_sac_her_baseline_config_loads() -> None:
+    import yaml
+
+    from bioscara_gym.training.hyperparams import default_config_path
+
+    entry = yaml.safe_load(default_config_path("sac").read_text(encoding="utf-8"))[INSERT]
+    assert entry["replay_buffer_class"] == "HerReplayBuffer"
+    assert entry["env_kwargs"] == {"control_mode": "cartesian", "reward_type": "log"}
+
+
+# ------------------------------------------------------------------- pictures
+@pytest.mark.parametrize("backend", ["sim", "mock"])
+def test_pictures_are_taken_from_the_fixtures_camera(make_env: MakeEnv, backend: str) -> None:
+    """The fixture's green fills a tenth of the lower middle (from the overview it is a few pixels)."""
+    env = make_env(INSERT, backend=backend, render_mode="rgb_array", width=160, height=120)
+    env.reset(seed=4)
+    image = env.render().astype(int)
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    green = (g > r + 40) & (g > b + 40)
+    assert green[60:, 40:120].mean() > 0.1

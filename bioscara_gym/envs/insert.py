@@ -12,6 +12,7 @@ import numpy as np
 from bioscara_gym import kinematics
 from bioscara_gym.envs.base import BioscaraEnv
 from bioscara_gym.envs.reach import take_block_off_the_table
+from bioscara_gym.envs.rendering import SceneState
 from bioscara_gym.hardware.config import ArmConfig
 
 #: Peg: 20 mm square (``geom peg`` in ``assets/bioscara.xml``), its tip this far below the TCP, m.
@@ -298,6 +299,14 @@ class BioscaraInsertEnv(BioscaraEnv):
         above = tip[2] - (self.goal[2] + INSERT_DEPTH)
         observation = np.concatenate((self._joint_obs(), tip, self.goal - tip, (self.wrist_turn(), above)))
         return {"observation": observation, "achieved_goal": tip, "desired_goal": self.goal.copy()}
+
+    def _scene(self) -> SceneState:
+        """Reach's scene from the fixture's camera; a mirror also shows the peg and stands the fixture."""
+        scene = super()._scene()
+        scene.camera = "fixture"
+        scene.mocaps = {"fixture": (np.array([*self._hole_xy, 0.0]), self.hole_yaw)}
+        scene.shown = ("peg",)
+        return scene
 
     def _get_info(
         self, obs: dict[str, np.ndarray], stalled: bool = False, stalled_joint: str | None = None
