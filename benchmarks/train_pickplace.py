@@ -37,7 +37,7 @@ from typing import Any
 
 import yaml
 
-ENV = "Bioscara-PickPlace-v0"
+ENV = "Bioscara-PickPlace-v1"
 TARGET = 0.9
 DEMO_CALLBACK = "bioscara_gym.training.zoo.DemonstrationCallback"
 EVAL_RE = re.compile(r"\[eval\] step\s+(\d+)\s+(\d+) s\s+success\s+([\d.]+)% over (\d+)")

@@ -9,8 +9,8 @@ or torch installed.
 =========================  =============================================  =================
 id                         entry point                                    max_episode_steps
 =========================  =============================================  =================
-``Bioscara-Reach-v0``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
-``Bioscara-PickPlace-v0``  ``bioscara_gym.envs.pick_place:...``           200 (8 s)
+``Bioscara-Reach-v1``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
+``Bioscara-PickPlace-v1``  ``bioscara_gym.envs.pick_place:...``           200 (8 s)
 =========================  =============================================  =================
 
 ``gym.make("Bioscara-Reach")`` (no version) makes the latest version. Gymnasium
@@ -55,7 +55,10 @@ def register_envs() -> None:
     for env_id, spec in TASKS.items():
         if env_id not in gymnasium.registry:
             gymnasium.register(
-                id=env_id, entry_point=spec.entry_point, max_episode_steps=spec.max_episode_steps
+                id=env_id,
+                entry_point=spec.entry_point,
+                max_episode_steps=spec.max_episode_steps,
+                kwargs=dict(spec.kwargs),
             )
     # filterwarnings drops an identical filter before inserting it: calling this again adds none.
     warnings.filterwarnings(

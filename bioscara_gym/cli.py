@@ -49,6 +49,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                     progress=not args.no_progress,
                     threads=args.threads,
                     demos=args.demos,
+                    n_envs=args.n_envs,
                 )
             )
     except Interrupted as e:
@@ -199,6 +200,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     p.add_argument("--threads", type=int, help="torch CPU threads (default 1)")
     p.add_argument("--demos", help="Minari dataset of demonstrations to learn from (bioscara collect)")
+    p.add_argument(
+        "--n-envs",
+        type=int,
+        help="envs stepping in parallel subprocesses (training envs, DAgger's rollouts); default: config's",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 

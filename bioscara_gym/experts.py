@@ -77,10 +77,36 @@ class JointSpaceController:
         )
         return np.clip(np.sign(e) * speed / self.vmax, -1.0, 1.0)
 
-    def cartesian_action(self, tcp: np.ndarray, xyz: np.ndarray, q4: float, q4_target: float) -> np.ndarray:
-        """Cartesian-mode action moving the TCP to ``xyz`` and the wrist to ``q4_target``."""
-        a = np.append((xyz - tcp) / np.asarray(self.env.cartesian_step), (q4_target - q4) / WRIST_STEP)
-        return np.clip(a, -1.0, 1.0)
+    def cartesian_action(
+        self, tcp: np.ndarray, xyz: np.ndarray, q4: float, q4_target: float, q: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Cartesian-mode action moving the TCP to ``xyz`` and the wrist to ``q4_target``.
+
+        With the measured joints ``q``, the step is shortened so that no joint
+        asks for more speed than it can brake from before the target (as
+        :meth:`action` does in velocity mode): the env keeps the speed a step
+        asks (its targets lead by the braking distance), so the braking is the
+        controller's.
+        """
+        a = np.clip(
+            np.append((xyz - tcp) / np.asarray(self.env.cartesian_step), (q4_target - q4) / WRIST_STEP),
+            -1.0,
+            1.0,
+        )
+        if q is None or not self.env.cartesian_lead:
+            return a
+        goal = kinematics.inverse(xyz, 1.0 if q[2] >= 0 else -1.0)
+        step = kinematics.inverse(
+            tcp + a[:3] * np.asarray(self.env.cartesian_step), 1.0 if q[2] >= 0 else -1.0
+        )
+        if goal is None or step is None:
+            return a
+        e = np.append(np.asarray(goal) - q[:3], q4_target - q4)
+        asked = np.abs(np.append(np.asarray(step) - q[:3], a[3] * WRIST_STEP)) / self.env.dt
+        allowed = np.minimum(self.vmax, BRAKE_MARGIN * np.sqrt(2.0 * self.amax * np.abs(e)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(asked > 1e-9, allowed / asked, np.inf)
+        return a * min(1.0, float(np.min(scale)))
 
     def solve(
         self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None, switch_cost: float = ELBOW_REFUSED
@@ -139,7 +165,7 @@ class ReachExpert:
         q = self.ctrl.joints(obs["observation"])
         goal = obs["desired_goal"]
         if self.ctrl.env.control_mode == "cartesian":
-            return self.ctrl.cartesian_action(obs["achieved_goal"], goal, q[3], q[3]).astype(np.float32)
+            return self.ctrl.cartesian_action(obs["achieved_goal"], goal, q[3], q[3], q).astype(np.float32)
         if self._goal is None or not np.array_equal(goal, self._goal):
             first = self.ctrl.solve(goal, q)
             self._elbow = None if first is None else (1.0 if first[2] >= 0 else -1.0)
@@ -219,7 +245,7 @@ class PickPlaceExpert:
             xyz[2] = max(xyz[2], self.GRASP_Z)
         if self.env.control_mode == "cartesian":
             q4_target = self._wrist_for(q, yaw) if self.phase in ("approach", "descend") else q[3]
-            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target)
+            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q)
             return np.append(a, self._width_action(width)).astype(np.float32)
         if self.phase != self._elbow_phase:  # pick the elbow once per phase, then keep it
             first = self.ctrl.solve(xyz, q)
@@ -320,7 +346,7 @@ class ObservationExpert(PickPlaceExpert):
             xyz[2] = max(xyz[2], self.GRASP_Z)
         if self.env.control_mode == "cartesian":
             q4_target = self._wrist_for(q, yaw) if phase in ("approach", "descend") else q[3]
-            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target)
+            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q)
             return np.append(a, width_u).astype(np.float32)
         elbow = 1.0 if q[2] >= 0 else -1.0  # the arm's own: kept unless the other is much shorter
         target = self.ctrl.solve(xyz, q, elbow, switch_cost=self.ELBOW_SWITCH_S)

@@ -31,8 +31,8 @@ from bioscara_gym.training.train import TrainArgs, TrainingInterrupted, choose_m
 def uses_dagger(args: TrainArgs, env_id: str) -> bool:
     return choose_method(args, env_id).name == "dagger"
 
-PICK = "Bioscara-PickPlace-v0"
-REACH = "Bioscara-Reach-v0"
+PICK = "Bioscara-PickPlace-v1"
+REACH = "Bioscara-Reach-v1"
 TINY = {
     "n_timesteps": 1000,
     "env_kwargs": {"control_mode": "cartesian", "backend": "mock"},
@@ -136,6 +136,35 @@ def test_label_episodes_labels_the_learners_states_with_the_experts_actions(pick
     # The learner drove: its random actions moved the arm where the expert would not have.
     expert_run = label_episodes(pick_env, expert, expert, 1, seed=5, iteration=0).data
     assert not np.allclose(expert_run.obs["observation"][20], data.obs["observation"][20])
+
+
+def test_rollouts_on_two_workers_are_the_same_seeded_episodes(pick_env: gym.Env) -> None:
+    # The expert's demonstrations: episode k is seeded seed + k whichever worker runs
+    # it, so two subprocesses label the same states as one env does (in another order).
+    from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
+
+    expert = ObservationExpert(pick_env.unwrapped)
+    one = label_episodes(pick_env, expert, expert, 3, seed=7, iteration=0, beta=1.0)
+    venv = make_vec_envs(PICK, 2, {"control_mode": "cartesian", "backend": "mock"})
+    try:
+        assert type(venv).__name__ == "SubprocVecEnv"
+        rows, labels, successes = label_rollouts(venv, expert, expert, 3, 7, 1.0, np.random.default_rng(0))
+    finally:
+        venv.close()
+    assert len(rows) == len(one.data) and successes == one.successes
+
+    def keyed(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        rows = np.concatenate([obs, actions], axis=1).astype(np.float32)
+        return rows[np.lexsort(rows.T[::-1])]
+
+    parallel = keyed(np.array([r["observation"] for r in rows], dtype=np.float32), np.array(labels))
+    np.testing.assert_allclose(parallel, keyed(one.data.obs["observation"], one.data.actions), atol=1e-6)
+
+
+def test_n_envs_below_one_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["train", "--env", PICK, "--algo", "dagger", "--n-envs", "0", "--out", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err == "bioscara train: error: --n-envs 0: must be >= 1 (omit it for the config's n_envs)"
 
 
 def test_labelled_sets_add_up_in_order() -> None:

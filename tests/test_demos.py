@@ -16,8 +16,8 @@ from bioscara_gym.cli import main
 
 minari = pytest.importorskip("minari", reason="minari is in the [train] extra")
 
-PICK = "Bioscara-PickPlace-v0"
-REACH = "Bioscara-Reach-v0"
+PICK = "Bioscara-PickPlace-v1"
+REACH = "Bioscara-Reach-v1"
 
 
 @pytest.fixture(autouse=True)

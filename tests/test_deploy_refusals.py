@@ -24,8 +24,8 @@ from bioscara_gym.cli import main
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
 from bioscara_gym.training.metadata import EMBEDDED_NAME, build_metadata, write_metadata
 
-REACH = "Bioscara-Reach-v0"
-PICK_PLACE = "Bioscara-PickPlace-v0"
+REACH = "Bioscara-Reach-v1"
+PICK_PLACE = "Bioscara-PickPlace-v1"
 
 
 @pytest.fixture(scope="module")
@@ -224,7 +224,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "metadata-unknown-kwarg",
         edit_metadata(setting(3, "env_kwargs", "arm_speed"), inside=True),
         [],
-        "env_kwargs has 'arm_speed', which Bioscara-Reach-v0 does not take",
+        "env_kwargs has 'arm_speed', which Bioscara-Reach-v1 does not take",
     ),
     (
         "metadata-control-freq-text",
@@ -264,7 +264,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "reach-model-pick-place-metadata",
         pick_place_metadata,
         [],
-        "metadata.json says env_id is 'Bioscara-PickPlace-v0', but",
+        "metadata.json says env_id is 'Bioscara-PickPlace-v1', but",
     ),
     (
         "reach-model-pick-place-metadata-inside-too",
@@ -328,7 +328,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         [],
         "model.zip is not a directory",
     ),
-    ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v0"),
+    ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v1"),
 ]
 
 
@@ -383,7 +383,7 @@ def test_a_run_log_that_cannot_be_opened_is_refused_before_the_arm_is_touched(
     ("setup", "expected"),
     [
         (pick_place_metadata_inside_and_beside, "takes 12 values of observation 'observation'"),
-        (pick_place_metadata, "metadata.json says env_id is 'Bioscara-PickPlace-v0', but"),
+        (pick_place_metadata, "metadata.json says env_id is 'Bioscara-PickPlace-v1', but"),
         (mode_and_rate_edited_in_both_places, "says env_kwargs.control_mode is 'velocity', but"),
         (nan_actor_weights, "policy weight actor.mu.weight holds 128 non-finite value(s)"),
         (truncate_model, "truncated, not a stable-baselines3 zip, or another"),

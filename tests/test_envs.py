@@ -31,8 +31,8 @@ from bioscara_gym.hardware.arm import CommandMode, Lifecycle
 from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.registers import Flag
 
-REACH = "Bioscara-Reach-v0"
-PICK = "Bioscara-PickPlace-v0"
+REACH = "Bioscara-Reach-v1"
+PICK = "Bioscara-PickPlace-v1"
 TASK_IDS = (REACH, PICK)
 BACKENDS = ("sim", "mock", "emulated")
 SIM_BACKENDS = ("sim", "emulated")
@@ -124,7 +124,7 @@ import gymnasium as gym
 import bioscara_gym
 for env_id in ("Bioscara-Reach", "Bioscara-PickPlace"):
     env = gym.make(env_id, backend="mock")
-    assert env.spec.id == env_id + "-v0", env.spec.id
+    assert env.spec.id == env_id + "-v1", env.spec.id
     env.reset(seed=0)
     env.close()
 try:
@@ -187,7 +187,7 @@ def test_versioned_make_emits_no_warning(make_env: MakeEnv) -> None:
 
 
 def test_module_prefixed_id_makes_env(make_env: MakeEnv) -> None:
-    env = make_env("bioscara_gym:Bioscara-Reach-v0")
+    env = make_env("bioscara_gym:Bioscara-Reach-v1")
     assert isinstance(env.unwrapped, BioscaraReachEnv)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)

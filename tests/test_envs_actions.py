@@ -28,19 +28,21 @@ from bioscara_gym.envs.actions import (
 )
 from bioscara_gym.hardware.config import load_config
 
-REACH = "Bioscara-Reach-v0"
+REACH = "Bioscara-Reach-v1"
 JOINTS = ("j1", "j2", "j3", "j4")
 DT = 1.0 / 25.0
 
 MakeEnv = Callable[..., gym.Env]
 
 
-def _action_map(mode: str, cartesian_step: tuple[float, float, float] = (0.01, 0.01, 0.01)) -> ActionMap:
-    """The map Reach builds for ``mode`` at 25 Hz on the packaged configuration."""
+def _action_map(
+    mode: str, cartesian_step: tuple[float, float, float] = (0.01, 0.01, 0.01), lead: bool = True
+) -> ActionMap:
+    """The map Reach builds for ``mode`` at 25 Hz on the packaged configuration (``lead``: v1's)."""
     config = load_config()
     if mode == "cartesian":
         config = coordinated(config)
-    return ActionMap.for_joints(mode, [config.joint(n) for n in JOINTS], DT, cartesian_step)
+    return ActionMap.for_joints(mode, [config.joint(n) for n in JOINTS], DT, cartesian_step, lead=lead)
 
 
 # ----------------------------------------------------------------- the map
@@ -167,7 +169,7 @@ def test_cartesian_stops_j1_at_its_limit_rather_than_swing_to_the_other_elbow(j3
 
 
 def test_cartesian_switches_elbow_near_the_stretched_arm() -> None:
-    m = _action_map("cartesian")
+    m = _action_map("cartesian", lead=False)  # the IK target itself (Reach-v0)
     q, tcp = _pose(m, j1=m.high[0] - 0.005, j3=-0.28)
     tangent = np.array([-tcp[1], tcp[0]])
     cmd = m.cartesian(_toward(tangent), q, tcp)
@@ -188,11 +190,52 @@ def test_cartesian_ik_keeps_j1_within_half_a_turn_of_the_arm() -> None:
 
 
 def test_cartesian_wrist_turns_by_wrist_step() -> None:
-    m = _action_map("cartesian")
+    m = _action_map("cartesian", lead=False)
     q, tcp = _pose(m, j1=0.5, j3=1.0)
     cmd = m.cartesian(np.array([0.0, 0.0, 0.0, -0.5]), q, tcp)
     assert cmd[3] == pytest.approx(q[3] - 0.05)
     np.testing.assert_allclose(cmd[:3], q[:3], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("step", "ahead"),
+    [
+        # j1 (1 rad/s, 2 rad/s^2) at 25 Hz: 0.02 rad in a step asks 0.5 rad/s, held with
+        # the target 0.5 x 0.04 + 0.5^2 / (2 x 2) = 0.0825 rad ahead.
+        (0.02, 0.0825),
+        # 0.1 rad asks 2.5 rad/s: the max, 1 rad/s, held 1 x 0.04 + 1 / 4 = 0.29 rad ahead.
+        (0.1, 0.29),
+        (-0.02, -0.0825),
+        (0.0, 0.0),  # nothing asked: the target is where the joint is
+    ],
+)
+def test_cartesian_lead_puts_the_target_a_braking_distance_ahead(step: float, ahead: float) -> None:
+    m = _action_map("cartesian")
+    q = np.array([0.5, 0.1, 1.0, 0.0])
+    target = q + np.array([step, 0.0, 0.0, 0.0])
+    assert m.lead_target(q, target)[0] - q[0] == pytest.approx(ahead)
+
+
+def test_a_long_cartesian_move_turns_j1_at_its_max_velocity(make_env: MakeEnv) -> None:
+    # Reach-v1 at 2 cm a step across the front (0.5 m/s asked): j1 reaches its 1 rad/s;
+    # Reach-v0 braked on every step's target and stayed near 0.5.
+    peaks = {}
+    for env_id in ("Bioscara-Reach-v0", "Bioscara-Reach-v1"):
+        env = make_env(env_id, control_mode="cartesian")
+        env.reset(seed=0)
+        u = env.unwrapped
+        u.cartesian_step = (0.02, 0.02, 0.01)
+        u._action_map.cartesian_step = np.array(u.cartesian_step)
+        tangent = np.array([-u.tcp_position()[1], u.tcp_position()[0]])
+        action = np.zeros(4, dtype=np.float32)
+        action[:2] = tangent / np.linalg.norm(tangent)
+        speeds = []
+        for _ in range(25):
+            obs, *_ = env.step(action)
+            speeds.append(abs(obs["observation"][4]))  # j1's velocity over its max
+        peaks[env_id] = max(speeds)
+    assert peaks["Bioscara-Reach-v1"] > 0.95
+    assert peaks["Bioscara-Reach-v0"] < 0.7
 
 
 # ----------------------------------------------------------------- soft limits

@@ -57,8 +57,8 @@ from bioscara_gym.training.zoo import SuccessEvalCallback
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")
 
-REACH = "Bioscara-Reach-v0"
-PICK = "Bioscara-PickPlace-v0"
+REACH = "Bioscara-Reach-v1"
+PICK = "Bioscara-PickPlace-v1"
 TOTAL = 300  # env steps of every tiny off-policy run
 INTERRUPT_AT = 170  # mid-episode (episodes are 50 steps), after learning_starts
 REACH_KWARGS = {"control_mode": "cartesian", "reward_type": "dense"}
@@ -218,6 +218,24 @@ def test_algo_trains_a_tiny_run_into_a_loadable_model(algo: str, tmp_path: Path)
         env.close()
     assert isinstance(model, TD3 if algo == "td3" else PPO)
     assert model.num_timesteps >= TINY[algo]["n_timesteps"]
+
+
+def test_ppo_with_two_envs_steps_them_in_subprocesses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # n_envs 2 x n_steps 64 = one rollout of 128 steps, collected by two worker processes.
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    made: list[object] = []
+    real_init = SubprocVecEnv.__init__
+
+    def spy(self: SubprocVecEnv, *args: Any, **kwargs: Any) -> None:
+        real_init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(SubprocVecEnv, "__init__", spy)
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["ppo"]})
+    assert main(train_argv(tmp_path / "run", config, "--algo", "ppo", "--n-envs", "2")) == 0
+    assert len(made) == 1 and made[0].num_envs == 2  # type: ignore[attr-defined]
+    assert read_metadata(tmp_path / "run" / "model.zip")["algo"] == "ppo"
 
 
 # ------------------------------------------------------------ interrupt/resume

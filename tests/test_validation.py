@@ -152,8 +152,8 @@ def test_the_swing_after_a_block_is_judged_against_the_real_one() -> None:
         "stall trip after the block",
     ]
     assert all(r.passed for r in rows), rows
-    # a rotor thrown back a hundredth as hard: its measured speed falls too slowly
-    stiff = CONFIG.with_drives(kick_accel=KICK_ACCEL / 100)
+    # a rotor thrown back a tenth as hard: its measured speed falls too slowly
+    stiff = CONFIG.with_drives(kick_accel=KICK_ACCEL / 10)
     assert stall.compare_block(event, stall.replay_block(event, stiff))[0].error > 3 * rows[0].error
 
 

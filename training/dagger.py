@@ -47,6 +47,7 @@ from bioscara_gym.training.demos import Demos, check_demos, load_demos
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.hyperparams import DaggerConfig
+from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
 from bioscara_gym.training.signals import SignalGuard
 
 with needs_train():
@@ -153,12 +154,16 @@ def label_episodes(
         successes += success
         if on_episode is not None:
             on_episode(success, steps)
-    data = Labelled(
+    return Rollouts(_labelled(obs_rows, labels, iteration), successes, episodes)
+
+
+def _labelled(obs_rows: list[dict[str, np.ndarray]], labels: list[np.ndarray], iteration: int) -> Labelled:
+    """The states and their expert labels as arrays, tagged with ``iteration``."""
+    return Labelled(
         obs={k: np.array([o[k] for o in obs_rows], dtype=np.float32) for k in GOAL_KEYS},
         actions=np.array(labels, dtype=np.float32),
         iteration=np.full(len(labels), iteration, dtype=np.int32),
     )
-    return Rollouts(data, successes, episodes)
 
 
 def expert_labeller(env: gym.Env) -> Expert:
@@ -265,6 +270,11 @@ class DAgger(TrainingMethod):
         self.env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
         self.eval_env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
         self.expert = expert_labeller(self.env)
+        self.venv = None
+        n_envs = self.args.n_envs or plan.config.n_envs
+        if n_envs > 1:  # the rollouts run on workers in subprocesses (training/parallel.py)
+            self.venv = make_vec_envs(self.env_id, n_envs, plan.env_kwargs)
+            stack.callback(self.venv.close)
         self.demos = None
         if self.args.demos:
             self.demos = load_demos(self.args.demos)
@@ -358,7 +368,11 @@ class DAgger(TrainingMethod):
             self.progress.episode(steps, iteration=str(iteration))
 
         rng = np.random.default_rng([self.args.seed, iteration])
-        return label_episodes(self.env, act, self.expert, episodes, seed, iteration, beta, rng, on_episode)
+        expert = self.expert
+        if self.venv is None:
+            return label_episodes(self.env, act, expert, episodes, seed, iteration, beta, rng, on_episode)
+        rows, labels, wins = label_rollouts(self.venv, act, expert, episodes, seed, beta, rng, on_episode)
+        return Rollouts(_labelled(rows, labels, iteration), wins, episodes)
 
     def _fit(self, data: Labelled, steps: int, iteration: int) -> float:
         cfg, seed = self.cfg, self.args.seed * 1000 + iteration

@@ -109,7 +109,7 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
     """
 
     #: The task whose observation layout (``OBS_SLICES``) the features are read from.
-    TASK = "Bioscara-PickPlace-v0"
+    TASK = "Bioscara-PickPlace-v1"
 
     def __init__(
         self,

@@ -420,6 +420,8 @@ class DaggerConfig:
         beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
         eval_episodes: Episodes of the confirming success evaluation.
         target_success: Success rate at which training stops.
+        n_envs: Envs the rollouts run in, each in a subprocess when more
+            than 1 (SB3's ``SubprocVecEnv``); 1: one env, in this process.
     """
 
     source: str
@@ -436,6 +438,7 @@ class DaggerConfig:
     beta: float = 0.5
     eval_episodes: int = 100
     target_success: float = 0.9
+    n_envs: int = 1
 
     def __post_init__(self) -> None:
         """Refuse counts below 1 and rates outside their range.
@@ -444,7 +447,14 @@ class DaggerConfig:
             HyperparamError: The first bad value, named with the file.
         """
         where = f"config {self.source}"
-        counts = ("n_timesteps", "demo_episodes", "episodes_per_iteration", "bc_steps_first", "batch_size")
+        counts = (
+            "n_timesteps",
+            "demo_episodes",
+            "episodes_per_iteration",
+            "bc_steps_first",
+            "batch_size",
+            "n_envs",
+        )
         for name in (*counts, "eval_episodes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

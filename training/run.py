@@ -37,6 +37,9 @@ class TrainArgs:
         verbose: Print each evaluation.
         demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
             2018, see :mod:`bioscara_gym.training.imitation`; ``bc``: cloned alone).
+        n_envs: Envs stepping in parallel, each in a subprocess when more than
+            1 (SB3's ``SubprocVecEnv``: the SB3 methods' training envs,
+            DAgger's rollouts); default the config's ``n_envs``.
     """
 
     env: str = "Bioscara-Reach"
@@ -51,6 +54,7 @@ class TrainArgs:
     threads: int | None = None
     verbose: int = 1
     demos: str | None = None
+    n_envs: int | None = None
 
 
 @dataclass(frozen=True)

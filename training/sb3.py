@@ -42,8 +42,10 @@ with needs_train():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    from stable_baselines3.common.vec_env import SubprocVecEnv
 
     from bioscara_gym.training.algos import sb3_class
+    from bioscara_gym.training.parallel import env_maker
     from bioscara_gym.training.zoo import DemonstrationCallback, SuccessEvalCallback
 
 REPLAY_BUFFERS = {"HerReplayBuffer": HerReplayBuffer}
@@ -203,11 +205,20 @@ class SB3Method(TrainingMethod):
         return load_run_hyperparams(self.spec.model, path, self.env_id)
 
     def make_envs(self, plan: RunPlan, stack: contextlib.ExitStack) -> gym.Env:
-        """The evaluation env, then the vectorized training envs (``n_envs``, seeded)."""
+        """The evaluation env, then the vectorized training envs (``n_envs``, seeded; subprocesses if > 1)."""
         hp = plan.config
         self.eval_env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **hp.env_kwargs)))
         self.algo_kwargs = algo_kwargs(hp, self.eval_env, self.spec.name)  # the training envs' spaces
-        self.env = make_vec_env(self.env_id, n_envs=hp.n_envs, seed=self.args.seed, env_kwargs=hp.env_kwargs)
+        n_envs = self.args.n_envs or hp.n_envs
+        self.env = make_vec_env(
+            env_maker(self.env_id),
+            n_envs=n_envs,
+            seed=self.args.seed,
+            env_kwargs=hp.env_kwargs,
+            # each env in a process of its own (training/parallel.py)
+            vec_env_cls=SubprocVecEnv if n_envs > 1 else None,
+            vec_env_kwargs={"start_method": "spawn"} if n_envs > 1 else None,
+        )
         stack.callback(self.env.close)
         return self.eval_env
 

@@ -29,7 +29,15 @@ from bioscara_gym.training.metadata import resolve_env_id
 from bioscara_gym.training.methods import MethodSpec, method_spec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
 
-__all__ = ["TrainArgs", "TrainResult", "TrainingInterrupted", "check_timesteps", "choose_method", "train"]
+__all__ = [
+    "TrainArgs",
+    "TrainResult",
+    "TrainingInterrupted",
+    "check_n_envs",
+    "check_timesteps",
+    "choose_method",
+    "train",
+]
 
 
 def check_timesteps(timesteps: int | None) -> None:
@@ -40,6 +48,16 @@ def check_timesteps(timesteps: int | None) -> None:
     """
     if timesteps is not None and timesteps < 1:
         raise TrainingError(f"--timesteps {timesteps}: must be >= 1 (omit it for the config's n_timesteps)")
+
+
+def check_n_envs(n_envs: int | None) -> None:
+    """Refuse ``--n-envs`` below 1 (``None``: the config's ``n_envs``).
+
+    Raises:
+        TrainingError: ``n_envs`` is 0 or negative.
+    """
+    if n_envs is not None and n_envs < 1:
+        raise TrainingError(f"--n-envs {n_envs}: must be >= 1 (omit it for the config's n_envs)")
 
 
 def choose_method(args: TrainArgs, env_id: str) -> MethodSpec:
@@ -73,6 +91,7 @@ def train(args: TrainArgs) -> TrainResult:
     """
     env_id = resolve_env_id(args.env)
     check_timesteps(args.timesteps)
+    check_n_envs(args.n_envs)
     if args.seed < 0:
         raise TrainingError(f"--seed must be >= 0, got {args.seed}")
     spec = choose_method(args, env_id)

@@ -114,6 +114,10 @@ class ActionMap:
         max_acceleration: Each joint's max acceleration (rad/s^2 or m/s^2).
         dt: Control period, s.
         cartesian_step: TCP displacement (x, y, z) per step at action 1, m.
+        lead: Cartesian mode places each joint's target far enough ahead
+            that the firmware holds the speed the step asks
+            (:meth:`lead_target`); ``False``: the IK target itself (the
+            ``-v0`` envs: the firmware brakes on every step).
         elbow: Sign of j3 that cartesian mode's IK keeps (state; see :meth:`cartesian`).
         reach: Inner and outer radius (m) of the planar annulus the TCP reaches
             within j3's commandable range (derived).
@@ -126,6 +130,7 @@ class ActionMap:
     max_acceleration: np.ndarray
     dt: float
     cartesian_step: np.ndarray
+    lead: bool = True
     elbow: float = 1.0
     reach: tuple[float, float] = field(init=False)
 
@@ -144,6 +149,7 @@ class ActionMap:
         dt: float,
         cartesian_step: Sequence[float],
         margin: Mapping[str, float] = LIMIT_MARGIN,
+        lead: bool = True,
     ) -> ActionMap:
         """The map for ``joints`` (j1..j4 configs), commands kept ``margin`` inside their limits.
 
@@ -158,6 +164,7 @@ class ActionMap:
             np.array([j.max_acceleration for j in joints]),
             dt,
             np.asarray(cartesian_step, dtype=float),
+            lead,
         )
 
     def commands(self, a: np.ndarray, q: np.ndarray, tcp: np.ndarray) -> np.ndarray:
@@ -203,8 +210,10 @@ class ActionMap:
         :data:`ELBOW_SWITCH_MAX` (near the stretched arm, where both solutions
         meet); otherwise j1 stops at its limit. A far switch would swing the
         whole arm through the workspace. ``a[3]`` turns the wrist by up to
-        :data:`WRIST_STEP`. The firmware then moves each joint there under its
-        own speed and acceleration limits, as in position mode.
+        :data:`WRIST_STEP`. With :attr:`lead` each joint's target is then
+        moved ahead by its braking distance (:meth:`lead_target`), so the
+        firmware, which moves each joint there under its own speed and
+        acceleration limits as in position mode, does not brake on the way.
         """
         target = tcp + a[:3] * self.cartesian_step
         r = float(np.hypot(target[0], target[1]))
@@ -222,4 +231,22 @@ class ActionMap:
                 if near and lo[0] <= other[0] <= hi[0]:
                     cmd[:3], self.elbow = other, -self.elbow
         cmd[3] = q[3] + a[3] * WRIST_STEP
+        if self.lead:
+            cmd = self.lead_target(q, cmd)
         return np.clip(cmd, lo, hi)
+
+    def lead_target(self, q: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The position target that moves each joint to ``target`` within one step, at speed.
+
+        The firmware runs a position move as a trapezoid that brakes to stop
+        on its target, so a target one step's travel ahead caps a joint at
+        ``sqrt(2 a d)``: at 1 cm a step j1 turned at about 0.3 rad/s where it
+        can turn 1 rad/s. The speed the step asks, ``v = (target - q) / dt``
+        (at most the joint's max velocity), is held only if the target lies
+        ``|v| dt + v^2 / (2 a)`` ahead: the step's travel plus the braking
+        distance. That is where each joint's target goes; a step that asks
+        nothing (``target == q``) still stops the joint where it is.
+        """
+        v = np.clip((target - q) / self.dt, -self.max_velocity, self.max_velocity)
+        ahead = np.abs(v) * self.dt + v * v / (2.0 * self.max_acceleration)
+        return q + np.sign(v) * ahead

@@ -144,6 +144,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         backend_options: dict[str, Any] | None = None,
         width: int = 480,
         height: int = 480,
+        cartesian_lead: bool = True,
     ) -> None:
         """Create the env; the backend is built now, the arm is brought up on reset."""
         if isinstance(backend, str) and backend not in BACKENDS:  # the registry's for the Bioscara's joints
@@ -159,6 +160,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if render_mode is not None:
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode
+        self.cartesian_lead = bool(cartesian_lead)
         self.control_freq = float(control_freq)
         self.dt = 1.0 / self.control_freq
         self.reward_type = reward_type
@@ -179,7 +181,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._lo = np.array([j.min for j in joint_cfgs])
         self._hi = np.array([j.max for j in joint_cfgs])
         self._action_map = ActionMap.for_joints(
-            control_mode, joint_cfgs, self.dt, self.cartesian_step, self.limit_margin
+            control_mode, joint_cfgs, self.dt, self.cartesian_step, self.limit_margin, cartesian_lead
         )
         self.command_low, self.command_high = self._action_map.low, self._action_map.high
         self.command_low.flags.writeable = self.command_high.flags.writeable = False

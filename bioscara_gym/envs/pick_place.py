@@ -108,9 +108,14 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     (``distance_threshold`` default 0.01 m).
 
     ## Version history
-    * v0: initial release. Before the first release the sectors were drawn
-      in bearing (1 rad around the TCP's); a block a few degrees away across
-      the back of the base then needed j1 to turn 5 rad the long way round.
+    * v1: cartesian mode keeps the speed a step asks, as ``Bioscara-Reach-v1``
+      (each joint's target leads by its braking distance). The block and
+      target sectors are drawn in j1, as above: v0 drew them in bearing (1 rad
+      around the TCP's), and a block a few degrees away across the back of the
+      base then needed j1 to turn 5 rad the long way round. That change was
+      made under the id ``-v0``; v0's distribution is no longer made, and
+      ``gym.make("Bioscara-PickPlace-v0")`` names the versions there are.
+    * v0: initial release.
     """
 
     uses_gripper = True

@@ -76,8 +76,12 @@ class BioscaraReachEnv(BioscaraEnv):
     In ``cartesian`` mode the action moves the TCP instead: entries 0-2 are a
     displacement of x and y by up to 1 cm and z by up to 1 cm per control step
     from the measured TCP, entry 3 turns the wrist by up to 0.1 rad. Analytic
-    IK turns the target into joint position targets (sent with
-    ``set_position``), keeping the elbow the arm has; targets are held inside
+    IK turns the target into joint positions, keeping the elbow the arm has;
+    each joint's target (sent with ``set_position``) then leads by the
+    distance the joint needs to brake from the speed the step asks, so the
+    firmware keeps that speed and the TCP moves the step's displacement each
+    period (up to the joints' limits); an action of 0 stops the arm, after
+    that braking distance; targets are held inside
     the annulus the arm reaches within its j3 limits, so pushing into a rim
     slides along it. In this mode the elbow j3 is capped at 1.5 rad/s and
     4 rad/s^2 (about j1's TCP speed), so the joints of a step arrive together
@@ -133,6 +137,8 @@ class BioscaraReachEnv(BioscaraEnv):
     | config             | None       | ArmConfig or YAML path (default: the packaged SPEC values)    |
     | backend_options    | None       | dict passed to the backend (e.g. ``faults`` for "emulated")   |
     | width, height      | 480, 480   | rendered image size in pixels                                 |
+    | cartesian_lead     | True       | cartesian mode: targets lead by the braking distance (v1);    |
+    |                    |            | False: the IK target (v0, registered with it)                 |
     | goal_radius        | 0.15       | goals lie within this distance (m) of the start TCP           |
     | goal_horizon_s     | None       | goals are reachable within this many seconds; None: 60 % of   |
     |                    |            | 50 control periods (1.2 s at 25 Hz). Lower it with a shorter  |
@@ -142,7 +148,14 @@ class BioscaraReachEnv(BioscaraEnv):
     cannot see it (Gymnasium applies it as a wrapper), hence ``goal_horizon_s``.
 
     ## Version history
-    * v0: initial release.
+    * v1: cartesian mode keeps the speed a step asks: each joint's position
+      target leads the IK target by the joint's braking distance at that speed
+      (``ActionMap.lead_target``). In v0 the target was the IK point one step
+      ahead, where the firmware's trapezoid brakes, so j1 turned at about 0.3-0.5
+      rad/s where it can turn 1 rad/s. A controller now brakes itself before
+      its goal (the scripted expert does). Velocity and position modes are
+      unchanged.
+    * v0: initial release; still registered (``cartesian_lead=False``).
     """
 
     def __init__(

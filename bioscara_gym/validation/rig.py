@@ -12,6 +12,7 @@ the program's sleeps, every transaction's own duration (the configuration's
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -19,6 +20,7 @@ import numpy as np
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.config import ArmConfig, JointConfig
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
+from bioscara_gym.hardware.errors import JointError
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE, JointFirmware, StallRule
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.motor import POLE_PITCH_DEG, KinematicStepper
@@ -27,9 +29,56 @@ from bioscara_gym.hardware.registers import Flag
 #: How far from its end stop the joint starts homing, motor degrees: enough
 #: for the homing to run up to speed and show that the drive can home.
 HOMING_RUN_DEG = 30.0
+#: Simulated seconds a rig's homing may take (the slowest, j3's, needs about 3).
+HOMING_TIMEOUT_S = 60.0
 #: How close to its end stop homing must leave the rotor, motor degrees: the
 #: first pole slip throws it back by up to a pole pitch (7.2 degrees).
 HOMED_WITHIN_DEG = 2 * POLE_PITCH_DEG
+
+
+#: Homed rigs kept for copying, by drive and bus (a calibration builds thousands
+#: of rigs of a few hundred drives; homing is most of a rig's cost).
+_HOMED: dict[tuple[object, ...], _Homed] = {}
+_HOMED_KEPT = 64
+
+
+class _Homed:
+    """One joint homed against its configured end stop, as the programs require, for copying.
+
+    Homed from :data:`HOMING_RUN_DEG` before the stop with the configured
+    homing parameters; ``error`` says why not if the drive could not home
+    (:class:`RigError`'s message), else ``parts`` are the clock, motor,
+    firmware, bus and driver.
+    """
+
+    def __init__(self, config: ArmConfig, p: JointConfig, stall_rule: StallRule, clock_hz: float) -> None:
+        clock = ManualClock()
+        lo, hi = sorted(motor_deg(p, q) for q in (p.min, p.max))
+        home_at = p.max if p.homing.speed > 0 else p.min
+        stop = motor_deg(p, home_at)
+        motor = KinematicStepper(
+            stop - math.copysign(HOMING_RUN_DEG, stop - motor_deg(p, 0.0)), lo, hi, drive=p.drive
+        )
+        firmware = JointFirmware(motor, clock, stall_rule=stall_rule)
+        bus = EmulatedI2CBus({p.address: firmware}, clock=clock, clock_hz=clock_hz, timing=config.bus_timing)
+        joint = Joint(p.name, p.address, p.reduction, p.min, p.max, bus, clock=clock)
+        self.parts = (clock, motor, firmware, bus, joint)
+        self.error: str | None = None
+        joint.init()
+        joint.enable(p.drive_current, p.hold_current)
+        joint.set_max_acceleration(p.homing.acceleration)
+        try:
+            joint.home(p.homing.speed, p.homing.threshold, p.homing.current, timeout_s=HOMING_TIMEOUT_S)
+        except JointError as e:
+            self.error = f"{p.name}: homing failed: {e}"
+            return
+        if not joint.is_homed():
+            self.error = f"{p.name}: the rig's joint did not home"
+        elif abs(motor.position_deg - stop) > HOMED_WITHIN_DEG:
+            # The real arm homes with its configured speed, threshold and current: a
+            # drive that trips its homing before the end stop is not the arm's.
+            short = abs(motor.position_deg - stop)
+            self.error = f"{p.name}: homing stopped {short:.1f} motor degrees short of the end stop"
 
 
 class RigError(RuntimeError):
@@ -73,31 +122,17 @@ class JointRig:
     ) -> None:
         """Build, home and place the joint."""
         self.params = params = config.joint(joint)
-        self.clock = ManualClock()
-        lo, hi = sorted(motor_deg(params, q) for q in (params.min, params.max))
-        home_at = params.max if params.homing.speed > 0 else params.min
-        self.motor = KinematicStepper(
-            motor_deg(params, home_at)
-            - math.copysign(HOMING_RUN_DEG, motor_deg(params, home_at) - motor_deg(params, 0.0)),
-            lo if end_stops else -math.inf,
-            hi if end_stops else math.inf,
-            drive=params.drive,
-            rng=np.random.default_rng(seed),
-        )
-        if not end_stops:
-            # Homing needs its stop: the motor meets it, then the stops go.
-            self.motor.lower_stop_deg, self.motor.upper_stop_deg = lo, hi
-        self.firmware = JointFirmware(self.motor, self.clock, stall_rule=stall_rule)
-        self.bus = EmulatedI2CBus(
-            {params.address: self.firmware},
-            clock=self.clock,
-            clock_hz=clock_hz or config.i2c_clock_hz,
-            timing=config.bus_timing,
-        )
-        self.joint = Joint(
-            params.name, params.address, params.reduction, params.min, params.max, self.bus, clock=self.clock
-        )
-        self._home()
+        key = (params, config.bus_timing, clock_hz or config.i2c_clock_hz, stall_rule)
+        homed = _HOMED.get(key)
+        if homed is None:
+            homed = _HOMED[key] = _Homed(config, params, stall_rule, clock_hz or config.i2c_clock_hz)
+            if len(_HOMED) > _HOMED_KEPT:
+                del _HOMED[next(iter(_HOMED))]
+        if homed.error is not None:
+            raise RigError(homed.error)
+        # Every rig of one drive homes alike: a copy of the one homed rig, with its own jitter.
+        self.clock, self.motor, self.firmware, self.bus, self.joint = copy.deepcopy(homed.parts)
+        self.motor.rng = np.random.default_rng(seed)
         if not end_stops:
             self.motor.lower_stop_deg, self.motor.upper_stop_deg = -math.inf, math.inf
         q = 0.5 * (params.min + params.max) if start_q is None else start_q
@@ -107,23 +142,6 @@ class JointRig:
 
     def _offset_deg(self) -> float:
         return motor_deg(self.params, self.joint.offset or 0.0)
-
-    def _home(self) -> None:
-        p = self.params
-        self.joint.init()
-        self.joint.enable(p.drive_current, p.hold_current)
-        self.joint.set_max_acceleration(p.homing.acceleration)
-        stop = motor_deg(p, p.max if p.homing.speed > 0 else p.min)
-        self.joint.home(p.homing.speed, p.homing.threshold, p.homing.current)
-        if not self.joint.is_homed():
-            raise RigError(f"{p.name}: the rig's joint did not home")
-        # The real arm homes with its configured speed, threshold and current: a
-        # drive that trips its homing before the end stop is not the arm's.
-        if abs(self.motor.position_deg - stop) > HOMED_WITHIN_DEG:
-            raise RigError(
-                f"{p.name}: homing stopped {abs(self.motor.position_deg - stop):.1f} motor degrees "
-                "short of the end stop"
-            )
 
     def sleep(self, dt: float) -> None:
         """Let ``dt`` seconds pass (the firmware's loop runs)."""

@@ -1,0 +1,131 @@
+"""Envs in subprocesses: the vectorized training envs, and DAgger's rollouts across workers.
+
+``n_envs`` above 1 (a config's key, or ``bioscara train --n-envs``) runs each
+env in a process of its own through stable-baselines3's ``SubprocVecEnv``;
+1 keeps one env in this process (``DummyVecEnv`` for SB3's methods). An env
+step of the simulated arm is mostly MuJoCo and the firmware model in
+Python, so a second core roughly doubles the steps a second.
+
+:func:`label_rollouts` is DAgger's rollout loop over such workers: episode
+``k`` of a call is reset with seed ``seed + k`` whichever worker runs it, so
+the expert's demonstrations are the same episodes as with one env.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from bioscara_gym.tasks import GOAL_KEYS, Policy
+from bioscara_gym.training.extras import needs_train
+
+with needs_train():
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+__all__ = ["EpisodeLog", "env_maker", "label_rollouts", "make_vec_envs"]
+
+#: The callback told of each finished episode: (success, steps).
+EpisodeLog = Callable[[bool, int], None]
+
+
+def make_vec_envs(env_id: str, n_envs: int, env_kwargs: dict[str, Any] | None = None) -> VecEnv:
+    """``n_envs`` envs of ``env_id``: in subprocesses when more than one, else in this process.
+
+    Raises:
+        ValueError: ``n_envs`` below 1.
+    """
+    if n_envs < 1:
+        raise ValueError(f"n_envs {n_envs}: must be >= 1")
+    kwargs = dict(env_kwargs or {})
+    fns = [_env_fn(env_id, kwargs) for _ in range(n_envs)]
+    if n_envs == 1:
+        return DummyVecEnv(fns)
+    # fork would copy the parent's MuJoCo, torch and thread state; spawn starts clean.
+    return SubprocVecEnv(fns, start_method="spawn")
+
+
+def _env_fn(env_id: str, kwargs: dict[str, Any]) -> Callable[[], gym.Env]:
+    make = env_maker(env_id)
+    return lambda: make(**kwargs)
+
+
+def env_maker(env_id: str) -> Callable[..., gym.Env]:
+    """``gym.make(env_id, **kwargs)`` as a function a spawned worker can run (it registers the tasks)."""
+
+    def make(**kwargs: Any) -> gym.Env:
+        import bioscara_gym  # noqa: F401 - a spawned worker starts without the registrations
+
+        return gym.make(env_id, **kwargs)
+
+    return make
+
+
+def label_rollouts(
+    venv: VecEnv,
+    act: Policy,
+    expert: Policy,
+    episodes: int,
+    seed: int,
+    beta: float,
+    rng: np.random.Generator,
+    on_episode: EpisodeLog | None = None,
+) -> tuple[list[dict[str, np.ndarray]], list[np.ndarray], int]:
+    """Run ``episodes`` seeded episodes on ``venv``'s workers with ``act``; label every state with ``expert``.
+
+    As the one-env loop: each step takes the expert's action with probability
+    ``beta`` (DAgger's mixture), and the expert labels every state the
+    acting policy reaches. A worker without an episode left to run idles (its
+    steps are neither acted on by the learner nor kept).
+
+    Returns:
+        The observations, their labels, and how many episodes succeeded.
+    """
+    n = venv.num_envs
+    current: list[int | None] = [None] * n
+    steps = [0] * n
+    obs: list[dict[str, np.ndarray] | None] = [None] * n
+    started = 0
+
+    def start(i: int) -> None:
+        nonlocal started
+        if started >= episodes:
+            current[i] = None
+            return
+        first, _ = venv.env_method("reset", seed=seed + started, indices=[i])[0]
+        obs[i], current[i], steps[i] = first, started, 0
+        started += 1
+
+    for i in range(n):
+        start(i)
+    rows: list[dict[str, np.ndarray]] = []
+    labels: list[np.ndarray] = []
+    successes = 0
+    idle = np.zeros(venv.action_space.shape, dtype=np.float32)
+    while any(c is not None for c in current):
+        actions = np.repeat(idle[None], n, axis=0)
+        for i in range(n):
+            o = obs[i]
+            if current[i] is None or o is None:
+                continue
+            label = np.asarray(expert(o), dtype=np.float32)
+            mixed = act is expert or (beta > 0 and rng.random() < beta)
+            actions[i] = label if mixed else act(o)
+            rows.append(o)
+            labels.append(label)
+        next_obs, _, dones, infos = venv.step(actions)
+        for i in range(n):
+            if current[i] is None:
+                continue
+            steps[i] += 1
+            if dones[i]:
+                success = bool(infos[i].get("is_success", False))
+                successes += success
+                if on_episode is not None:
+                    on_episode(success, steps[i])
+                start(i)
+            else:
+                obs[i] = {k: np.asarray(next_obs[k][i]) for k in GOAL_KEYS}
+    return rows, labels, successes
