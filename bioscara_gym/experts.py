@@ -412,7 +412,11 @@ class InsertExpert:
         xyz = np.array([goal[0], goal[1], tip_z + PEG_TIP_BELOW_TCP])
         q4_target = q[3] + float(o[s["wrist_turn"]][0])
         if self.env.control_mode == "cartesian":
-            return self.ctrl.cartesian_action(o[s["tcp"]], xyz, q[3], q4_target).astype(np.float32)
+            # One step of the slow lift at a time: a step asking more would make the
+            # controller's braking (cartesian_action) slow x, y and the wrist with it.
+            tcp, lift_step = o[s["tcp"]], self.ctrl.vmax[1] * self.env.dt
+            xyz[2] = tcp[2] + np.clip(xyz[2] - tcp[2], -lift_step, lift_step)
+            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q).astype(np.float32)
         elbow = 1.0 if q[2] >= 0 else -1.0
         target = self.ctrl.solve(xyz, q, elbow)
         target = q.copy() if target is None else target

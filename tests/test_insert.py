@@ -98,7 +98,7 @@ def test_the_lift_runs_at_6_mm_s_with_sensitivity_4_in_the_firmware(make_env: Ma
 
 
 def test_the_other_tasks_do_not_see_the_peg_or_the_fixture(make_env: MakeEnv) -> None:
-    reach = make_env("Bioscara-Reach-v0").unwrapped
+    reach = make_env("Bioscara-Reach-v1").unwrapped
     m = reach.sim.model
     assert m.geom_rgba[m.geom("peg").id, 3] == 0.0
     assert m.body_mass[m.body("tool").id] == pytest.approx(0.15)  # the peg weighs nothing there
@@ -421,7 +421,7 @@ def test_extractor_sees_the_alignment_in_millimetres_and_hundredths_of_a_radian(
     # x 0.4 mm, y 20 mm clipped at 3, 1.5 mm above the top, 0.005 rad: in 1 mm and 0.01 rad.
     np.testing.assert_allclose(features[0, -4:].numpy(), [0.4, -3.0, 1.5, 0.5], rtol=1e-5)
     with pytest.raises(ValueError, match="Insert's is \\(20,\\)"):
-        InsertExtractor(make_env("Bioscara-Reach-v0", backend="mock").observation_space)
+        InsertExtractor(make_env("Bioscara-Reach-v1", backend="mock").observation_space)
     with pytest.raises(ValueError, match="must be > 0"):
         InsertExtractor(env.observation_space, fine_m=0.0)
 

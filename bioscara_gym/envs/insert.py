@@ -150,6 +150,7 @@ class BioscaraInsertEnv(BioscaraEnv):
     | config             | None        | ArmConfig or YAML path (default: the packaged one)         |
     | backend_options    | None        | dict passed to the backend                                 |
     | width, height      | 480, 480    | rendered image size in pixels                              |
+    | cartesian_lead     | True        | cartesian targets lead by the braking distance (as Reach)  |
     | lift_speed         | 0.006       | j2's max velocity in this task, m/s (see Contact)          |
     | lift_sensitivity   | 4           | j2's stall sensitivity in this task (threshold 10x it)     |
     | fixture_pose       | None        | (x m, y m, yaw rad) of the hole; None: drawn every episode |
