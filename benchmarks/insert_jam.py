@@ -14,6 +14,7 @@ Nothing here decides a stall: the emulated firmware's rule does
 
     python benchmarks/insert_jam.py
     python benchmarks/insert_jam.py --speeds 6 --sensitivities 4 12 --episodes 32
+    python benchmarks/insert_jam.py --config my_arm.yaml   # another drive (e.g. a new calibration)
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -39,10 +41,13 @@ PRESS_S = 1.5
 DOWN = np.array([0.0, 0.0, -1.0, 0.0], dtype=np.float32)
 
 
-def jam(speed: float, sensitivity: int, seed: int) -> tuple[float | None, float, float]:
+def jam(
+    speed: float, sensitivity: int, seed: int, config: Path | None = None
+) -> tuple[float | None, float, float]:
     """One jam: s from contact to STALL (None: none within ``PRESS_S``), peak low-pass, peak force (N)."""
     steps = math.ceil((START_GAP_M[1] / speed + PRESS_S) / 0.04)
-    env = gym.make(ENV, lift_speed=speed, lift_sensitivity=sensitivity, max_episode_steps=steps)
+    kwargs = {"lift_speed": speed, "lift_sensitivity": sensitivity, "config": config}
+    env = gym.make(ENV, max_episode_steps=steps, **kwargs)
     u = env.unwrapped
     env.reset(seed=seed)
     sim = u.sim
@@ -76,8 +81,9 @@ def main() -> None:
     parser.add_argument("--speeds", type=float, nargs="+", default=SPEEDS_MM_S, help="lift speeds, mm/s")
     parser.add_argument("--sensitivities", type=int, nargs="+", default=SENSITIVITIES)
     parser.add_argument("--episodes", type=int, default=16, help="seeded jams per setting")
+    parser.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
     args = parser.parse_args()
-    reduction = abs(gym.make(ENV, backend="mock").unwrapped.config.joint("j2").reduction)
+    reduction = abs(gym.make(ENV, backend="mock", config=args.config).unwrapped.config.joint("j2").reduction)
     start = time.perf_counter()
     print(
         "| lift | motor | held error a pass | sensitivity (threshold at rest) | STALL | after contact | "
@@ -89,7 +95,7 @@ def main() -> None:
         motor = speed * reduction
         per_pass = math.degrees(motor) * 1e-3 * USTEPS_PER_DEG
         for sensitivity in args.sensitivities:
-            runs = [jam(speed, sensitivity, seed) for seed in range(args.episodes)]
+            runs = [jam(speed, sensitivity, seed, args.config) for seed in range(args.episodes)]
             times = [t for t, _, _ in runs if t is not None]
             when = f"{min(times):.2f}-{max(times):.2f} s" if times else "-"
             peak = max(p for _, p, _ in runs)
