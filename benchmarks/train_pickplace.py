@@ -60,20 +60,22 @@ class Outcome:
     curve: list[tuple[int, int, float]] = field(default_factory=list)
 
 
-def baseline_config(directory: Path) -> Path:
-    """The packaged SAC PickPlace entry without its demonstration callback."""
+def baseline_config(directory: Path, env: str = ENV) -> Path:
+    """The packaged SAC entry of ``env`` without its demonstration callback."""
     from bioscara_gym.training.hyperparams import default_config_path
 
-    entry = yaml.safe_load(default_config_path("sac").read_text(encoding="utf-8"))[ENV]
+    entry = yaml.safe_load(default_config_path("sac").read_text(encoding="utf-8"))[env]
     entry["callback"] = [c for c in entry.get("callback", []) if DEMO_CALLBACK not in c]
     path = directory / "sac_her_baseline.yaml"
-    path.write_text(yaml.safe_dump({ENV: entry}), encoding="utf-8")
+    path.write_text(yaml.safe_dump({env: entry}), encoding="utf-8")
     return path
 
 
-def run(method: str, seed: int, minutes: float, out: Path, extra: list[str], episodes: int) -> Outcome:
-    """One ``bioscara train`` run with ``extra`` arguments, stopped at ``minutes``; its policy evaluated."""
-    cmd = [sys.executable, "-m", "bioscara_gym", "train", "--env", ENV, "--seed", str(seed)]
+def run(
+    method: str, seed: int, minutes: float, out: Path, extra: list[str], episodes: int, env: str = ENV
+) -> Outcome:
+    """One ``bioscara train`` run of ``env`` with ``extra``, stopped at ``minutes``; its policy evaluated."""
+    cmd = [sys.executable, "-m", "bioscara_gym", "train", "--env", env, "--seed", str(seed)]
     cmd += ["--out", str(out), "--no-progress", *extra]
     start = time.perf_counter()
     log = out.with_suffix(".log")
@@ -91,11 +93,11 @@ def run(method: str, seed: int, minutes: float, out: Path, extra: list[str], epi
     reached = REACHED_RE.search(text)
     reached_s = re.search(r"target reached after \d+ steps, (\d+) s", text)
     at = float(reached_s.group(1)) if reached_s else (wall if reached else None)
-    success, steps = evaluate(out, episodes)
+    success, steps = evaluate(out, episodes, env)
     return Outcome(method, seed, success, steps, wall, at, curve)
 
 
-def _env_kwargs(out: Path) -> dict[str, Any]:
+def _env_kwargs(out: Path, env: str = ENV) -> dict[str, Any]:
     """The env the run trained on: its metadata's, else its config's (an interrupted run has no metadata)."""
     from bioscara_gym.training.methods import method_spec
 
@@ -105,10 +107,10 @@ def _env_kwargs(out: Path) -> dict[str, Any]:
     state = json.loads((out / "train_state.json").read_text(encoding="utf-8"))
     spec = method_spec(state["algo"])
     config = Path(state["config"]) if state["config"] else spec.default_config()
-    return dict(spec.load_config(config, ENV).env_kwargs)
+    return dict(spec.load_config(config, env).env_kwargs)
 
 
-def evaluate(out: Path, episodes: int) -> tuple[float, int]:
+def evaluate(out: Path, episodes: int, env_id: str = ENV) -> tuple[float, int]:
     """Success over ``episodes`` of the final model, else the newest checkpoint; and its env steps."""
     import gymnasium as gym
 
@@ -129,7 +131,7 @@ def evaluate(out: Path, episodes: int) -> tuple[float, int]:
     steps = int(model.num_timesteps)
     if meta.exists():  # DAgger and BC count env steps in their metadata, not in the model
         steps = int(json.loads(meta.read_text(encoding="utf-8")).get("timesteps") or steps)
-    env = gym.make(ENV, **_env_kwargs(out))
+    env = gym.make(env_id, **_env_kwargs(out, env_id))
     try:
         stats = run_episodes(env, sb3_policy(model), episodes, seed=10_000)
     finally:

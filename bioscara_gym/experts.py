@@ -31,6 +31,7 @@ import numpy as np
 from bioscara_gym import kinematics
 from bioscara_gym.envs.actions import WRIST_STEP, to_range, to_unit
 from bioscara_gym.envs.base import BioscaraEnv
+from bioscara_gym.envs.insert import INSERT_DEPTH, PEG_TIP_BELOW_TCP
 from bioscara_gym.envs.pick_place import BLOCK_SIZE, BioscaraPickPlaceEnv
 from bioscara_gym.envs.push import PUSH_Z
 from bioscara_gym.envs.stack import Z_TOL as STACK_Z_TOL
@@ -606,6 +607,77 @@ class StackExpert:
             target = self.ctrl.solve(xyz, q, 1.0 if q[2] >= 0 else -1.0)
             a = self.ctrl.action(q, q if target is None else np.append(target[:3], q[3]))
         return np.append(a, self._u_open).astype(np.float32)
+
+
+class InsertExpert:
+    """Align the peg over the hole (x, y and the wrist), then lower it down the hole.
+
+    Its action is a function of the observation alone, so it is both the
+    task's scripted expert and the one DAgger labels a learner's states
+    with. Decided afresh every step, by name from ``OBS_SLICES``:
+
+    | phase  | when                                                  | does                      |
+    |--------|-------------------------------------------------------|---------------------------|
+    | insert | the tip below the fixture's top, or within            | x, y and wrist held; the  |
+    |        | ``ALIGN_M`` and ``ALIGN_RAD`` of the hole             | tip down to the goal      |
+    | align  | otherwise                                             | x, y, wrist to the hole;  |
+    |        |                                                       | the tip ``HOVER_M`` above |
+    |        |                                                       | the fixture's top         |
+
+    The tolerances leave the 1 mm clearance a margin: a peg 0.25 mm off
+    and 0.015 rad (0.86 degrees) turned is 0.8 mm wider than itself
+    (2 x 0.25 mm + 20 mm x 0.015).
+    """
+
+    #: Horizontal tip-goal distance (m) and yaw error (rad) within which the peg goes down.
+    ALIGN_M = 0.00025
+    ALIGN_RAD = 0.015
+    #: The tip's height above the fixture's top while aligning, m.
+    HOVER_M = 0.002
+    #: Cartesian mode: the share of the x, y error a step asks for. The joints arrive at
+    #: speed (the env's targets lead by the braking distance), so asking for all of it
+    #: rings about the hole by 1 mm for a third of a second.
+    XY_GAIN = 0.5
+
+    def __init__(self, env: BioscaraEnv) -> None:
+        """Bind to ``env`` (use ``env.unwrapped``)."""
+        self.env = env
+        self.ctrl = JointSpaceController(env)
+        self._slices = env.OBS_SLICES
+        self.phase = "align"
+
+    def reset(self) -> None:
+        """Nothing to forget: the action is a function of the observation."""
+        self.phase = "align"
+
+    def phase_of(self, obs: dict[str, np.ndarray]) -> str:
+        """The phase ``obs`` is in (see the class docstring)."""
+        o, s = obs["observation"], self._slices
+        to_goal, yaw = o[s["goal_from_tip"]], o[s["wrist_turn"]][0]
+        aligned = math.hypot(to_goal[0], to_goal[1]) < self.ALIGN_M and abs(yaw) < self.ALIGN_RAD
+        return "insert" if aligned or o[s["above_top"]][0] < 0.0 else "align"
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Action for ``obs``."""
+        o, s = obs["observation"], self._slices
+        q = self.ctrl.joints(o)
+        goal = obs["desired_goal"]
+        phase = self.phase = self.phase_of(obs)
+        tip_z = goal[2] if phase == "insert" else goal[2] + INSERT_DEPTH + self.HOVER_M
+        xyz = np.array([goal[0], goal[1], tip_z + PEG_TIP_BELOW_TCP])
+        q4_target = q[3] + float(o[s["wrist_turn"]][0])
+        if self.env.control_mode == "cartesian":
+            # One step of the slow lift at a time: a step asking more would make the
+            # controller's braking (cartesian_action) slow x, y and the wrist with it.
+            tcp, lift_step = o[s["tcp"]], self.ctrl.vmax[1] * self.env.dt
+            xyz[2] = tcp[2] + np.clip(xyz[2] - tcp[2], -lift_step, lift_step)
+            xyz[:2] = tcp[:2] + self.XY_GAIN * (xyz[:2] - tcp[:2])
+            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q).astype(np.float32)
+        elbow = 1.0 if q[2] >= 0 else -1.0
+        target = self.ctrl.solve(xyz, q, elbow)
+        target = q.copy() if target is None else target
+        target[3] = q4_target
+        return self.ctrl.action(q, target).astype(np.float32)
 
 
 def expert_for(env: BioscaraEnv) -> Expert:

@@ -165,6 +165,15 @@ TASKS: dict[str, TaskSpec] = {
         extractor="bioscara_gym.training.features:StackExtractor",
         default_method="dagger",
     ),
+    "Bioscara-Insert-v0": TaskSpec(
+        id="Bioscara-Insert-v0",
+        entry_point="bioscara_gym.envs.insert:BioscaraInsertEnv",
+        max_episode_steps=150,
+        expert="bioscara_gym.experts:InsertExpert",
+        observation_expert="bioscara_gym.experts:InsertExpert",
+        extractor="bioscara_gym.training.features:InsertExtractor",
+        default_method="dagger",
+    ),
 }
 
 

@@ -19,7 +19,12 @@ SAC+HER on Reach (100 episodes): 90 % success at 15k steps without them,
 :class:`PickPlaceExtractor` is the DAgger learner's on PickPlace (the task
 names it in :data:`bioscara_gym.tasks.TASKS`): lengths in 10 cm, and
 block-from-TCP and the goal error also in 5 mm, where the phases are decided.
-It reads the observation by name, from the task's layout.
+:class:`PushExtractor` adds the push's frame (the TCP behind and beside the
+block on its line to the target, the pushing face's turn) and
+:class:`StackExtractor` both blocks' views to those features.
+:class:`InsertExtractor` is Insert's: lengths in 10 cm, and the alignment
+also in millimetres and hundredths of a radian. All read the observation by
+name, from the task's layout.
 """
 
 from __future__ import annotations
@@ -231,3 +236,76 @@ class StackExtractor(PickPlaceExtractor):
         "upper_vel",
     )
     FINE = ("lower_from_tcp", "upper_from_tcp")
+
+
+#: Entries of Insert's ``observation`` given in m, scaled by ``coarse_m``.
+INSERT_LENGTH_SLICES = ("tcp", "peg_tip", "goal_from_tip", "above_top")
+
+
+class InsertExtractor(BaseFeaturesExtractor):
+    """Insert's observation with every length in ``coarse_m``, plus a fine view of the alignment.
+
+    Features, in order: ``observation`` with the entries of
+    :data:`INSERT_LENGTH_SLICES` divided by ``coarse_m`` (the rest is in
+    [-1, 1] or rad); the goal error ``desired - achieved`` over ``coarse_m``;
+    then its x and y and the tip's height above the fixture's top over
+    ``fine_m``, and the wrist turn over ``fine_rad``, clipped to
+    ``+-fine_clip``. The peg goes in only within 0.5 mm and about 3
+    degrees, and the expert lowers it at 0.25 mm and 0.86 degrees: in metres
+    and radians those are inputs of 1e-4 to 1e-2.
+
+    Args:
+        observation_space: Bioscara-Insert's ``Dict`` space.
+        coarse_m: Length that maps to 1.0 in the coarse view.
+        fine_m: Length that maps to 1.0 in the fine view.
+        fine_rad: Angle that maps to 1.0 in the fine view.
+        fine_clip: Bound of the fine view.
+
+    Raises:
+        ValueError: Not Insert's observation space, or a scale not positive.
+    """
+
+    #: The task whose observation layout (``OBS_SLICES``) the features are read from.
+    TASK = "Bioscara-Insert-v0"
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        coarse_m: float = 0.1,
+        fine_m: float = 0.001,
+        fine_rad: float = 0.01,
+        fine_clip: float = 3.0,
+    ) -> None:
+        """Check the space and build the scale vectors."""
+        slices = task(self.TASK).obs_slices()
+        n_obs = max(s.stop for s in slices.values())
+        if not isinstance(observation_space, spaces.Dict) or any(
+            k not in observation_space.spaces for k in GOAL_KEYS
+        ):
+            raise ValueError(f"InsertExtractor needs a goal env's Dict space, got {observation_space}")
+        if observation_space["observation"].shape != (n_obs,):
+            raise ValueError(
+                f"InsertExtractor: observation has shape {observation_space['observation'].shape}, "
+                f"Insert's is ({n_obs},)"
+            )
+        if not (coarse_m > 0 and fine_m > 0 and fine_rad > 0 and fine_clip > 0):
+            raise ValueError(
+                f"InsertExtractor: scales {coarse_m}, {fine_m}, {fine_rad}, {fine_clip} must be > 0"
+            )
+        n_goal = observation_space["desired_goal"].shape[0]
+        super().__init__(observation_space, features_dim=n_obs + n_goal + 4)
+        scale = th.ones(n_obs)
+        for name in INSERT_LENGTH_SLICES:
+            scale[slices[name]] = 1.0 / coarse_m
+        self.register_buffer("scale", scale)
+        xy = slices["goal_from_tip"]
+        self._fine = [xy.start, xy.start + 1, slices["above_top"].start, slices["wrist_turn"].start]
+        self.register_buffer("fine_scale", th.tensor([1.0 / fine_m] * 3 + [1.0 / fine_rad]))
+        self.coarse_m, self.fine_clip = float(coarse_m), float(fine_clip)
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """Features of a batch of dict observations."""
+        o = observations["observation"]
+        error = observations["desired_goal"] - observations["achieved_goal"]
+        fine = th.clamp(o[:, self._fine] * self.fine_scale, -self.fine_clip, self.fine_clip)
+        return th.cat((o * self.scale, error / self.coarse_m, fine), dim=1)
