@@ -196,6 +196,16 @@ CASES = [
         id="target-success-above-one",
     ),
     pytest.param(
+        new_run(
+            eval_freq=None,
+            eval_episodes=None,
+            callback=[{"bioscara_gym.training.zoo.SuccessEvalCallback": {"stop_success": 0.9}}],
+        ),
+        r"Bioscara-Reach-v1\.callback\.SuccessEvalCallback\.stop_success is 0\.9; expected at least "
+        r"target_success \(0\.95\)",
+        id="stop-below-target",
+    ),
+    pytest.param(
         new_run(n_timesteps=0),
         r"cfg\.yaml: Bioscara-Reach-v1\.n_timesteps is 0; expected a whole number >= 1",
         id="n-timesteps-zero",

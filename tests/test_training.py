@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import gymnasium as gym
@@ -262,6 +263,41 @@ class ResumedRun:
     exit_code: int
     loaded_replay_sizes: list[int]
     stderr: str
+
+
+def scripted_evaluations(
+    monkeypatch: pytest.MonkeyPatch, callback: SuccessEvalCallback, rates: list[float]
+) -> list[int]:
+    """``callback.evaluate`` returns ``rates`` in turn; the episode counts it was asked for."""
+    asked: list[int] = []
+
+    def evaluate(episodes: int) -> SimpleNamespace:
+        asked.append(episodes)
+        return SimpleNamespace(success_rate=rates.pop(0))
+
+    monkeypatch.setattr(callback, "evaluate", evaluate)
+    return asked
+
+
+def test_success_callback_records_the_target_and_stops_at_the_margin(monkeypatch: pytest.MonkeyPatch) -> None:
+    cb = SuccessEvalCallback(eval_freq=1000, eval_episodes=100, target_success=0.95, stop_success=0.98)
+    # quick 0.90 | quick 1.0, full 0.96 (target) | quick 0.95 (< stop: no full) | quick 1.0, full 0.99
+    asked = scripted_evaluations(monkeypatch, cb, [0.90, 1.0, 0.96, 0.95, 1.0, 0.99])
+    going = []
+    for step in (1000, 2000, 3000, 4000):
+        cb.num_timesteps = step
+        going.append(cb._on_step())
+    assert going == [True, True, True, False]
+    assert asked == [20, 20, 100, 20, 20, 100]
+    assert (cb.reached_at, cb.stopped_at) == (2000, 4000)
+
+
+def test_success_callback_stops_at_the_target_by_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    cb = SuccessEvalCallback(eval_freq=1000, eval_episodes=100, target_success=0.95)
+    scripted_evaluations(monkeypatch, cb, [1.0, 0.95])
+    cb.num_timesteps = 1000
+    assert cb._on_step() is False
+    assert (cb.reached_at, cb.stopped_at) == (1000, 1000)
 
 
 @pytest.fixture(scope="module")

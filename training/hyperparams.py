@@ -21,8 +21,10 @@ rl-zoo3 keys that change what the policy sees (``normalize``, ``frame_stack``,
 ``env_wrapper``, ``vec_env_wrapper``) are refused: a policy trained behind
 them could not be evaluated, exported or deployed on the plain env. Counts
 (``n_timesteps``, ``n_envs``, ``eval_freq``, ``eval_episodes``,
-``quick_episodes``) must be whole numbers >= 1 and ``target_success`` in
-[0, 1]; :func:`check_algo_kwargs` refuses keys the algorithm does not take.
+``quick_episodes``) must be whole numbers >= 1, ``target_success`` in
+[0, 1] and ``stop_success`` (where training stops) in
+[``target_success``, 1]; :func:`check_algo_kwargs` refuses keys the
+algorithm does not take.
 """
 
 from __future__ import annotations
@@ -81,7 +83,8 @@ class Hyperparams:
         env_kwargs: Keyword arguments for ``gym.make``.
         eval_freq: Env steps between success evaluations.
         eval_episodes: Episodes per evaluation.
-        target_success: Success rate at which training stops early.
+        target_success: Success rate recorded as reached; training stops there
+            unless the callback's ``stop_success`` (in ``eval_kwargs``) is higher.
         noise_type: Action noise for TD3 (``normal`` or ``ornstein-uhlenbeck``).
         noise_std: Its standard deviation.
         algo_kwargs: Everything else, passed to the algorithm.
@@ -273,12 +276,18 @@ def _check_schedule(
         number = _number(source[key])
         if number is None or not math.isfinite(number) or number != int(number) or number < 1:
             raise HyperparamError(f"{where}.{name} is {source[key]!r}; expected a whole number >= 1 ({what})")
-    target = eval_kwargs.get("target_success")
-    if target is not None and (
-        isinstance(target, bool) or not isinstance(target, int | float) or not 0 <= target <= 1
-    ):
-        name = "target_success" if "target_success" in legacy else IN_CALLBACK + "target_success"
-        raise HyperparamError(f"{where}.{name} is {target!r}; expected a success rate in [0, 1]")
+    for key in ("target_success", "stop_success"):
+        rate = eval_kwargs.get(key)
+        is_rate = isinstance(rate, int | float) and not isinstance(rate, bool) and 0 <= rate <= 1
+        if rate is not None and not is_rate:
+            name = key if key in legacy else IN_CALLBACK + key
+            raise HyperparamError(f"{where}.{name} is {rate!r}; expected a success rate in [0, 1]")
+    target, stop = eval_kwargs.get("target_success", 0.95), eval_kwargs.get("stop_success")
+    if stop is not None and stop < target:
+        raise HyperparamError(
+            f"{where}.{IN_CALLBACK}stop_success is {stop!r}; expected at least target_success ({target!r}): "
+            "training stops at stop_success after reaching the target"
+        )
 
 
 def _number(value: Any) -> float | None:

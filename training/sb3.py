@@ -284,8 +284,8 @@ class SB3Method(TrainingMethod):
         self.reached_after_s = self.evaluator.reached_after_s
 
     def evaluate(self, plan: RunPlan) -> EvalStats:
-        """The confirming evaluation that stopped training, else ``eval_episodes`` episodes now."""
-        if self.evaluator.reached_at is not None and self.evaluator.last is not None:
+        """The full evaluation that stopped training, else ``eval_episodes`` episodes now."""
+        if self.evaluator.stopped_at is not None and self.evaluator.last is not None:
             return self.evaluator.last
         return self.evaluator.evaluate(plan.config.eval_episodes)
 
