@@ -16,8 +16,6 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env as gym_check_env
-from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym import TASKS, kinematics
@@ -72,15 +70,6 @@ def test_insert_is_registered_with_its_experts_and_dagger_by_default(make_env: M
     assert TASKS[INSERT].default_method == "dagger"
     assert isinstance(expert_for(env.unwrapped), InsertExpert)
     assert isinstance(observation_expert_for(env.unwrapped), InsertExpert)
-
-
-@pytest.mark.filterwarnings("ignore:.*A Box observation space (minimum|maximum) value is:UserWarning")
-def test_gymnasium_check_env_passes(make_env: MakeEnv) -> None:
-    gym_check_env(make_env(INSERT).unwrapped, skip_render_check=True)
-
-
-def test_sb3_check_env_passes(make_env: MakeEnv) -> None:
-    sb3_check_env(make_env(INSERT).unwrapped, warn=True)
 
 
 # -------------------------------------------------------------- the arm's setup

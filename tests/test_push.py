@@ -14,8 +14,6 @@ from collections.abc import Callable
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env as gym_check_env
-from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from test_envs_docs import _documented_kwargs, _slice, _table_rows
 
 import bioscara_gym  # noqa: F401 - registers the tasks
@@ -37,15 +35,6 @@ def test_push_is_registered_with_200_steps_and_dagger_by_default() -> None:
     assert gym.spec(PUSH).max_episode_steps == 200
     assert gym.spec(PUSH).entry_point == "bioscara_gym.envs.push:BioscaraPushEnv"
     assert TASKS[PUSH].default_method == "dagger"
-
-
-@pytest.mark.filterwarnings("ignore:.*A Box observation space (minimum|maximum) value is:UserWarning")
-def test_gymnasium_check_env_passes(make_env: MakeEnv) -> None:
-    gym_check_env(make_env(PUSH).unwrapped, skip_render_check=True)
-
-
-def test_sb3_check_env_passes(make_env: MakeEnv) -> None:
-    sb3_check_env(make_env(PUSH).unwrapped, warn=True)
 
 
 def test_experts_are_the_push_expert(make_env: MakeEnv) -> None:

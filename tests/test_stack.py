@@ -15,8 +15,6 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
-from gymnasium.utils.env_checker import check_env as gym_check_env
-from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from test_envs_docs import _slice, _table_rows
 
 import bioscara_gym  # noqa: F401 - registers the tasks
@@ -41,15 +39,6 @@ def test_stack_is_registered_with_300_steps_and_dagger_by_default() -> None:
     assert gym.spec(STACK).max_episode_steps == 300
     assert gym.spec(STACK).entry_point == "bioscara_gym.envs.stack:BioscaraStackEnv"
     assert TASKS[STACK].default_method == "dagger"
-
-
-@pytest.mark.filterwarnings("ignore:.*A Box observation space (minimum|maximum) value is:UserWarning")
-def test_gymnasium_check_env_passes(make_env: MakeEnv) -> None:
-    gym_check_env(make_env(STACK).unwrapped, skip_render_check=True)
-
-
-def test_sb3_check_env_passes(make_env: MakeEnv) -> None:
-    sb3_check_env(make_env(STACK).unwrapped, warn=True)
 
 
 def test_experts_are_the_stack_expert(make_env: MakeEnv) -> None:
