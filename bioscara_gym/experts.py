@@ -111,6 +111,20 @@ class JointSpaceController:
             scale = np.where(asked > 1e-9, allowed / asked, np.inf)
         return a * min(1.0, float(np.min(scale)))
 
+    def toward(self, q: np.ndarray, tcp: np.ndarray, xyz: np.ndarray, q4_target: float) -> np.ndarray:
+        """Joint part of the action moving the TCP toward ``xyz`` and the wrist to ``q4_target``, in any mode.
+
+        Cartesian mode: :meth:`cartesian_action`, braking for ``xyz``. Velocity
+        and position modes: toward the IK solution of ``xyz`` with the arm's own
+        elbow (the joints held where there is none).
+        """
+        if self.env.control_mode == "cartesian":
+            return self.cartesian_action(tcp, xyz, q[3], q4_target, q)
+        target = self.solve(xyz, q, 1.0 if q[2] >= 0 else -1.0)
+        target = q.copy() if target is None else target
+        target[3] = q4_target
+        return self.action(q, target)
+
     def solve(
         self, xyz: np.ndarray, q: np.ndarray, elbow: float | None = None, switch_cost: float = ELBOW_REFUSED
     ) -> np.ndarray | None:
@@ -480,13 +494,7 @@ class PushExpert:
             step *= limit / length
         xyz = np.array([tcp[0] + step[0], tcp[1] + step[1], PUSH_Z])
         q4_target = q[3] if phase == "hold" else self._wrist_for(q, math.atan2(u[1], u[0]))
-        if self.env.control_mode == "cartesian":
-            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q).astype(np.float32)
-        elbow = 1.0 if q[2] >= 0 else -1.0
-        target = self.ctrl.solve(xyz, q, elbow)
-        target = q.copy() if target is None else target
-        target[3] = q4_target
-        return self.ctrl.action(q, target).astype(np.float32)
+        return self.ctrl.toward(q, tcp, xyz, q4_target).astype(np.float32)
 
     def _wrist_for(self, q: np.ndarray, face: float) -> float:
         """j4 that turns the pushing face (the tool's x axis, either way) to ``face`` (rad), nearest q4."""
@@ -601,12 +609,7 @@ class StackExpert:
         xyz = tcp.copy()
         if phase == "rise":
             xyz[2] = self.CLEAR_Z
-        if self.env.control_mode == "cartesian":
-            a = self.ctrl.cartesian_action(tcp, xyz, q[3], q[3])
-        else:
-            target = self.ctrl.solve(xyz, q, 1.0 if q[2] >= 0 else -1.0)
-            a = self.ctrl.action(q, q if target is None else np.append(target[:3], q[3]))
-        return np.append(a, self._u_open).astype(np.float32)
+        return np.append(self.ctrl.toward(q, tcp, xyz, q[3]), self._u_open).astype(np.float32)
 
 
 class InsertExpert:
@@ -666,18 +669,14 @@ class InsertExpert:
         tip_z = goal[2] if phase == "insert" else goal[2] + INSERT_DEPTH + self.HOVER_M
         xyz = np.array([goal[0], goal[1], tip_z + PEG_TIP_BELOW_TCP])
         q4_target = q[3] + float(o[s["wrist_turn"]][0])
+        tcp = o[s["tcp"]]
         if self.env.control_mode == "cartesian":
             # One step of the slow lift at a time: a step asking more would make the
             # controller's braking (cartesian_action) slow x, y and the wrist with it.
-            tcp, lift_step = o[s["tcp"]], self.ctrl.vmax[1] * self.env.dt
+            lift_step = self.ctrl.vmax[1] * self.env.dt
             xyz[2] = tcp[2] + np.clip(xyz[2] - tcp[2], -lift_step, lift_step)
             xyz[:2] = tcp[:2] + self.XY_GAIN * (xyz[:2] - tcp[:2])
-            return self.ctrl.cartesian_action(tcp, xyz, q[3], q4_target, q).astype(np.float32)
-        elbow = 1.0 if q[2] >= 0 else -1.0
-        target = self.ctrl.solve(xyz, q, elbow)
-        target = q.copy() if target is None else target
-        target[3] = q4_target
-        return self.ctrl.action(q, target).astype(np.float32)
+        return self.ctrl.toward(q, tcp, xyz, q4_target).astype(np.float32)
 
 
 def expert_for(env: BioscaraEnv) -> Expert:
