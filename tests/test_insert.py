@@ -10,6 +10,7 @@ from the env's own formulas.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -414,7 +415,7 @@ def test_extractor_sees_the_alignment_in_millimetres_and_hundredths_of_a_radian(
     assert features.shape == (1, 20 + 3 + 4)
     # x 0.4 mm, y 20 mm clipped at 3, 1.5 mm above the top, 0.005 rad: in 1 mm and 0.01 rad.
     np.testing.assert_allclose(features[0, -4:].numpy(), [0.4, -3.0, 1.5, 0.5], rtol=1e-5)
-    with pytest.raises(ValueError, match="Insert's is \\(20,\\)"):
+    with pytest.raises(ValueError, match=re.escape(f"{INSERT}'s is (20,)")):
         InsertExtractor(make_env("Bioscara-Reach-v1", backend="mock").observation_space)
     with pytest.raises(ValueError, match="must be > 0"):
         InsertExtractor(env.observation_space, fine_m=0.0)

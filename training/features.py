@@ -29,6 +29,8 @@ name, from the task's layout.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from gymnasium import spaces
 
 from bioscara_gym.tasks import GOAL_KEYS, task
@@ -90,6 +92,27 @@ class GoalErrorExtractor(BaseFeaturesExtractor):
 LENGTH_SLICES = ("tcp", "block_pos", "block_from_tcp", "block_vel")
 
 
+def task_layout(owner: str, env_id: str, observation_space: spaces.Space) -> tuple[Mapping[str, slice], int]:
+    """``env_id``'s observation slices and length, once ``observation_space`` is shown to be that task's.
+
+    Raises:
+        ValueError: Not a goal env's ``Dict`` space, or an observation of
+            another length; the message starts with ``owner``.
+    """
+    slices = task(env_id).obs_slices()
+    n_obs = max(s.stop for s in slices.values())
+    if not isinstance(observation_space, spaces.Dict) or any(
+        k not in observation_space.spaces for k in GOAL_KEYS
+    ):
+        raise ValueError(f"{owner} needs a goal env's Dict space, got {observation_space}")
+    if observation_space["observation"].shape != (n_obs,):
+        raise ValueError(
+            f"{owner}: observation has shape {observation_space['observation'].shape}, "
+            f"{env_id}'s is ({n_obs},)"
+        )
+    return slices, n_obs
+
+
 class PickPlaceExtractor(BaseFeaturesExtractor):
     """PickPlace's observation with every length in ``coarse_m``, plus a fine view of the two errors.
 
@@ -126,18 +149,8 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
         fine_clip: float = 3.0,
     ) -> None:
         """Check the space and build the scale vector."""
-        slices = task(self.TASK).obs_slices()
-        n_obs = max(s.stop for s in slices.values())
         name = type(self).__name__
-        if not isinstance(observation_space, spaces.Dict) or any(
-            k not in observation_space.spaces for k in GOAL_KEYS
-        ):
-            raise ValueError(f"{name} needs a goal env's Dict space, got {observation_space}")
-        if observation_space["observation"].shape != (n_obs,):
-            raise ValueError(
-                f"{name}: observation has shape {observation_space['observation'].shape}, "
-                f"{self.TASK}'s is ({n_obs},)"
-            )
+        slices, n_obs = task_layout(name, self.TASK, observation_space)
         if not (coarse_m > 0 and fine_m > 0 and fine_clip > 0):
             raise ValueError(f"{name}: scales {coarse_m}, {fine_m}, {fine_clip} must be > 0")
         n_goal = observation_space["desired_goal"].shape[0]
@@ -277,17 +290,7 @@ class InsertExtractor(BaseFeaturesExtractor):
         fine_clip: float = 3.0,
     ) -> None:
         """Check the space and build the scale vectors."""
-        slices = task(self.TASK).obs_slices()
-        n_obs = max(s.stop for s in slices.values())
-        if not isinstance(observation_space, spaces.Dict) or any(
-            k not in observation_space.spaces for k in GOAL_KEYS
-        ):
-            raise ValueError(f"InsertExtractor needs a goal env's Dict space, got {observation_space}")
-        if observation_space["observation"].shape != (n_obs,):
-            raise ValueError(
-                f"InsertExtractor: observation has shape {observation_space['observation'].shape}, "
-                f"Insert's is ({n_obs},)"
-            )
+        slices, n_obs = task_layout("InsertExtractor", self.TASK, observation_space)
         if not (coarse_m > 0 and fine_m > 0 and fine_rad > 0 and fine_clip > 0):
             raise ValueError(
                 f"InsertExtractor: scales {coarse_m}, {fine_m}, {fine_rad}, {fine_clip} must be > 0"
