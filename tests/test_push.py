@@ -14,6 +14,7 @@ from collections.abc import Callable
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import expert_success
 from test_envs_docs import _documented_kwargs, _slice, _table_rows
 
 import bioscara_gym  # noqa: F401 - registers the tasks
@@ -22,7 +23,6 @@ from bioscara_gym.envs import BioscaraEnv
 from bioscara_gym.envs.push import Z_TOL, BioscaraPushEnv, KinematicPushBlock
 from bioscara_gym.envs.reach import BioscaraReachEnv
 from bioscara_gym.experts import PushExpert, expert_for, observation_expert_for
-from bioscara_gym.training.evaluate import run_episodes
 
 PUSH = "Bioscara-Push-v0"
 MakeEnv = Callable[..., gym.Env]
@@ -235,32 +235,23 @@ def test_kinematic_block_is_pushed_out_of_the_closed_gripper() -> None:
 # -------------------------------------------------------------------- expert
 
 
-def _expert_success(episodes: int, **kwargs: object) -> tuple[float, int]:
-    env = gym.make(PUSH, **kwargs)
-    try:
-        stats = run_episodes(env, expert_for(env.unwrapped), episodes, seed=0)
-        return stats.success_rate, stats.stalls
-    finally:
-        env.close()
-
-
 def test_expert_succeeds_in_95_percent_of_40_cartesian_episodes() -> None:
-    success, stalls = _expert_success(40, control_mode="cartesian")
+    success, stalls = expert_success(PUSH, 40, control_mode="cartesian")
     assert success >= 0.95 and stalls == 0
 
 
 @pytest.mark.slow
 def test_expert_succeeds_in_95_percent_of_200_cartesian_episodes() -> None:
-    success, stalls = _expert_success(200, control_mode="cartesian")
+    success, stalls = expert_success(PUSH, 200, control_mode="cartesian")
     assert success >= 0.95 and stalls == 0
 
 
 def test_expert_pushes_in_velocity_control_too() -> None:
-    assert _expert_success(10, control_mode="velocity")[0] >= 0.8
+    assert expert_success(PUSH, 10, control_mode="velocity")[0] >= 0.8
 
 
 def test_expert_pushes_the_kinematic_block_on_mock() -> None:
-    assert _expert_success(10, control_mode="cartesian", backend="mock")[0] >= 0.8
+    assert expert_success(PUSH, 10, control_mode="cartesian", backend="mock")[0] >= 0.8
 
 
 def test_expert_is_a_function_of_the_observation(make_env: MakeEnv) -> None:

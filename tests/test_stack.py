@@ -15,13 +15,13 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
+from conftest import expert_success
 from test_envs_docs import _slice, _table_rows
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym import TASKS
 from bioscara_gym.envs.stack import BioscaraStackEnv, KinematicStack
 from bioscara_gym.experts import StackExpert, expert_for, observation_expert_for
-from bioscara_gym.training.evaluate import run_episodes
 
 STACK = "Bioscara-Stack-v0"
 MakeEnv = Callable[..., gym.Env]
@@ -217,25 +217,16 @@ def test_kinematic_blocks_stack_when_dropped_on_each_other() -> None:
 # -------------------------------------------------------------------- expert
 
 
-def _expert_success(episodes: int, **kwargs: object) -> tuple[float, int]:
-    env = gym.make(STACK, **kwargs)
-    try:
-        stats = run_episodes(env, expert_for(env.unwrapped), episodes, seed=0)
-        return stats.success_rate, stats.stalls
-    finally:
-        env.close()
-
-
 def test_expert_succeeds_in_95_percent_of_20_cartesian_episodes() -> None:
-    success, stalls = _expert_success(20, control_mode="cartesian")
+    success, stalls = expert_success(STACK, 20, control_mode="cartesian")
     assert success >= 0.95 and stalls == 0
 
 
 @pytest.mark.slow
 def test_expert_succeeds_in_95_percent_of_200_cartesian_episodes() -> None:
-    success, stalls = _expert_success(200, control_mode="cartesian")
+    success, stalls = expert_success(STACK, 200, control_mode="cartesian")
     assert success >= 0.95 and stalls == 0
 
 
 def test_expert_stacks_the_kinematic_blocks_on_mock() -> None:
-    assert _expert_success(6, control_mode="cartesian", backend="mock")[0] >= 0.8
+    assert expert_success(STACK, 6, control_mode="cartesian", backend="mock")[0] >= 0.8
