@@ -274,3 +274,20 @@ def test_full_speed_toward_end_stop_brakes_before_it(make_env: MakeEnv, joint: s
     assert truncated
     stop = cfg.max if direction > 0 else cfg.min
     assert abs(stop - q) < 0.05 * (cfg.max - cfg.min), f"{joint} stopped at {q}, far from {stop}"
+
+
+def test_cartesian_step_keyword_sets_the_displacement_at_action_one(make_env: MakeEnv) -> None:
+    env = make_env(REACH, control_mode="cartesian", cartesian_lead=False, cartesian_step=(0.05, 0.04, 0.01))
+    env.reset(seed=0)
+    u = env.unwrapped
+    assert u.cartesian_step == (0.05, 0.04, 0.01)
+    assert list(u._action_map.cartesian_step) == [0.05, 0.04, 0.01]
+    assert make_env(REACH, cartesian_step=0.03).unwrapped.cartesian_step == (0.03, 0.03, 0.03)
+
+
+@pytest.mark.parametrize("bad", [0, -0.01, (0.01, 0.01), (0.01, 0.01, math.inf), "far", [0.01, 0.0, 0.01]])
+def test_a_cartesian_step_that_is_not_three_positive_lengths_is_one_line(bad: Any) -> None:
+    with pytest.raises(
+        ValueError, match=r"^cartesian_step .* must be one length or \(x, y, z\), each > 0 \(m\)$"
+    ):
+        gym.make(REACH, backend="mock", cartesian_step=bad)

@@ -38,6 +38,23 @@ CARTESIAN_J3_LIMITS = (1.5, 4.0)
 ELBOW_SWITCH_MAX = 0.6
 
 
+def check_cartesian_step(step: float | Sequence[float]) -> tuple[float, float, float]:
+    """``step`` (one length, or x, y, z) as three positive lengths in m.
+
+    Raises:
+        ValueError: Not one or three finite lengths > 0.
+    """
+    try:
+        values = np.asarray(step, dtype=float)
+    except (TypeError, ValueError):
+        values = np.array([np.nan])
+    if values.ndim == 0:
+        values = np.full(3, float(values))
+    if values.shape != (3,) or not np.all(np.isfinite(values)) or not np.all(values > 0):
+        raise ValueError(f"cartesian_step {step!r} must be one length or (x, y, z), each > 0 (m)")
+    return (float(values[0]), float(values[1]), float(values[2]))
+
+
 def to_range(a: np.ndarray | float, low: np.ndarray | float, high: np.ndarray | float) -> np.ndarray:
     """Map ``a`` in [-1, 1] linearly onto [``low``, ``high``]."""
     return low + (a + 1.0) * 0.5 * (high - low)

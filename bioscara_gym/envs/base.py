@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 from collections import deque
+from collections.abc import Sequence
 from types import MappingProxyType
 from typing import Any, ClassVar
 
@@ -34,6 +35,7 @@ from bioscara_gym.envs.actions import (
     CONTROL_MODES,
     LIMIT_MARGIN,
     ActionMap,
+    check_cartesian_step,
     coordinated,
     to_range,
     to_unit,
@@ -145,6 +147,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         width: int = 480,
         height: int = 480,
         cartesian_lead: bool = True,
+        cartesian_step: float | Sequence[float] | None = None,
     ) -> None:
         """Create the env; the backend is built now, the arm is brought up on reset."""
         if isinstance(backend, str) and backend not in BACKENDS:  # the registry's for the Bioscara's joints
@@ -161,6 +164,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode
         self.cartesian_lead = bool(cartesian_lead)
+        if cartesian_step is not None:  # else the class's
+            self.cartesian_step = check_cartesian_step(cartesian_step)
         self.control_freq = float(control_freq)
         self.dt = 1.0 / self.control_freq
         self.reward_type = reward_type

@@ -139,6 +139,8 @@ class BioscaraReachEnv(BioscaraEnv):
     | width, height      | 480, 480   | rendered image size in pixels                                 |
     | cartesian_lead     | True       | cartesian mode: targets lead by the braking distance (v1);    |
     |                    |            | False: the IK target (v0, registered with it)                 |
+    | cartesian_step     | None       | cartesian mode: TCP displacement at action 1 (m, one length   |
+    |                    |            | or x, y, z); None: the class's ``cartesian_step``             |
     | goal_radius        | 0.15       | goals lie within this distance (m) of the start TCP           |
     | goal_horizon_s     | None       | goals are reachable within this many seconds; None: 60 % of   |
     |                    |            | 50 control periods (1.2 s at 25 Hz). Lower it with a shorter  |
