@@ -151,6 +151,8 @@ class BioscaraInsertEnv(BioscaraEnv):
     | backend_options    | None        | dict passed to the backend                                 |
     | width, height      | 480, 480    | rendered image size in pixels                              |
     | cartesian_lead     | True        | cartesian targets lead by the braking distance (as Reach)  |
+    | cartesian_step     | None        | TCP displacement at action 1 (m, one length or x, y, z);   |
+    |                    |             | None: the class's (5 mm in x and y, 1 cm in z)             |
     | lift_speed         | 0.006       | j2's max velocity in this task, m/s (see Contact)          |
     | lift_sensitivity   | 4           | j2's stall sensitivity in this task (threshold 10x it)     |
     | fixture_pose       | None        | (x m, y m, yaw rad) of the hole; None: drawn every episode |
