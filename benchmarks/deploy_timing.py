@@ -1,7 +1,7 @@
 """Loop timing of a 25 Hz Reach deploy on the emulated bus, with and without bus faults.
 
 Runs ``bioscara deploy`` (``Deployment``) with the scripted expert on
-``Bioscara-Reach-v1`` over the emulated bus: once without faults (the
+``Bioscara-Reach-v0`` over the emulated bus: once without faults (the
 reference) and once with ``--faults`` (default ``latency_ms=2,jitter_ms=3``),
 each for ``--cycles`` cycles (episodes of 50 cycles at 25 Hz). From each run's
 JSONL log (records ``type: cycle``) it prints the period error (``period_s``
@@ -29,7 +29,7 @@ from rich.console import Console
 
 from bioscara_gym.training.deploy import DeployArgs, Deployment
 
-ENV_ID = "Bioscara-Reach-v1"
+ENV_ID = "Bioscara-Reach-v0"
 #: Control cycles per Reach episode (its ``max_episode_steps``, 2 s at 25 Hz).
 CYCLES_PER_EPISODE = 50
 NOMINAL_S = 1.0 / 25.0

@@ -38,9 +38,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5000)
     args = parser.parse_args()
     reacher = max(steps_per_second("Reacher-v5", args.steps) for _ in range(2))
-    reach = max(steps_per_second("Bioscara-Reach-v1", args.steps) for _ in range(2))
+    reach = max(steps_per_second("Bioscara-Reach-v0", args.steps) for _ in range(2))
     print(f"Reacher-v5          : {reacher:8.0f} steps/s")
-    print(f"Bioscara-Reach-v1   : {reach:8.0f} steps/s  (velocity mode, sim backend)")
+    print(f"Bioscara-Reach-v0   : {reach:8.0f} steps/s  (velocity mode, sim backend)")
     print(f"ratio Reach/Reacher : {reach / reacher:8.3f}  (target >= 1.0)")
 
 

@@ -37,7 +37,7 @@ from bioscara_gym.training.dagger import label_episodes
 from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
 
 PICK = "Bioscara-PickPlace-v1"
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK_KWARGS = {"control_mode": "cartesian"}
 
 

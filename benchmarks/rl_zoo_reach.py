@@ -3,9 +3,9 @@
 Runs, in subprocesses and a temporary log folder, exactly what a user of
 rl-zoo3 would::
 
-    python -m rl_zoo3.train --algo sac --env Bioscara-Reach-v1 --gym-packages bioscara_gym \\
+    python -m rl_zoo3.train --algo sac --env Bioscara-Reach-v0 --gym-packages bioscara_gym \\
         -conf training/configs/sac.yaml --seed 0 --device cpu --num-threads 1
-    python -m rl_zoo3.enjoy --algo sac --env Bioscara-Reach-v1 --gym-packages bioscara_gym \\
+    python -m rl_zoo3.enjoy --algo sac --env Bioscara-Reach-v0 --gym-packages bioscara_gym \\
         --no-render -n 5000 --device cpu
 
 training for the entry's own ``n_timesteps`` (the entry's SuccessEvalCallback
@@ -30,7 +30,7 @@ import gymnasium as gym
 import bioscara_gym  # noqa: F401 - registers the tasks
 
 ROOT = Path(__file__).resolve().parents[1]
-ENV_ID = "Bioscara-Reach-v1"
+ENV_ID = "Bioscara-Reach-v0"
 TARGET = 0.95
 SUCCESS_LINE = re.compile(r"^Success\? (\S+)$", re.MULTILINE)
 EVAL_LINE = re.compile(r"^\[eval\] .*$", re.MULTILINE)

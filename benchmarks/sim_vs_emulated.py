@@ -73,7 +73,7 @@ def evaluate(args: argparse.Namespace, backend: str) -> tuple[EvalStats, float]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, help="model.zip or .onnx (default: the scripted expert)")
-    parser.add_argument("--env", default="Bioscara-Reach-v1", help="env id for the expert")
+    parser.add_argument("--env", default="Bioscara-Reach-v0", help="env id for the expert")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     parser.add_argument("--faults", help="faults on the emulated bus, e.g. nack=0.01,latency_ms=0.5")

@@ -31,7 +31,7 @@ from bioscara_gym.training.evaluate import run_episodes
 
 def measure(backend: str, episodes: int, seed: int, options: dict[str, object]) -> tuple[float, float, int]:
     """Success rate, steps/s and steps of ``episodes`` expert episodes on ``backend``."""
-    env = gym.make("Bioscara-Reach-v1", backend=backend, backend_options=options)
+    env = gym.make("Bioscara-Reach-v0", backend=backend, backend_options=options)
     try:
         expert = expert_for(env.unwrapped)
         env.reset(seed=seed)  # bring-up (homing) outside the timed part

@@ -130,13 +130,6 @@ TASKS: dict[str, TaskSpec] = {
         entry_point="bioscara_gym.envs.reach:BioscaraReachEnv",
         max_episode_steps=50,
         expert="bioscara_gym.experts:ReachExpert",
-        kwargs={"cartesian_lead": False},
-    ),
-    "Bioscara-Reach-v1": TaskSpec(
-        id="Bioscara-Reach-v1",
-        entry_point="bioscara_gym.envs.reach:BioscaraReachEnv",
-        max_episode_steps=50,
-        expert="bioscara_gym.experts:ReachExpert",
     ),
     "Bioscara-PickPlace-v1": TaskSpec(
         id="Bioscara-PickPlace-v1",

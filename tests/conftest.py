@@ -282,10 +282,10 @@ def make_arm_backend(gripper_state_file: Path) -> Iterator[Callable[..., Backend
 
 @pytest.fixture
 def make_env() -> Iterator[Callable[..., gym.Env]]:
-    """Factory ``make(env_id="Bioscara-Reach-v1", **kwargs)`` of ``gym.make`` envs, closed at teardown."""
+    """Factory ``make(env_id="Bioscara-Reach-v0", **kwargs)`` of ``gym.make`` envs, closed at teardown."""
     made: list[gym.Env] = []
 
-    def make(env_id: str = "Bioscara-Reach-v1", **kwargs: object) -> gym.Env:
+    def make(env_id: str = "Bioscara-Reach-v0", **kwargs: object) -> gym.Env:
         env = gym.make(env_id, **kwargs)
         made.append(env)
         return env

@@ -763,7 +763,7 @@ def wait_for_homing_end(arm: Arm, name: str) -> None:
 
 
 # ------------------------------------------------------------ a trained policy
-def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v1") -> Path:
+def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
     """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
     import gymnasium as gym
     import torch

@@ -248,7 +248,7 @@ def test_deploy_with_2_ms_latency_and_3_ms_jitter_has_no_deadman_trip(tmp_path: 
     log = tmp_path / "run.jsonl"
     args = DeployArgs(
         expert=True,
-        env="Bioscara-Reach-v1",
+        env="Bioscara-Reach-v0",
         backend="emulated",
         faults="latency_ms=2,jitter_ms=3",
         episodes=2,

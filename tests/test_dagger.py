@@ -32,7 +32,7 @@ def uses_dagger(args: TrainArgs, env_id: str) -> bool:
     return choose_method(args, env_id).name == "dagger"
 
 PICK = "Bioscara-PickPlace-v1"
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 TINY = {
     "n_timesteps": 1000,
     "env_kwargs": {"control_mode": "cartesian", "backend": "mock"},

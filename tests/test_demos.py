@@ -17,7 +17,7 @@ from bioscara_gym.cli import main
 minari = pytest.importorskip("minari", reason="minari is in the [train] extra")
 
 PICK = "Bioscara-PickPlace-v1"
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 
 
 @pytest.fixture(autouse=True)

@@ -36,7 +36,7 @@ from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployA
 from bioscara_gym.training.metadata import read_metadata
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 
 
 # ------------------------------------------------------------------ helpers
@@ -501,7 +501,7 @@ def test_the_gripper_width_is_called_saved_only_when_it_was(
 
 @pytest.mark.parametrize(
     ("override", "expected"),
-    [({"env": "Bioscara-PickPlace-v1"}, "trained on Bioscara-Reach-v1"), ({"rate": 30.0}, "control_freq")],
+    [({"env": "Bioscara-PickPlace-v1"}, "trained on Bioscara-Reach-v0"), ({"rate": 30.0}, "control_freq")],
     ids=["other-task", "other-rate"],
 )
 def test_metadata_mismatch_is_refused_before_any_bus_traffic(

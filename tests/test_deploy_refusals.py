@@ -24,7 +24,7 @@ from bioscara_gym.cli import main
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
 from bioscara_gym.training.metadata import EMBEDDED_NAME, build_metadata, write_metadata
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK_PLACE = "Bioscara-PickPlace-v1"
 
 
@@ -224,7 +224,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "metadata-unknown-kwarg",
         edit_metadata(setting(3, "env_kwargs", "arm_speed"), inside=True),
         [],
-        "env_kwargs has 'arm_speed', which Bioscara-Reach-v1 does not take",
+        "env_kwargs has 'arm_speed', which Bioscara-Reach-v0 does not take",
     ),
     (
         "metadata-control-freq-text",
@@ -328,7 +328,7 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         [],
         "model.zip is not a directory",
     ),
-    ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v1"),
+    ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v0"),
 ]
 
 

@@ -31,7 +31,7 @@ from bioscara_gym.hardware.arm import CommandMode, Lifecycle
 from bioscara_gym.hardware.errors import StalledError
 from bioscara_gym.hardware.registers import Flag
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v1"
 #: The latest version of every task: the API checks below run on each.
 TASK_IDS = (REACH, PICK, "Bioscara-Push-v0", "Bioscara-Stack-v0", "Bioscara-Insert-v0")
@@ -125,9 +125,9 @@ def test_import_registers_both_tasks() -> None:
 MAKE_UNVERSIONED = """
 import gymnasium as gym
 import bioscara_gym
-for env_id in ("Bioscara-Reach", "Bioscara-PickPlace"):
+for env_id, latest in (("Bioscara-Reach", "-v0"), ("Bioscara-PickPlace", "-v1")):
     env = gym.make(env_id, backend="mock")
-    assert env.spec.id == env_id + "-v1", env.spec.id
+    assert env.spec.id == env_id + latest, env.spec.id
     env.reset(seed=0)
     env.close()
 try:
@@ -190,7 +190,7 @@ def test_versioned_make_emits_no_warning(make_env: MakeEnv) -> None:
 
 
 def test_module_prefixed_id_makes_env(make_env: MakeEnv) -> None:
-    env = make_env("bioscara_gym:Bioscara-Reach-v1")
+    env = make_env("bioscara_gym:Bioscara-Reach-v0")
     assert isinstance(env.unwrapped, BioscaraReachEnv)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)

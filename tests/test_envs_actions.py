@@ -28,7 +28,7 @@ from bioscara_gym.envs.actions import (
 )
 from bioscara_gym.hardware.config import load_config
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 JOINTS = ("j1", "j2", "j3", "j4")
 DT = 1.0 / 25.0
 
@@ -36,9 +36,9 @@ MakeEnv = Callable[..., gym.Env]
 
 
 def _action_map(
-    mode: str, cartesian_step: tuple[float, float, float] = (0.01, 0.01, 0.01), lead: bool = True
+    mode: str, cartesian_step: tuple[float, float, float] = (0.01, 0.01, 0.01), lead: bool = False
 ) -> ActionMap:
-    """The map Reach builds for ``mode`` at 25 Hz on the packaged configuration (``lead``: v1's)."""
+    """The map Reach builds for ``mode`` at 25 Hz on the packaged configuration (``lead``: PickPlace's)."""
     config = load_config()
     if mode == "cartesian":
         config = coordinated(config)
@@ -169,7 +169,7 @@ def test_cartesian_stops_j1_at_its_limit_rather_than_swing_to_the_other_elbow(j3
 
 
 def test_cartesian_switches_elbow_near_the_stretched_arm() -> None:
-    m = _action_map("cartesian", lead=False)  # the IK target itself (Reach-v0)
+    m = _action_map("cartesian", lead=False)  # the IK target itself (Reach)
     q, tcp = _pose(m, j1=m.high[0] - 0.005, j3=-0.28)
     tangent = np.array([-tcp[1], tcp[0]])
     cmd = m.cartesian(_toward(tangent), q, tcp)
@@ -216,16 +216,15 @@ def test_cartesian_lead_puts_the_target_a_braking_distance_ahead(step: float, ah
     assert m.lead_target(q, target)[0] - q[0] == pytest.approx(ahead)
 
 
-def test_a_long_cartesian_move_turns_j1_at_its_max_velocity(make_env: MakeEnv) -> None:
-    # Reach-v1 at 2 cm a step across the front (0.5 m/s asked): j1 reaches its 1 rad/s;
-    # Reach-v0 braked on every step's target and stayed near 0.5.
+def test_a_long_cartesian_move_turns_j1_at_its_max_velocity_with_the_lead(make_env: MakeEnv) -> None:
+    # Reach at 2 cm a step across the front (0.5 m/s asked): with the lead j1 reaches its
+    # 1 rad/s; without it the firmware brakes on every step's target and j1 stays near 0.5.
     peaks = {}
-    for env_id in ("Bioscara-Reach-v0", "Bioscara-Reach-v1"):
-        env = make_env(env_id, control_mode="cartesian")
+    for lead in (False, True):
+        step = (0.02, 0.02, 0.01)
+        env = make_env(REACH, control_mode="cartesian", cartesian_lead=lead, cartesian_step=step)
         env.reset(seed=0)
         u = env.unwrapped
-        u.cartesian_step = (0.02, 0.02, 0.01)
-        u._action_map.cartesian_step = np.array(u.cartesian_step)
         tangent = np.array([-u.tcp_position()[1], u.tcp_position()[0]])
         action = np.zeros(4, dtype=np.float32)
         action[:2] = tangent / np.linalg.norm(tangent)
@@ -233,9 +232,15 @@ def test_a_long_cartesian_move_turns_j1_at_its_max_velocity(make_env: MakeEnv) -
         for _ in range(25):
             obs, *_ = env.step(action)
             speeds.append(abs(obs["observation"][4]))  # j1's velocity over its max
-        peaks[env_id] = max(speeds)
-    assert peaks["Bioscara-Reach-v1"] > 0.95
-    assert peaks["Bioscara-Reach-v0"] < 0.7
+        peaks[lead] = max(speeds)
+    assert peaks[True] > 0.95
+    assert peaks[False] < 0.7
+
+
+def test_reach_holds_the_ik_target_and_pickplace_leads_by_default() -> None:
+    assert gym.make(REACH, backend="mock").unwrapped.cartesian_lead is False
+    assert gym.make("Bioscara-PickPlace-v1", backend="mock").unwrapped.cartesian_lead is True
+    assert gym.make(REACH, backend="mock", cartesian_lead=True).unwrapped._action_map.lead is True
 
 
 # ----------------------------------------------------------------- soft limits

@@ -19,7 +19,7 @@ from bioscara_gym import kinematics
 from bioscara_gym.envs import BioscaraEnv, BioscaraPickPlaceEnv, BioscaraReachEnv
 from bioscara_gym.envs.actions import CARTESIAN_J3_LIMITS, WRIST_STEP
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v1"
 TASK_IDS = (REACH, PICK)
 TASK_CLASSES = (BioscaraReachEnv, BioscaraPickPlaceEnv)

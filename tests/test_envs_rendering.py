@@ -19,7 +19,7 @@ from rigs import run_blocked
 
 from bioscara_gym.envs import BioscaraReachEnv, rendering
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v1"
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -133,7 +133,7 @@ def test_envs_run_on_mock_without_mujoco() -> None:
         from bioscara_gym import envs, experts
         from bioscara_gym.envs import actions, base, pick_place, randomization, reach, rendering
 
-        for env_id in ("Bioscara-Reach-v1", "Bioscara-PickPlace-v1"):
+        for env_id in ("Bioscara-Reach-v0", "Bioscara-PickPlace-v1"):
             env = gym.make(env_id, backend="mock")
             expert = experts.expert_for(env.unwrapped)
             obs, _ = env.reset(seed=0)
@@ -156,7 +156,7 @@ def test_an_env_sets_mujoco_gl_before_its_backend_imports_mujoco() -> None:
         import bioscara_gym
 
         assert "MUJOCO_GL" not in os.environ and "mujoco" not in sys.modules
-        env = gym.make("Bioscara-Reach-v1", backend="sim", render_mode="rgb_array", width=32, height=24)
+        env = gym.make("Bioscara-Reach-v0", backend="sim", render_mode="rgb_array", width=32, height=24)
         env.reset(seed=0)
         print(os.environ.get("MUJOCO_GL"), env.render().shape)
         """,
@@ -173,11 +173,11 @@ def test_an_env_without_render_mode_leaves_mujoco_gl_alone() -> None:
         import gymnasium as gym
         import bioscara_gym
 
-        env = gym.make("Bioscara-Reach-v1", backend="sim")
+        env = gym.make("Bioscara-Reach-v0", backend="sim")
         print(os.environ.get("MUJOCO_GL"))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            gym.make("Bioscara-Reach-v1", backend="sim", render_mode="rgb_array")
+            gym.make("Bioscara-Reach-v0", backend="sim", render_mode="rgb_array")
         print(*[str(w.message).split(";")[0] for w in caught])
         """,
         env={"PATH": "/usr/bin:/bin"},

@@ -53,7 +53,7 @@ def test_error_follows_a_relabelled_goal() -> None:
 
 
 def test_reach_space_gives_the_documented_feature_size() -> None:
-    env = gym.make("Bioscara-Reach-v1", backend="mock")
+    env = gym.make("Bioscara-Reach-v0", backend="mock")
     try:
         extractor = GoalErrorExtractor(env.observation_space)
     finally:

@@ -102,6 +102,11 @@ def test_insert_shows_the_peg(make_env: MakeEnv) -> None:
     assert insert.sim.model.geom_rgba[insert.sim.model.geom("peg").id, 3] == 1.0
 
 
+def test_cartesian_targets_lead_by_the_braking_distance_as_pickplaces(make_env: MakeEnv) -> None:
+    # BioscaraEnv's default is off (Reach); the expert and the learner here brake themselves.
+    assert make_env(INSERT, backend="mock").unwrapped.cartesian_lead is True
+
+
 def test_the_peg_touches_only_the_fixture() -> None:
     import mujoco
 
@@ -416,7 +421,7 @@ def test_extractor_sees_the_alignment_in_millimetres_and_hundredths_of_a_radian(
     # x 0.4 mm, y 20 mm clipped at 3, 1.5 mm above the top, 0.005 rad: in 1 mm and 0.01 rad.
     np.testing.assert_allclose(features[0, -4:].numpy(), [0.4, -3.0, 1.5, 0.5], rtol=1e-5)
     with pytest.raises(ValueError, match=re.escape(f"{INSERT}'s is (20,)")):
-        InsertExtractor(make_env("Bioscara-Reach-v1", backend="mock").observation_space)
+        InsertExtractor(make_env("Bioscara-Reach-v0", backend="mock").observation_space)
     with pytest.raises(ValueError, match="must be > 0"):
         InsertExtractor(env.observation_space, fine_m=0.0)
 

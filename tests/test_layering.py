@@ -88,7 +88,7 @@ def test_importing_the_package_has_no_side_effects() -> None:
             "assert message.pattern == bioscara_gym.UNVERSIONED_MESSAGE, message\n"
             "assert module.pattern == r'gymnasium\\.envs\\.registration', module\n"
             "assert 'mujoco' not in sys.modules and 'bioscara_gym.envs' not in sys.modules\n"
-            "assert 'Bioscara-Reach-v1' in gymnasium.registry\n",
+            "assert 'Bioscara-Reach-v0' in gymnasium.registry\n",
         ],
         capture_output=True,
         text=True,

@@ -193,7 +193,7 @@ def test_the_closed_gripper_slides_the_block_without_lifting_it(make_env: MakeEn
 
 def test_a_push_at_full_speed_rocks_the_block_by_less_than_the_success_tolerance(make_env: MakeEnv) -> None:
     # The cartesian actions keep the speed a step asks (targets lead by the braking
-    # distance, as Reach-v1's), so the TCP meets the block at up to 0.5 m/s: the impact
+    # distance, as PickPlace-v1's), so the TCP meets the block at up to 0.5 m/s: the impact
     # lifts it about 1.3 mm and tips it about 1.4 degrees, within the success rule's Z_TOL.
     env = make_env(PUSH, control_mode="cartesian")
     moved, _, heights = _push_through_the_block(env, 1.0)

@@ -25,7 +25,7 @@ from bioscara_gym.training.hyperparams import default_config_path
 rl_zoo3_train = pytest.importorskip("rl_zoo3.train", reason="rl_zoo3 is a dev dependency")
 rl_zoo3_enjoy = pytest.importorskip("rl_zoo3.enjoy")
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v1"
 ALGOS = ("sac", "td3", "ppo")
 ENTRIES = [(algo, env_id) for algo in ALGOS for env_id in (REACH, PICK)]

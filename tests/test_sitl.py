@@ -314,7 +314,7 @@ def test_sitl_backend_homes_the_arm_and_runs_reach(source: str) -> None:
 
     import bioscara_gym  # noqa: F401 - registers the tasks
 
-    env = gym.make("Bioscara-Reach-v1", backend="sitl", backend_options={"firmware": source})
+    env = gym.make("Bioscara-Reach-v0", backend="sitl", backend_options={"firmware": source})
     try:
         obs, _ = env.reset(seed=0)
         assert all(j.is_homed() for j in env.unwrapped.arm.joints.values())
@@ -384,7 +384,7 @@ def test_sitl_arm_teleport_moves_the_encoder_without_a_velocity_spike(source: st
         (["eval", "--expert", "--backend", "emulated", "--firmware", "x"], "--firmware needs --backend sitl"),
         (["status", "--backend", "mock", "--firmware", "x"], "--firmware needs --backend sitl"),
         (
-            ["deploy", "--expert", "--env", "Bioscara-Reach-v1", "--backend", "mock", "--firmware", "x"],
+            ["deploy", "--expert", "--env", "Bioscara-Reach-v0", "--backend", "mock", "--firmware", "x"],
             "--firmware needs --backend sitl",
         ),
     ],

@@ -23,7 +23,7 @@ import yaml
 from bioscara_gym.cli import main
 from bioscara_gym.errors import EXIT_ERROR
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 
 #: A tiny SAC + HER entry (as tests/test_training.py's), valid as it stands.
 ENTRY: dict[str, Any] = {
@@ -151,34 +151,34 @@ CASES = [
     # Hyperparameter keys.
     pytest.param(
         new_run(batch_sise=32),
-        r"cfg\.yaml: Bioscara-Reach-v1\.batch_sise is not a hyperparameter of SAC; "
+        r"cfg\.yaml: Bioscara-Reach-v0\.batch_sise is not a hyperparameter of SAC; "
         r"did you mean 'batch_size'\?",
         id="hyperparameter-typo",
     ),
     pytest.param(
         new_run(zzz=1),
-        r"cfg\.yaml: Bioscara-Reach-v1\.zzz is not a hyperparameter of SAC; see the SAC documentation$",
+        r"cfg\.yaml: Bioscara-Reach-v0\.zzz is not a hyperparameter of SAC; see the SAC documentation$",
         id="hyperparameter-unknown",
     ),
     pytest.param(
         new_run(policy_kwargs="dict(net_arch=[16, 16], no_such_option=1)"),
-        r"cfg\.yaml: Bioscara-Reach-v1: TypeError: .*no_such_option",
+        r"cfg\.yaml: Bioscara-Reach-v0: TypeError: .*no_such_option",
         id="policy-kwarg-unknown",
     ),
     # The evaluation schedule and the budget.
     pytest.param(
         new_run(eval_freq=0),
-        r"cfg\.yaml: Bioscara-Reach-v1\.eval_freq is 0; expected a whole number >= 1",
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_freq is 0; expected a whole number >= 1",
         id="eval-freq-zero",
     ),
     pytest.param(
         new_run(eval_freq=-200),
-        r"cfg\.yaml: Bioscara-Reach-v1\.eval_freq is -200; expected a whole number >= 1",
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_freq is -200; expected a whole number >= 1",
         id="eval-freq-negative",
     ),
     pytest.param(
         new_run(eval_episodes=0),
-        r"cfg\.yaml: Bioscara-Reach-v1\.eval_episodes is 0; expected a whole number >= 1",
+        r"cfg\.yaml: Bioscara-Reach-v0\.eval_episodes is 0; expected a whole number >= 1",
         id="eval-episodes-zero",
     ),
     pytest.param(
@@ -187,12 +187,12 @@ CASES = [
             eval_episodes=None,
             callback=[{"bioscara_gym.training.zoo.SuccessEvalCallback": {"eval_episodes": 0}}],
         ),
-        r"Bioscara-Reach-v1\.callback\.SuccessEvalCallback\.eval_episodes is 0; expected a whole number",
+        r"Bioscara-Reach-v0\.callback\.SuccessEvalCallback\.eval_episodes is 0; expected a whole number",
         id="eval-episodes-zero-in-callback",
     ),
     pytest.param(
         new_run(target_success=1.5),
-        r"Bioscara-Reach-v1\.target_success is 1\.5; expected a success rate in \[0, 1\]",
+        r"Bioscara-Reach-v0\.target_success is 1\.5; expected a success rate in \[0, 1\]",
         id="target-success-above-one",
     ),
     pytest.param(
@@ -201,13 +201,13 @@ CASES = [
             eval_episodes=None,
             callback=[{"bioscara_gym.training.zoo.SuccessEvalCallback": {"stop_success": 0.9}}],
         ),
-        r"Bioscara-Reach-v1\.callback\.SuccessEvalCallback\.stop_success is 0\.9; expected at least "
+        r"Bioscara-Reach-v0\.callback\.SuccessEvalCallback\.stop_success is 0\.9; expected at least "
         r"target_success \(0\.95\)",
         id="stop-below-target",
     ),
     pytest.param(
         new_run(n_timesteps=0),
-        r"cfg\.yaml: Bioscara-Reach-v1\.n_timesteps is 0; expected a whole number >= 1",
+        r"cfg\.yaml: Bioscara-Reach-v0\.n_timesteps is 0; expected a whole number >= 1",
         id="n-timesteps-zero",
     ),
     pytest.param(new_run("--timesteps", "0"), r"--timesteps 0: must be >= 1", id="timesteps-zero"),
@@ -225,17 +225,17 @@ CASES = [
     # SB3 takes these and trains on nothing (seen: batch_size 0 trained and saved a model).
     pytest.param(
         new_run(batch_size=0),
-        r"cfg\.yaml: Bioscara-Reach-v1\.batch_size is 0; expected a whole number >= 1 \(samples per gradient",
+        r"cfg\.yaml: Bioscara-Reach-v0\.batch_size is 0; expected a whole number >= 1 \(samples per gradient",
         id="batch-size-zero",
     ),
     pytest.param(
         new_run(buffer_size=-1),
-        r"Bioscara-Reach-v1\.buffer_size is -1; expected a whole number >= 1",
+        r"Bioscara-Reach-v0\.buffer_size is -1; expected a whole number >= 1",
         id="buffer-size-negative",
     ),
     pytest.param(
         new_run(learning_starts=-5),
-        r"Bioscara-Reach-v1\.learning_starts is -5; expected a whole number >= 0",
+        r"Bioscara-Reach-v0\.learning_starts is -5; expected a whole number >= 0",
         id="learning-starts-negative",
     ),
     pytest.param(new_run(gamma=1.5), r"\.gamma is 1\.5; expected a number in \(0, 1\]", id="gamma"),

@@ -58,7 +58,7 @@ from bioscara_gym.training.zoo import SuccessEvalCallback
 # Resuming SB3's HER buffer mid-episode truncates the episode cut by the Ctrl-C, as intended.
 pytestmark = pytest.mark.filterwarnings("ignore:The last trajectory in the replay buffer:UserWarning")
 
-REACH = "Bioscara-Reach-v1"
+REACH = "Bioscara-Reach-v0"
 PICK = "Bioscara-PickPlace-v1"
 TOTAL = 300  # env steps of every tiny off-policy run
 INTERRUPT_AT = 170  # mid-episode (episodes are 50 steps), after learning_starts

@@ -344,7 +344,7 @@ def check_policy_shapes(shapes: PolicyShapes, env: gym.Env) -> None:
 
 
 def resolve_env_id(env: str) -> str:
-    """The registered, versioned id for ``env`` (``Bioscara-Reach`` -> ``Bioscara-Reach-v1``).
+    """The registered, versioned id for ``env`` (``Bioscara-Reach`` -> ``Bioscara-Reach-v0``).
 
     Raises:
         TrainingError: Unknown env id, with the registered Bioscara ids.

@@ -17,7 +17,7 @@ YAML keyword arguments alone; ``bioscara train`` reads the same files
 
 Example entry (``training/configs/sac.yaml``)::
 
-    Bioscara-Reach-v1:
+    Bioscara-Reach-v0:
       policy: bioscara_gym.training.zoo.SACGoalErrorPolicy
       callback:
         - bioscara_gym.training.zoo.SuccessEvalCallback:

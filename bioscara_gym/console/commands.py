@@ -230,7 +230,7 @@ def bus_budget(config: ArmConfig, rate_hz: float = BUDGET_RATE_HZ) -> BusBudget:
     import bioscara_gym  # noqa: F401 - registers the envs
 
     quiet = dataclasses.replace(config, gripper=dataclasses.replace(config.gripper, state_file=None))
-    env = gym.make("Bioscara-Reach-v1", backend="emulated", config=quiet, control_freq=rate_hz)
+    env = gym.make("Bioscara-Reach-v0", backend="emulated", config=quiet, control_freq=rate_hz)
     try:
         env.reset(seed=0)
         bus = env.unwrapped.backend.bus

@@ -123,6 +123,11 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     #: 1 cm in x and y: half the 2 cm first tried, so an action error costs half
     #: the distance (SAC+HER on Reach: 78 % vs 52 % success at 15k steps).
     cartesian_step = (0.01, 0.01, 0.01)
+    #: Cartesian mode: each joint's target leads the IK target by its braking
+    #: distance (:meth:`~bioscara_gym.envs.actions.ActionMap.lead_target`), so
+    #: the arm keeps the speed a step asks and a controller brakes itself.
+    #: Off by default: SAC+HER learns Reach without it (below) and not with it.
+    cartesian_lead = False
     #: Where each quantity lies in ``obs["observation"]`` (see the task's observation table).
     OBS_SLICES: ClassVar[MappingProxyType[str, slice]] = MappingProxyType(
         {
@@ -146,7 +151,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         backend_options: dict[str, Any] | None = None,
         width: int = 480,
         height: int = 480,
-        cartesian_lead: bool = True,
+        cartesian_lead: bool | None = None,
         cartesian_step: float | Sequence[float] | None = None,
     ) -> None:
         """Create the env; the backend is built now, the arm is brought up on reset."""
@@ -163,7 +168,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if render_mode is not None:
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode
-        self.cartesian_lead = bool(cartesian_lead)
+        if cartesian_lead is not None:  # else the class's
+            self.cartesian_lead = bool(cartesian_lead)
         if cartesian_step is not None:  # else the class's
             self.cartesian_step = check_cartesian_step(cartesian_step)
         self.control_freq = float(control_freq)
@@ -186,7 +192,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._lo = np.array([j.min for j in joint_cfgs])
         self._hi = np.array([j.max for j in joint_cfgs])
         self._action_map = ActionMap.for_joints(
-            control_mode, joint_cfgs, self.dt, self.cartesian_step, self.limit_margin, cartesian_lead
+            control_mode, joint_cfgs, self.dt, self.cartesian_step, self.limit_margin, self.cartesian_lead
         )
         self.command_low, self.command_high = self._action_map.low, self._action_map.high
         self.command_low.flags.writeable = self.command_high.flags.writeable = False

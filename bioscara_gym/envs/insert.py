@@ -150,7 +150,8 @@ class BioscaraInsertEnv(BioscaraEnv):
     | config             | None        | ArmConfig or YAML path (default: the packaged one)         |
     | backend_options    | None        | dict passed to the backend                                 |
     | width, height      | 480, 480    | rendered image size in pixels                              |
-    | cartesian_lead     | True        | cartesian targets lead by the braking distance (as Reach)  |
+    | cartesian_lead     | None        | cartesian targets lead by the braking distance; None: the  |
+    |                    |             | class's (True, as PickPlace: the expert brakes itself)     |
     | cartesian_step     | None        | TCP displacement at action 1 (m, one length or x, y, z);   |
     |                    |             | None: the class's (5 mm in x and y, 1 cm in z)             |
     | lift_speed         | 0.006       | j2's max velocity in this task, m/s (see Contact)          |
@@ -163,6 +164,9 @@ class BioscaraInsertEnv(BioscaraEnv):
 
     #: x and y at 5 mm a step: the peg must be placed within 0.5 mm.
     cartesian_step = (0.005, 0.005, 0.01)
+    #: Targets lead by the braking distance, as PickPlace's: the expert (and so DAgger's
+    #: learner) brakes itself, and the lift keeps its speed down the hole.
+    cartesian_lead = True
     #: Reach's observation, then the peg's (see the observation table).
     OBS_SLICES = MappingProxyType(
         {

@@ -146,8 +146,8 @@ class BioscaraPushEnv(BioscaraPickPlaceEnv):
     (``distance_threshold`` default 0.01 m).
 
     ## Version history
-    * v0: initial release, with ``Bioscara-Reach-v1``'s cartesian actions
-      (each joint's target leads by its braking distance).
+    * v0: initial release, with ``Bioscara-PickPlace-v1``'s cartesian actions
+      (each joint's target leads by its braking distance, ``cartesian_lead``).
     """
 
     uses_gripper = False

@@ -125,8 +125,8 @@ class BioscaraStackEnv(BioscaraPickPlaceEnv):
     (``distance_threshold`` default 0.01 m).
 
     ## Version history
-    * v0: initial release, with ``Bioscara-Reach-v1``'s cartesian actions
-      (each joint's target leads by its braking distance).
+    * v0: initial release, with ``Bioscara-PickPlace-v1``'s cartesian actions
+      (each joint's target leads by its braking distance, ``cartesian_lead``).
     """
 
     #: Reach's observation, then the lower block's and the upper block's (see the observation table).
