@@ -6,13 +6,7 @@
 driver layer, :mod:`bioscara_gym.hardware`, works without Gymnasium, MuJoCo
 or torch installed.
 
-=========================  =============================================  =================
-id                         entry point                                    max_episode_steps
-=========================  =============================================  =================
-``Bioscara-Reach-v0``      ``bioscara_gym.envs.reach:BioscaraReachEnv``   50 (2 s)
-``Bioscara-PickPlace-v1``  ``bioscara_gym.envs.pick_place:...``           200 (8 s)
-=========================  =============================================  =================
-
+=========================  ==============================================  ==========
 ``gym.make("Bioscara-Reach")`` (no version) makes the latest version. Gymnasium
 announces that choice with a warning on every make and refuses to register
 an unversioned id beside a versioned one, so registration also installs one

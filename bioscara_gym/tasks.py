@@ -140,6 +140,33 @@ TASKS: dict[str, TaskSpec] = {
         extractor="bioscara_gym.training.features:PickPlaceExtractor",
         default_method="dagger",
     ),
+    "Bioscara-Push-v0": TaskSpec(
+        id="Bioscara-Push-v0",
+        entry_point="bioscara_gym.envs.push:BioscaraPushEnv",
+        max_episode_steps=200,
+        expert="bioscara_gym.experts:PushExpert",
+        observation_expert="bioscara_gym.experts:PushExpert",
+        extractor="bioscara_gym.training.features:PushExtractor",
+        default_method="dagger",
+    ),
+    "Bioscara-Stack-v0": TaskSpec(
+        id="Bioscara-Stack-v0",
+        entry_point="bioscara_gym.envs.stack:BioscaraStackEnv",
+        max_episode_steps=300,
+        expert="bioscara_gym.experts:StackExpert",
+        observation_expert="bioscara_gym.experts:StackExpert",
+        extractor="bioscara_gym.training.features:StackExtractor",
+        default_method="dagger",
+    ),
+    "Bioscara-Insert-v0": TaskSpec(
+        id="Bioscara-Insert-v0",
+        entry_point="bioscara_gym.envs.insert:BioscaraInsertEnv",
+        max_episode_steps=150,
+        expert="bioscara_gym.experts:InsertExpert",
+        observation_expert="bioscara_gym.experts:InsertExpert",
+        extractor="bioscara_gym.training.features:InsertExtractor",
+        default_method="dagger",
+    ),
 }
 
 

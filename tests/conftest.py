@@ -295,6 +295,19 @@ def make_env() -> Iterator[Callable[..., gym.Env]]:
         env.close()
 
 
+def expert_success(env_id: str, episodes: int, **kwargs: object) -> tuple[float, int]:
+    """The task's scripted expert over ``episodes`` seeded episodes (seeds 0...): success rate, stalls."""
+    from bioscara_gym.experts import expert_for
+    from bioscara_gym.training.evaluate import run_episodes
+
+    env = gym.make(env_id, **kwargs)
+    try:
+        stats = run_episodes(env, expert_for(env.unwrapped), episodes, seed=0)
+        return stats.success_rate, stats.stalls
+    finally:
+        env.close()
+
+
 # ------------------------------------------------------------- MuJoCo arm (test_sim)
 
 #: Names of the backends with MuJoCo behind them.

@@ -2,17 +2,17 @@
 
 Slow (up to 30 minutes plus a 100-episode evaluation); run with ``make test-slow``.
 The default is DAgger (training/dagger.py); tests/test_dagger.py has its fast tests.
-Wall time depends on the machine's load; benchmarks/train_pickplace.py prints it.
+Wall time depends on the machine's load; benchmarks/train_task.py prints it.
 """
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
+from test_task_learning import load_bench
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "train_pickplace.py"
+PICK_PLACE = "Bioscara-PickPlace-v1"
 
 
 @pytest.mark.slow
@@ -22,10 +22,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "train_pickplace.py
     "its cartesian expert places 84 %); strict, so reaching it fails this mark and asks for it to be removed",
 )
 def test_default_pickplace_training_reaches_90_percent_within_30_minutes(tmp_path: Path) -> None:
-    spec = importlib.util.spec_from_file_location("train_pickplace", BENCH)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    outcome = bench.run(bench.DEFAULT, 0, 30.0, tmp_path / "default_0", [], 100)
+    bench = load_bench()
+    outcome = bench.run(PICK_PLACE, bench.DEFAULT, 0, 30.0, tmp_path / "default_0", [], 100)
     got = f"{outcome.success:.0%} after {outcome.wall_s:.0f} s, {outcome.steps} steps"
     assert outcome.success >= 0.9, got

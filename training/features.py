@@ -19,10 +19,17 @@ SAC+HER on Reach (100 episodes): 90 % success at 15k steps without them,
 :class:`PickPlaceExtractor` is the DAgger learner's on PickPlace (the task
 names it in :data:`bioscara_gym.tasks.TASKS`): lengths in 10 cm, and
 block-from-TCP and the goal error also in 5 mm, where the phases are decided.
-It reads the observation by name, from the task's layout.
+:class:`PushExtractor` adds the push's frame (the TCP behind and beside the
+block on its line to the target, the pushing face's turn) and
+:class:`StackExtractor` both blocks' views to those features.
+:class:`InsertExtractor` is Insert's: lengths in 10 cm, and the alignment
+also in millimetres and hundredths of a radian. All read the observation by
+name, from the task's layout.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 from gymnasium import spaces
 
@@ -85,6 +92,27 @@ class GoalErrorExtractor(BaseFeaturesExtractor):
 LENGTH_SLICES = ("tcp", "block_pos", "block_from_tcp", "block_vel")
 
 
+def task_layout(owner: str, env_id: str, observation_space: spaces.Space) -> tuple[Mapping[str, slice], int]:
+    """``env_id``'s observation slices and length, once ``observation_space`` is shown to be that task's.
+
+    Raises:
+        ValueError: Not a goal env's ``Dict`` space, or an observation of
+            another length; the message starts with ``owner``.
+    """
+    slices = task(env_id).obs_slices()
+    n_obs = max(s.stop for s in slices.values())
+    if not isinstance(observation_space, spaces.Dict) or any(
+        k not in observation_space.spaces for k in GOAL_KEYS
+    ):
+        raise ValueError(f"{owner} needs a goal env's Dict space, got {observation_space}")
+    if observation_space["observation"].shape != (n_obs,):
+        raise ValueError(
+            f"{owner}: observation has shape {observation_space['observation'].shape}, "
+            f"{env_id}'s is ({n_obs},)"
+        )
+    return slices, n_obs
+
+
 class PickPlaceExtractor(BaseFeaturesExtractor):
     """PickPlace's observation with every length in ``coarse_m``, plus a fine view of the two errors.
 
@@ -108,6 +136,10 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
 
     #: The task whose observation layout (``OBS_SLICES``) the features are read from.
     TASK = "Bioscara-PickPlace-v1"
+    #: Its entries in m (or m/s), scaled by ``coarse_m``.
+    LENGTHS: tuple[str, ...] = LENGTH_SLICES
+    #: Its entries also seen in ``fine_m``, before the goal error.
+    FINE: tuple[str, ...] = ("block_from_tcp",)
 
     def __init__(
         self,
@@ -117,33 +149,166 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
         fine_clip: float = 3.0,
     ) -> None:
         """Check the space and build the scale vector."""
-        slices = task(self.TASK).obs_slices()
-        n_obs = max(s.stop for s in slices.values())
-        if not isinstance(observation_space, spaces.Dict) or any(
-            k not in observation_space.spaces for k in GOAL_KEYS
-        ):
-            raise ValueError(f"PickPlaceExtractor needs a goal env's Dict space, got {observation_space}")
-        if observation_space["observation"].shape != (n_obs,):
-            raise ValueError(
-                f"PickPlaceExtractor: observation has shape {observation_space['observation'].shape}, "
-                f"PickPlace's is ({n_obs},)"
-            )
+        name = type(self).__name__
+        slices, n_obs = task_layout(name, self.TASK, observation_space)
         if not (coarse_m > 0 and fine_m > 0 and fine_clip > 0):
-            raise ValueError(f"PickPlaceExtractor: scales {coarse_m}, {fine_m}, {fine_clip} must be > 0")
+            raise ValueError(f"{name}: scales {coarse_m}, {fine_m}, {fine_clip} must be > 0")
         n_goal = observation_space["desired_goal"].shape[0]
-        super().__init__(observation_space, features_dim=n_obs + 2 * n_goal + 3)
+        self._fine = [slices[name] for name in self.FINE]
+        n_fine = sum(s.stop - s.start for s in self._fine)
+        super().__init__(observation_space, features_dim=n_obs + 2 * n_goal + n_fine)
         scale = th.ones(n_obs)
-        for name in LENGTH_SLICES:
+        for name in self.LENGTHS:
             scale[slices[name]] = 1.0 / coarse_m
         self.register_buffer("scale", scale)
-        self._bft = slices["block_from_tcp"]
         self.coarse_m, self.fine_m, self.fine_clip = float(coarse_m), float(fine_m), float(fine_clip)
 
     def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
         """Features of a batch of dict observations."""
         o = observations["observation"]
         error = observations["desired_goal"] - observations["achieved_goal"]
-        fine = th.cat((o[:, self._bft], error), dim=1) / self.fine_m
+        fine = th.cat([o[:, part] for part in self._fine] + [error], dim=1) / self.fine_m
         return th.cat(
             (o * self.scale, error / self.coarse_m, th.clamp(fine, -self.fine_clip, self.fine_clip)), dim=1
         )
+
+
+class PushExtractor(PickPlaceExtractor):
+    """PickPlace's features of Push's observation, plus the geometry of the push.
+
+    Pushing is decided in the frame of the push, ``u`` from the block to the
+    target and ``v`` to its left: how far behind the block the TCP is (``s``)
+    and how far off the line (``t``), and how far the pushing face is turned
+    from ``u``. On raw coordinates a network has to rotate the workspace
+    into that frame itself. Added after PickPlace's features: ``u``, the
+    block's distance to the target, ``s`` and ``t`` over ``coarse_m`` and over
+    ``fine_m`` (clipped to ``+-fine_clip``), and the cosine and sine of twice
+    the face's turn from ``u`` (the face pushes either way round).
+    """
+
+    TASK = "Bioscara-Push-v0"
+    #: Features added to PickPlace's.
+    N_PUSH = 9
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        coarse_m: float = 0.1,
+        fine_m: float = 0.005,
+        fine_clip: float = 3.0,
+    ) -> None:
+        """PickPlace's checks and scales, and the slices of the push's geometry."""
+        super().__init__(observation_space, coarse_m, fine_m, fine_clip)
+        slices = task(self.TASK).obs_slices()
+        self._tcp, self._tool = slices["tcp"], slices["tool_dir"]
+        self._features_dim += self.N_PUSH
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """PickPlace's features and the push's geometry."""
+        o = observations["observation"]
+        block, goal = observations["achieved_goal"][:, :2], observations["desired_goal"][:, :2]
+        error = goal - block
+        dist = th.linalg.vector_norm(error, dim=1, keepdim=True)
+        u = error / th.clamp(dist, min=1e-6)
+        v = th.stack((-u[:, 1], u[:, 0]), dim=1)
+        rel = o[:, self._tcp][:, :2] - block
+        st = th.stack(((rel * u).sum(dim=1), (rel * v).sum(dim=1)), dim=1)
+        c, s = o[:, self._tool][:, 0], o[:, self._tool][:, 1]
+        cos_turn, sin_turn = c * u[:, 0] + s * u[:, 1], s * u[:, 0] - c * u[:, 1]
+        double = th.stack((cos_turn**2 - sin_turn**2, 2 * cos_turn * sin_turn), dim=1)
+        push = th.cat(
+            (
+                u,
+                dist / self.coarse_m,
+                st / self.coarse_m,
+                th.clamp(st / self.fine_m, -self.fine_clip, self.fine_clip),
+                double,
+            ),
+            dim=1,
+        )
+        return th.cat((super().forward(observations), push), dim=1)
+
+
+class StackExtractor(PickPlaceExtractor):
+    """PickPlace's features of Stack's observation: both blocks' lengths in ``coarse_m``, both fine views.
+
+    Features, in order: ``observation`` with every length over ``coarse_m``;
+    the goal error (both blocks, 6 values) over ``coarse_m``; then each
+    block's position from the TCP and the goal error over ``fine_m``, clipped
+    to ``+-fine_clip``.
+    """
+
+    TASK = "Bioscara-Stack-v0"
+    LENGTHS = (
+        "tcp",
+        "lower_pos",
+        "lower_from_tcp",
+        "lower_vel",
+        "upper_pos",
+        "upper_from_tcp",
+        "upper_vel",
+    )
+    FINE = ("lower_from_tcp", "upper_from_tcp")
+
+
+#: Entries of Insert's ``observation`` given in m, scaled by ``coarse_m``.
+INSERT_LENGTH_SLICES = ("tcp", "peg_tip", "goal_from_tip", "above_top")
+
+
+class InsertExtractor(BaseFeaturesExtractor):
+    """Insert's observation with every length in ``coarse_m``, plus a fine view of the alignment.
+
+    Features, in order: ``observation`` with the entries of
+    :data:`INSERT_LENGTH_SLICES` divided by ``coarse_m`` (the rest is in
+    [-1, 1] or rad); the goal error ``desired - achieved`` over ``coarse_m``;
+    then its x and y and the tip's height above the fixture's top over
+    ``fine_m``, and the wrist turn over ``fine_rad``, clipped to
+    ``+-fine_clip``. The peg goes in only within 0.5 mm and about 3
+    degrees, and the expert lowers it at 0.25 mm and 0.86 degrees: in metres
+    and radians those are inputs of 1e-4 to 1e-2.
+
+    Args:
+        observation_space: Bioscara-Insert's ``Dict`` space.
+        coarse_m: Length that maps to 1.0 in the coarse view.
+        fine_m: Length that maps to 1.0 in the fine view.
+        fine_rad: Angle that maps to 1.0 in the fine view.
+        fine_clip: Bound of the fine view.
+
+    Raises:
+        ValueError: Not Insert's observation space, or a scale not positive.
+    """
+
+    #: The task whose observation layout (``OBS_SLICES``) the features are read from.
+    TASK = "Bioscara-Insert-v0"
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        coarse_m: float = 0.1,
+        fine_m: float = 0.001,
+        fine_rad: float = 0.01,
+        fine_clip: float = 3.0,
+    ) -> None:
+        """Check the space and build the scale vectors."""
+        slices, n_obs = task_layout("InsertExtractor", self.TASK, observation_space)
+        if not (coarse_m > 0 and fine_m > 0 and fine_rad > 0 and fine_clip > 0):
+            raise ValueError(
+                f"InsertExtractor: scales {coarse_m}, {fine_m}, {fine_rad}, {fine_clip} must be > 0"
+            )
+        n_goal = observation_space["desired_goal"].shape[0]
+        super().__init__(observation_space, features_dim=n_obs + n_goal + 4)
+        scale = th.ones(n_obs)
+        for name in INSERT_LENGTH_SLICES:
+            scale[slices[name]] = 1.0 / coarse_m
+        self.register_buffer("scale", scale)
+        xy = slices["goal_from_tip"]
+        self._fine = [xy.start, xy.start + 1, slices["above_top"].start, slices["wrist_turn"].start]
+        self.register_buffer("fine_scale", th.tensor([1.0 / fine_m] * 3 + [1.0 / fine_rad]))
+        self.coarse_m, self.fine_clip = float(coarse_m), float(fine_clip)
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """Features of a batch of dict observations."""
+        o = observations["observation"]
+        error = observations["desired_goal"] - observations["achieved_goal"]
+        fine = th.clamp(o[:, self._fine] * self.fine_scale, -self.fine_clip, self.fine_clip)
+        return th.cat((o * self.scale, error / self.coarse_m, fine), dim=1)

@@ -184,7 +184,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         else:
             cfg = config if isinstance(config, ArmConfig) else load_config(config)
             self.backend = make_backend(backend, cfg, **(backend_options or {}))
-        self.config = self.backend.config
+        self.config = self._arm_config(self.backend.config)
         if control_mode == "cartesian":
             self.config = coordinated(self.config)
         self.arm = Arm(self.backend, self.config)
@@ -268,6 +268,14 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def tcp_position(self) -> np.ndarray:
         """TCP position (m) from the measured joints, as on the real arm."""
         return self._tcp.copy()
+
+    def _arm_config(self, config: ArmConfig) -> ArmConfig:
+        """Hook: the configuration the task runs the arm with (default: the backend's as it is).
+
+        Whatever it changes reaches the joints as the arm's own settings do
+        (limits and stall sensitivity are sent when the arm is enabled).
+        """
+        return config
 
     # ------------------------------------------------------------ spaces
     def _make_observation_space(self) -> spaces.Dict:

@@ -29,6 +29,24 @@ def reachable_travel(v_max: np.ndarray, a_max: np.ndarray, t: float) -> np.ndarr
     return np.where(t <= t_peak, triangular, trapezoid)
 
 
+def take_block_off_the_table(model: Any) -> None:
+    """Pin the scene's block (a PickPlace prop) where it is, intangible and invisible (an ``MjModel``).
+
+    Resting on the table it makes 4 friction contacts (24 constraint rows)
+    in every physics step: taking it out took Reach from 1397 to 1603
+    env steps/s. Without contacts it would fall forever; a huge damping on
+    its free joint (integrated implicitly, so stable) holds it instead.
+    """
+    m = model
+    body = m.body("block").id
+    dofs = m.jnt_dofadr[m.joint("block").id] + np.arange(6)
+    m.dof_damping[dofs] = BLOCK_PIN_DAMPING
+    geoms = m.geom_bodyid == body
+    m.geom_contype[geoms] = 0
+    m.geom_conaffinity[geoms] = 0
+    m.geom_rgba[geoms, 3] = 0.0
+
+
 class BioscaraReachEnv(BioscaraEnv):
     """Move the Bioscara's tool centre point (TCP) to a goal position.
 
@@ -154,25 +172,7 @@ class BioscaraReachEnv(BioscaraEnv):
         self.goal_horizon_s = float(goal_horizon_s)
         self.goal_radius = float(goal_radius)
         if self.sim is not None:
-            self._take_block_off_the_table()
-
-    def _take_block_off_the_table(self) -> None:
-        """Pin the scene's block (a PickPlace prop) where it is, intangible and invisible.
-
-        Resting on the table it makes 4 friction contacts (24 constraint rows)
-        in every physics step: taking it out took Reach from 1397 to 1603
-        env steps/s.
-        Without contacts it would fall forever; a huge damping on its free
-        joint (integrated implicitly, so stable) holds it instead.
-        """
-        m = self.sim.model
-        body = m.body("block").id
-        dofs = m.jnt_dofadr[m.joint("block").id] + np.arange(6)
-        m.dof_damping[dofs] = BLOCK_PIN_DAMPING
-        geoms = m.geom_bodyid == body
-        m.geom_contype[geoms] = 0
-        m.geom_conaffinity[geoms] = 0
-        m.geom_rgba[geoms, 3] = 0.0
+            take_block_off_the_table(self.sim.model)
 
     def _sample_goal(self) -> np.ndarray:
         """A goal within ``goal_radius`` of the TCP, reachable within ``goal_horizon_s``.

@@ -24,7 +24,7 @@ import numpy as np
 from bioscara_gym.assets import scene_path
 
 RENDER_MODES = ("rgb_array", "human")
-#: Camera of ``assets/scene.xml`` that ``rgb_array`` images are taken with.
+#: Camera of ``assets/scene.xml`` that ``rgb_array`` images are taken with (unless a task names another).
 CAMERA = "overview"
 
 
@@ -71,11 +71,19 @@ class SceneState:
         joints: Measured joint positions by name; drawn only by a mirror.
         bodies: Free bodies' position (m) and yaw (rad) by joint name; drawn
             only by a mirror (e.g. PickPlace's kinematic block).
+        camera: The scene's camera ``rgb_array`` images are taken with.
+        mocaps: Mocap bodies' position (m) and yaw (rad) by body name; posed
+            only in a mirror (the simulation poses its own).
+        shown: Geoms the scene hides (alpha 0) that this task shows, by name;
+            shown only in a mirror (e.g. Insert's peg).
     """
 
     goal: np.ndarray
     joints: Mapping[str, float]
     bodies: Mapping[str, tuple[np.ndarray, float]] = field(default_factory=dict)
+    camera: str = CAMERA
+    mocaps: Mapping[str, tuple[np.ndarray, float]] = field(default_factory=dict)
+    shown: tuple[str, ...] = ()
 
 
 def set_free_body(model: Any, data: Any, joint: str, pos: np.ndarray, yaw: float) -> None:
@@ -116,6 +124,12 @@ class ArmView:
             data.qpos[model.jnt_qposadr[model.joint(name).id]] = q
         for joint, (pos, yaw) in scene.bodies.items():
             set_free_body(model, data, joint, pos, yaw)
+        for body, (pos, yaw) in scene.mocaps.items():
+            mocap = model.body(body).mocapid[0]
+            data.mocap_pos[mocap] = pos
+            data.mocap_quat[mocap] = [math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]
+        for geom in scene.shown:
+            model.geom_rgba[model.geom(geom).id, 3] = 1.0
         return model, data
 
     def render(self, sim: Any, scene: SceneState) -> np.ndarray | None:
@@ -139,7 +153,7 @@ class ArmView:
             return None
         if self._renderer is None:
             self._renderer = mujoco.Renderer(model, *self.size)
-        self._renderer.update_scene(data, camera=CAMERA)
+        self._renderer.update_scene(data, camera=scene.camera)
         return self._renderer.render()
 
     def close(self) -> None:
