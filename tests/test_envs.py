@@ -477,6 +477,33 @@ def test_stalled_joint_comes_from_the_error_not_its_text(
     assert u.arm.state is Lifecycle.INACTIVE
 
 
+def test_a_stall_refused_by_a_write_ends_the_episode_and_the_next_one_starts(
+    make_env: MakeEnv, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The firmware refuses motion while stalled: the driver's write raises StalledError,
+    # the arm runs its on-error transition (joints and gripper disconnected), and the
+    # env still observes (the gripper's last width) and ends the episode. Seen in DAgger
+    # on PickPlace once the calibrated drives lost steps: "gripper: not initialized".
+    env = make_env("Bioscara-PickPlace-v1", backend="mock")
+    env.reset(seed=0)
+    u = env.unwrapped
+    width = u._width
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise StalledError("stall detection tripped", joint="j1")
+
+    monkeypatch.setattr(u.arm.joints["j1"], "set_velocity", refuse)
+    monkeypatch.setattr(u.arm.joints["j1"], "set_position", refuse)
+    _, reward, terminated, _, info = env.step(u._neutral_action())
+    assert terminated and info["stalled"] is True and info["stalled_joint"] == "j1"
+    assert reward < BioscaraEnv.stall_penalty + 1e-9
+    assert not u.arm.gripper.is_initialized and u._width == width
+    monkeypatch.undo()
+    env.reset(seed=1)
+    assert u.arm.state is Lifecycle.ACTIVE and u.arm.gripper.is_initialized
+    assert not env.step(u._neutral_action())[2]
+
+
 # ----------------------------------------------------------- public operations
 
 

@@ -439,7 +439,10 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             st = states[name]
             self._q[i] = st.position
             self._qd[i] = st.velocity
-        self._width = self.arm.gripper.get_position()
+        # A stall refused by a write has run the arm's on-error transition, which
+        # disconnects the gripper: its width stays the last one read.
+        if self.arm.gripper.is_initialized:
+            self._width = self.arm.gripper.get_position()
         noise = self.randomization.sensor_noise
         if noise:
             self._q = self._q + self._noise_rng.normal(0.0, noise, size=self._q.shape)
