@@ -441,7 +441,7 @@ def emulated_mujoco_j2() -> JointRig:
 #: Why the SITL tests skip, and how to run them.
 SITL_SKIP_REASON = (
     "firmware in the loop: set BIOSCARA_FIRMWARE to the joint firmware's folder "
-    "(Arduino/joint/ of a checkout of DALSA-Lab/bioscara); .ci/run does when ../shared/firmware/joint exists"
+    "(Arduino/joint/ of a checkout of DALSA-Lab/bioscara); .ci/run sets it when CI has that folder"
 )
 
 

@@ -8,6 +8,8 @@ Every run and its files other than the trace go to a temporary directory.
 
 from __future__ import annotations
 
+import contextlib
+import shutil
 import sys
 import tempfile
 from collections.abc import Callable
@@ -53,25 +55,29 @@ TRACES: dict[str, list[list[str]]] = {
 }
 
 
-def _with_files(command: list[str], trace: Path, tmp: Path) -> list[str]:
-    """The command with ``--record`` and its side files (log, state) in ``tmp``."""
-    extra = ["--record", str(trace)]
+def _with_files(command: list[str], trace: str) -> list[str]:
+    """The command with ``--record`` and its side files (log, state), all relative to the working folder."""
+    extra = ["--record", trace]
     if command[0] == "deploy":
-        extra += ["--log", str(tmp / "deploy.jsonl")]
+        extra += ["--log", "deploy.jsonl"]
     elif command[0] != "eval":
-        extra += ["--state", str(tmp / "state.json")]
+        extra += ["--state", "state.json"]
     return [*command, *extra]
 
 
 def record(name: str, run: Callable[[list[str]], int] = main) -> Path:
-    """Record trace ``name`` afresh (the old file is replaced)."""
+    """Record trace ``name`` afresh (the old file is replaced).
+
+    The commands run in a temporary folder with relative file names, so the
+    trace's headers name no path of the machine that recorded it.
+    """
     trace = HERE / name
-    trace.unlink(missing_ok=True)
-    with tempfile.TemporaryDirectory(prefix="bioscara-record-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="bioscara-record-") as tmp, contextlib.chdir(tmp):
         for command in TRACES[name]:
-            code = run(_with_files(command, trace, Path(tmp)))
+            code = run(_with_files(command, name))
             if code not in (0, 3):  # 3: a safety stop, which a fault trace may well record
                 raise SystemExit(f"{' '.join(command)} exited with {code}")
+        shutil.move(Path(tmp) / name, trace)
     return trace
 
 
