@@ -177,3 +177,18 @@ def test_rl_zoo3_optimize_runs_two_trials_on_reach(
     out = zoo(monkeypatch, capsys, "train", *args)
     assert "Number of finished trials:  2" in out, out[-3000:]
     assert list((tmp_path / "sac").glob(f"report_{REACH}_2-trials-400-random-none_*.csv"))
+
+
+def test_reach_stops_with_a_margin_above_the_target_users_are_judged_on() -> None:
+    """Issue #26 item 7: a run stopped at exactly 95 % left rl-zoo3's enjoy at 93-96 %.
+
+    The shipped Reach entry stops only at 98 % on its own 100 episodes, and
+    learns from the scripted expert's demonstrations (20 episodes, cloned
+    before SAC's first step): with both, enjoy scored 100 % for seeds 0-2.
+    """
+    entry = yaml.safe_load(default_config_path("sac").read_text(encoding="utf-8"))[REACH]
+    callbacks = {name: kwargs for c in entry["callback"] for name, kwargs in c.items()}
+    assert callbacks[SUCCESS_CALLBACK]["target_success"] == 0.98
+    assert callbacks[SUCCESS_CALLBACK]["eval_episodes"] == 100
+    demos = callbacks["bioscara_gym.training.zoo.DemonstrationCallback"]
+    assert demos["episodes"] == 20 and demos["pretrain_steps"] == 1000
