@@ -131,7 +131,6 @@ __all__ = [
 OVERRUN_WARNINGS = 5
 
 
-
 # ---------------------------------------------------------------- deployment
 class Deployment:
     """One ``bioscara deploy`` run (see the module docstring).
@@ -419,6 +418,7 @@ class Deployment:
         if outcome.reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
             raise Interrupted(outcome.exit_code - 128)
         raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
+
 
 # ----------------------------------------------------------------------- CLI
 def _args_from_namespace(ns: argparse.Namespace) -> DeployArgs:

@@ -31,7 +31,6 @@ class Interrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
-
 class SignalGuard:
     """SIGINT and SIGTERM become :class:`Interrupted` for the duration of a ``with`` block.
 
