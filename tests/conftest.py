@@ -65,6 +65,15 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _sb3_logs_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """stable-baselines3 makes a ``SB3-<date>`` folder in the system's temp dir for every model
+    that learns without a TensorBoard log (rl-zoo3's runs, the tests' short ones); keep them here."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3")))
+        yield
+
+
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     """The ``rig`` fixture's ids: the real arm's joints with ``--hw``, else every rig of ``rigs.py``."""
     if "rig" in metafunc.fixturenames:
