@@ -629,3 +629,19 @@ def test_a_rotor_blocked_at_85_microsteps_a_pass_is_detected() -> None:
     # are dropped and the rotor's swing back lowers the passes between them.
     tripped = _blocked_at(-100.0, FIRMWARE_STALL_RULE)
     assert tripped is not None and 0.12 < tripped <= 0.5
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"), [(1e39, float("inf")), (-1e39, float("-inf")), (3.0e38, 3.0e38)]
+)
+def test_a_value_beyond_floats_range_is_infinite_as_the_c_cast_makes_it_without_a_warning(
+    value: float, expected: float
+) -> None:
+    """The library computes in C float: a double beyond FLT_MAX (3.4028235e38) casts to infinity."""
+    import warnings
+
+    from bioscara_gym.hardware.drive import _f32
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _f32(value) == pytest.approx(expected, rel=1e-7)

@@ -83,8 +83,13 @@ _U32_MAX = 0xFFFFFFFF
 
 
 def _f32(x: float) -> float:
-    """Round to the nearest single-precision float (the library computes in float)."""
-    return float(np.float32(x))
+    """Round to the nearest single-precision float (the library computes in float).
+
+    Beyond float's range the result is infinite, as the C cast's is (IEEE 754):
+    no warning, since a register value that large is the firmware's case too.
+    """
+    with np.errstate(over="ignore"):
+        return float(np.float32(x))
 
 
 def _to_u32(x: float) -> int:
