@@ -120,7 +120,7 @@ def evaluate(env_id: str, out: Path, episodes: int) -> tuple[float, int]:
 
     import bioscara_gym  # noqa: F401
     from bioscara_gym.training.algos import ALGOS, sb3_policy
-    from bioscara_gym.training.checkpoints import newest_checkpoint
+    from bioscara_gym.training.checkpoints import CHECKPOINT_RE, newest_checkpoint
     from bioscara_gym.training.evaluate import run_episodes
 
     path = out / "model.zip"
@@ -133,8 +133,11 @@ def evaluate(env_id: str, out: Path, episodes: int) -> tuple[float, int]:
     model = ALGOS["sac"].load(path, env=None, device="cpu", custom_objects=act_only)
     meta = out / "metadata.json"
     steps = int(model.num_timesteps)
-    if meta.exists():  # DAgger and BC count env steps in their metadata, not in the model
+    # DAgger and BC count env steps in their metadata and their checkpoints' names, not in the model.
+    if meta.exists():
         steps = int(json.loads(meta.read_text(encoding="utf-8")).get("timesteps") or steps)
+    elif (named := CHECKPOINT_RE.search(path.name)) is not None:
+        steps = max(steps, int(named.group(1)))
     env = gym.make(env_id, **_env_kwargs(env_id, out))
     try:
         stats = run_episodes(env, sb3_policy(model), episodes, seed=10_000)
