@@ -22,14 +22,16 @@ from bioscara_gym.experts import ObservationExpert, PickPlaceExpert
 from bioscara_gym.training import dagger
 from bioscara_gym.training.algos import load_model
 from bioscara_gym.training.dagger import Labelled, label_episodes
+from bioscara_gym.training.dagger_config import DaggerConfig, load_dagger_config
 from bioscara_gym.training.evaluate import run_episodes
 from bioscara_gym.training.features import PickPlaceExtractor
-from bioscara_gym.training.hyperparams import DaggerConfig, default_config_path, load_dagger_config
+from bioscara_gym.training.hyperparams import default_config_path
 from bioscara_gym.training.train import TrainArgs, TrainingInterrupted, choose_method, train
 
 
 def uses_dagger(args: TrainArgs, env_id: str) -> bool:
     return choose_method(args, env_id).name == "dagger"
+
 
 PICK = "Bioscara-PickPlace-v1"
 REACH = "Bioscara-Reach-v0"

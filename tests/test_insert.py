@@ -389,8 +389,9 @@ def test_insert_trains_with_dagger_by_default_on_its_extractor(tmp_path: Path) -
     import yaml
 
     from bioscara_gym.training.algos import load_model
+    from bioscara_gym.training.dagger_config import load_dagger_config
     from bioscara_gym.training.features import InsertExtractor
-    from bioscara_gym.training.hyperparams import default_config_path, load_dagger_config
+    from bioscara_gym.training.hyperparams import default_config_path
     from bioscara_gym.training.train import TrainArgs, choose_method, train
 
     packaged = load_dagger_config(default_config_path("dagger"), INSERT)

@@ -222,6 +222,21 @@ def test_training_reaches_the_envs_only_through_gym_make() -> None:
 
 
 # ------------------------------------------------------------------------ wheel
+def test_training_modules_stay_small_enough_to_read() -> None:
+    """Issue #26: no function in training/ over 60 lines, no file over 500."""
+    too_long = []
+    for path in sorted((ROOT / "training").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        if len(text.splitlines()) > 500:
+            too_long.append(f"{path.name}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = (node.end_lineno or node.lineno) - node.lineno + 1
+                if length > 60:
+                    too_long.append(f"{path.name}:{node.lineno} {node.name}: {length} lines")
+    assert not too_long, too_long
+
+
 def test_core_dependencies_leave_out_the_heavy_ones() -> None:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     core = {d.split(">")[0].split("=")[0].split("[")[0].lower() for d in project["dependencies"]}

@@ -20,7 +20,7 @@ observation through the task's ``extractor``
 
 It is PickPlace's default method (``bioscara train --env Bioscara-PickPlace``),
 configured by ``training/configs/dagger.yaml``
-(:class:`~bioscara_gym.training.hyperparams.DaggerConfig`); the model is a
+(:class:`~bioscara_gym.training.dagger_config.DaggerConfig`); the model is a
 SAC model whose actor was cloned, so ``eval``, ``export`` and ``deploy`` load
 it as ``--algo bc``'s. Measured figures and the choices behind the config:
 the README, "Learning PickPlace from demonstrations".
@@ -43,10 +43,10 @@ from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.tasks import GOAL_KEYS, Expert, Policy, task_of
 from bioscara_gym.training.base import RunPlan, TrainingMethod
 from bioscara_gym.training.checkpoints import checkpoint_dir, companion_path, load_newest, save_checkpoint
+from bioscara_gym.training.dagger_config import DaggerConfig
 from bioscara_gym.training.demos import Demos, check_demos, load_demos
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.hyperparams import DaggerConfig
 from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
 from bioscara_gym.training.signals import SignalGuard
 

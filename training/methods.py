@@ -105,7 +105,7 @@ register_method(
         "DAgger",
         model="SAC",
         saves_as="bc",
-        config_loader="bioscara_gym.training.hyperparams:load_dagger_config",
+        config_loader="bioscara_gym.training.dagger_config:load_dagger_config",
     )
 )
 

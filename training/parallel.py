@@ -63,6 +63,14 @@ def env_maker(env_id: str) -> Callable[..., gym.Env]:
     return make
 
 
+def _ended(info: dict[str, Any], steps: int, on_episode: EpisodeLog | None) -> bool:
+    """An episode's success (``is_success`` after its last step), told to ``on_episode``."""
+    success = bool(info.get("is_success", False))
+    if on_episode is not None:
+        on_episode(success, steps)
+    return success
+
+
 def label_rollouts(
     venv: VecEnv,
     act: Policy,
@@ -84,19 +92,17 @@ def label_rollouts(
         The observations, their labels, and how many episodes succeeded.
     """
     n = venv.num_envs
-    current: list[int | None] = [None] * n
     steps = [0] * n
-    obs: list[dict[str, np.ndarray] | None] = [None] * n
+    obs: list[dict[str, np.ndarray] | None] = [None] * n  # None: the worker idles
     started = 0
 
     def start(i: int) -> None:
+        """Worker ``i`` resets for the next seeded episode, or idles when none is left."""
         nonlocal started
-        if started >= episodes:
-            current[i] = None
-            return
-        first, _ = venv.env_method("reset", seed=seed + started, indices=[i])[0]
-        obs[i], current[i], steps[i] = first, started, 0
-        started += 1
+        obs[i], steps[i] = None, 0
+        if started < episodes:
+            obs[i] = venv.env_method("reset", seed=seed + started, indices=[i])[0][0]
+            started += 1
 
     for i in range(n):
         start(i)
@@ -104,11 +110,10 @@ def label_rollouts(
     labels: list[np.ndarray] = []
     successes = 0
     idle = np.zeros(venv.action_space.shape, dtype=np.float32)
-    while any(c is not None for c in current):
+    while any(o is not None for o in obs):
         actions = np.repeat(idle[None], n, axis=0)
-        for i in range(n):
-            o = obs[i]
-            if current[i] is None or o is None:
+        for i, o in enumerate(obs):
+            if o is None:
                 continue
             label = np.asarray(expert(o), dtype=np.float32)
             mixed = act is expert or (beta > 0 and rng.random() < beta)
@@ -117,14 +122,11 @@ def label_rollouts(
             labels.append(label)
         next_obs, _, dones, infos = venv.step(actions)
         for i in range(n):
-            if current[i] is None:
+            if obs[i] is None:
                 continue
             steps[i] += 1
             if dones[i]:
-                success = bool(infos[i].get("is_success", False))
-                successes += success
-                if on_episode is not None:
-                    on_episode(success, steps[i])
+                successes += _ended(infos[i], steps[i], on_episode)
                 start(i)
             else:
                 obs[i] = {k: np.asarray(next_obs[k][i]) for k in GOAL_KEYS}

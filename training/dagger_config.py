@@ -1,0 +1,125 @@
+"""DAgger's configuration: one env's entry of ``training/configs/dagger.yaml``, checked on load.
+
+Not an rl-zoo3 file (rl-zoo3 has no imitation learning); read with the same
+:func:`~bioscara_gym.training.hyperparams.read_entry` and
+:func:`~bioscara_gym.training.hyperparams.refuse_unknown_keys` as rl-zoo3's
+files, so a bad entry gets the same one-line errors.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from bioscara_gym.errors import HyperparamError
+from bioscara_gym.training.hyperparams import read_entry, refuse_unknown_keys
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """One env's entry of ``training/configs/dagger.yaml``, checked on load.
+
+    Not an rl-zoo3 file (rl-zoo3 has no imitation learning), read by
+    :func:`load_dagger_config` with the same :func:`read_entry` and
+    :func:`refuse_unknown_keys` as rl-zoo3's files.
+
+    Attributes:
+        source: File the entry came from.
+        n_timesteps: Budget in env steps, the expert's episodes included.
+        env_kwargs: Keyword arguments for ``gym.make``.
+        net_arch: Hidden layers of the actor.
+        features: Keyword arguments of the task's features extractor
+            (PickPlace: :class:`~bioscara_gym.training.features.PickPlaceExtractor`).
+        demo_episodes: Expert episodes cloned first (iteration 0).
+        episodes_per_iteration: Learner episodes labelled per iteration.
+        bc_steps_first: Gradient steps of the first cloning.
+        bc_steps: Gradient steps after each aggregation (warm-started).
+        batch_size: Labelled states per gradient step.
+        learning_rate: Adam's learning rate.
+        beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
+        eval_episodes: Episodes of the confirming success evaluation.
+        target_success: Success rate at which training stops.
+        n_envs: Envs the rollouts run in, each in a subprocess when more
+            than 1 (SB3's ``SubprocVecEnv``); 1: one env, in this process.
+    """
+
+    source: str
+    n_timesteps: int = 72_000
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    net_arch: tuple[int, ...] = (256, 256)
+    features: dict[str, float] = field(default_factory=dict)
+    demo_episodes: int = 60
+    episodes_per_iteration: int = 20
+    bc_steps_first: int = 3000
+    bc_steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    beta: float = 0.5
+    eval_episodes: int = 100
+    target_success: float = 0.9
+    n_envs: int = 1
+
+    def __post_init__(self) -> None:
+        """Refuse counts below 1 and rates outside their range.
+
+        Raises:
+            HyperparamError: The first bad value, named with the file.
+        """
+        where = f"config {self.source}"
+        counts = (
+            "n_timesteps",
+            "demo_episodes",
+            "episodes_per_iteration",
+            "bc_steps_first",
+            "batch_size",
+            "n_envs",
+        )
+        for name in (*counts, "eval_episodes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise HyperparamError(f"{where}: {name} is {value!r}; expected a whole number >= 1")
+        if isinstance(self.bc_steps, bool) or not isinstance(self.bc_steps, int) or self.bc_steps < 0:
+            raise HyperparamError(f"{where}: bc_steps is {self.bc_steps!r}; expected a whole number >= 0")
+        if not 0.0 < self.target_success <= 1.0:
+            raise HyperparamError(f"{where}: target_success is {self.target_success!r}; expected (0, 1]")
+        if not 0.0 <= self.beta < 1.0:
+            raise HyperparamError(f"{where}: beta is {self.beta!r}; expected [0, 1)")
+        if not self.learning_rate > 0:
+            raise HyperparamError(f"{where}: learning_rate is {self.learning_rate!r}; expected > 0")
+        if not self.net_arch or any(
+            isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch
+        ):
+            raise HyperparamError(f"{where}: net_arch is {list(self.net_arch)!r}; expected layer widths >= 1")
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-friendly view (for the metadata)."""
+        out = dataclasses.asdict(self)
+        out["net_arch"] = list(self.net_arch)
+        return out
+
+
+def load_dagger_config(path: str | Path, env_id: str) -> DaggerConfig:
+    """``env_id``'s entry of DAgger file ``path``.
+
+    Raises:
+        HyperparamError: Unreadable, not YAML, no entry, an unknown key (with
+            the closest known one), or a bad value.
+    """
+    entry = read_entry(path, env_id, kind="DAgger ")
+    names = [f.name for f in dataclasses.fields(DaggerConfig) if f.name != "source"]
+    refuse_unknown_keys(
+        entry, names, f"config {path}: {env_id}", "a DAgger setting", f"known keys: {', '.join(names)}"
+    )
+    for key in ("env_kwargs", "features"):
+        if not isinstance(entry.get(key, {}), dict):
+            raise HyperparamError(f"config {path}: {env_id}.{key} must be a mapping")
+    if "net_arch" in entry:
+        if not isinstance(entry["net_arch"], list):
+            raise HyperparamError(f"config {path}: {env_id}.net_arch must be a list of layer widths")
+        entry["net_arch"] = tuple(entry["net_arch"])
+    value = entry.get("n_timesteps")  # YAML writes 3e5 as a float
+    if isinstance(value, float) and value.is_integer():
+        entry["n_timesteps"] = int(value)
+    return DaggerConfig(source=str(path), **entry)
