@@ -9,6 +9,7 @@ itself at run time; control-table values are the XL430-W250 e-Manual's.
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 from collections.abc import Iterator
@@ -21,7 +22,15 @@ from bioscara_gym.hardware.dynamixel import control_table as ct
 from bioscara_gym.hardware.dynamixel import protocol
 from bioscara_gym.hardware.dynamixel.emulator import EmulatedRS485Bus
 from bioscara_gym.hardware.emulated_bus import Fault, FaultPlan
-from bioscara_gym.hardware.errors import CommError, MissingExtraError
+from bioscara_gym.hardware.errors import (
+    CommError,
+    InvalidArgumentError,
+    JointError,
+    MissingExtraError,
+    NotEnabledError,
+    StalledError,
+)
+from bioscara_gym.hardware.registers import Flag, Reg
 
 sdk = pytest.importorskip("dynamixel_sdk")
 
@@ -589,3 +598,532 @@ def test_pvl_reader_decodes_signed_load_velocity_and_position() -> None:
     servo.set("Present Position", -5000)  # 78 EC FF FF
     bus.read_loops()  # the clock has not moved: the servo does not overwrite them
     assert (joint.load_raw, joint.velocity_raw, joint.position_raw) == (-100, -20, -5000)
+
+
+def test_sync_reads_ask_for_the_pvl_and_tv_blocks_by_length() -> None:
+    # MH5's PVLReader: start 126, length 10; TVReader: start 144, length 3 (SYNC READ 0x82 to 0xFE)
+    bus, emulated, _ = rig(ids=(1, 2))
+    DynamixelJoint("j1", 1, bus).init()
+    DynamixelJoint("j2", 2, bus).init()
+    bus.start_loops()
+    emulated.keep_log = True
+    bus.read_loops()
+    assert [(p.id, p.instruction, p.params) for p in emulated.log] == [
+        (0xFE, 0x82, h("7E 00 0A 00 01 02")),
+        (0xFE, 0x82, h("90 00 03 00 01 02")),
+    ]
+
+
+# ================================================================== joint.py
+
+#: MH5 / e-Manual units: rad per position unit, rad/s per velocity unit, rad/s^2 per acceleration unit.
+RAD = 0.001533980787886
+RADS = 0.023980823922402
+RADS2 = 214.577 * 2 * 3.141592653589793 / 3600.0
+
+
+def dxl(
+    ids: tuple[int, ...] = (1,), faults: FaultPlan | None = None, **joint_kwargs: float
+) -> tuple[DynamixelJoint, DynamixelBus, EmulatedRS485Bus, ManualClock]:
+    """An initialized joint on ID ``ids[0]`` of an emulated bus."""
+    clock = ManualClock()
+    emulated = EmulatedRS485Bus.with_ids(ids, clock=clock, faults=faults)
+    bus = DynamixelBus(EmulatedPortHandler(emulated), clock=clock)
+    joint = DynamixelJoint("j1", ids[0], bus, clock=clock, **joint_kwargs)
+    joint.init()
+    return joint, bus, emulated, clock
+
+
+def refused(error: type[Exception], call: object, *args: object) -> str:
+    """The message of the error ``call(*args)`` raises (its joint checked to be j1)."""
+    with pytest.raises(error) as e:
+        call(*args)  # type: ignore[operator]
+    assert getattr(e.value, "joint", "j1") == "j1"
+    return str(e.value)
+
+
+# ------------------------------------------------------------------ construction
+
+
+def test_a_joint_takes_the_clock_given_or_the_bus_s() -> None:
+    bus, _, clock = rig()
+    other = ManualClock()
+    assert DynamixelJoint("j1", 1, bus).clock is clock
+    assert DynamixelJoint("j2", 2, bus, clock=other).clock is other
+
+
+@pytest.mark.parametrize("dxl_id", [0, 252])
+def test_ids_0_and_252_are_accepted(dxl_id: int) -> None:
+    bus, _, _ = rig()
+    assert DynamixelJoint("j1", dxl_id, bus).dxl_id == dxl_id
+
+
+@pytest.mark.parametrize(("dxl_id", "shown"), [(253, "253"), (-1, "-1"), (True, "True"), (1.0, "1.0")])
+def test_an_id_beyond_0_252_or_not_an_int_is_refused(dxl_id: object, shown: str) -> None:
+    bus, _, _ = rig()
+    message = refused(InvalidArgumentError, DynamixelJoint, "j1", dxl_id, bus)
+    assert message == f"j1: Dynamixel ID {shown} must be 0-252"
+
+
+def test_a_non_finite_offset_is_refused() -> None:
+    bus, _, _ = rig()
+    with pytest.raises(InvalidArgumentError) as e:
+        DynamixelJoint("j1", 1, bus, offset=math.inf)
+    assert str(e.value) == "j1: offset inf must be finite" and e.value.joint == "j1"
+
+
+def test_effort_voltage_and_temperature_are_0_before_any_loop_ran() -> None:
+    joint, *_ = dxl()
+    assert (joint.get_effort(), joint.get_voltage(), joint.get_temperature()) == (0.0, 0.0, 0.0)
+
+
+def test_nothing_is_sent_by_the_writers_after_init() -> None:
+    joint, bus, emulated, _ = dxl()
+    bus.start_loops()
+    emulated.keep_log = True
+    bus.write_loops()
+    assert emulated.log == [] and not joint.has_pv_command() and not joint.has_torque_request()
+
+
+# ------------------------------------------------------------------ init
+
+
+def test_init_refuses_another_model_and_stays_uninitialized(monkeypatch: pytest.MonkeyPatch) -> None:
+    bus, _, _ = rig()
+    joint = DynamixelJoint("j1", 1, bus)
+    monkeypatch.setattr(bus, "ping", lambda joint, tries=None: 1030)  # an XM430-W350 (e-Manual)
+    message = refused(CommError, joint.init)
+    assert message == "j1: ID 1 is model 1030, expected XL430-W250 (1060)"
+    assert not joint.initialized
+
+
+def test_init_that_fails_after_the_ping_leaves_the_joint_uninitialized() -> None:
+    clock = ManualClock()
+    # status 0 answers the PING; the three tries of the flags' READ get no answer
+    emulated = EmulatedRS485Bus.with_ids(
+        [1], clock=clock, faults=FaultPlan(schedule={1: Fault.DROP, 2: Fault.DROP, 3: Fault.DROP})
+    )
+    joint = DynamixelJoint("j1", 1, DynamixelBus(EmulatedPortHandler(emulated), clock=clock))
+    with pytest.raises(CommError):
+        joint.init()
+    assert not joint.initialized
+
+
+def test_init_takes_the_servo_s_profile_for_the_pv_writer() -> None:
+    clock = ManualClock()
+    emulated = EmulatedRS485Bus.with_ids([1], clock=clock)
+    servo = emulated.servos[1]
+    servo.set("Profile Acceleration", 5)
+    servo.set("Profile Velocity", 7)
+    bus = DynamixelBus(EmulatedPortHandler(emulated), clock=clock)
+    joint = DynamixelJoint("j1", 1, bus, clock=clock)
+    joint.init()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_position(0.1)
+    bus.write_loops()
+    assert (servo.get("Profile Acceleration"), servo.get("Profile Velocity")) == (5, 7)
+    assert servo.get("Goal Position") == 2047 + 65  # round(0.1 / RAD)
+
+
+# ------------------------------------------------------------------ status and flags
+
+
+def test_an_alert_in_any_status_is_stall_and_torque_off() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    servo = emulated.servos[1]
+    servo.table[70] = int(ct.HardwareError.OVERLOAD)  # Hardware Error Status, behind the driver
+    servo.table[64] = 0
+    joint.get_position()  # one READ; its status has the Alert bit
+    assert joint.flags == Flag.STALL | Flag.NOT_ENABLED
+
+
+def test_a_status_without_alert_clears_only_stall() -> None:
+    joint, _, emulated, _ = dxl()
+    servo = emulated.servos[1]
+    servo.table[70] = int(ct.HardwareError.OVERLOAD)
+    joint.get_position()
+    assert joint.flags == Flag.STALL | Flag.NOT_ENABLED
+    servo.table[70] = 0  # cleared (as a REBOOT does)
+    joint.get_position()
+    assert joint.flags == Flag.NOT_ENABLED
+
+
+def test_disable_of_a_stalled_joint_keeps_stall() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    emulated.servos[1].table[70] = int(ct.HardwareError.OVERLOAD)
+    joint.disable()
+    assert joint.flags == Flag.STALL | Flag.NOT_ENABLED
+
+
+def test_a_stall_names_the_servo_s_hardware_error() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    emulated.servos[1].table[70] = int(ct.HardwareError.INPUT_VOLTAGE)
+    joint.get_flags()
+    message = refused(StalledError, joint.set_position, 0.1)
+    assert message == "j1: hardware error <HardwareError.INPUT_VOLTAGE: 1>; reboot the joint to clear it"
+
+
+def test_a_disabled_joint_refuses_motion_as_not_enabled() -> None:
+    joint, *_ = dxl()
+    assert refused(NotEnabledError, joint.set_position, 0.1) == "j1: joint not enabled; call enable() first"
+
+
+def test_enable_refused_by_the_servo_without_a_hardware_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    joint, _, emulated, _ = dxl()
+    monkeypatch.setattr(emulated.servos[1], "write", lambda address, data: 0)  # acknowledged, not taken
+    assert refused(NotEnabledError, joint.enable, 20, 20) == "j1: failed to enable: the servo kept torque off"
+
+
+@pytest.mark.parametrize(
+    ("drive", "hold", "message"), [(101, 20, "drive current 101"), (20, -1, "hold current -1")]
+)
+def test_enable_names_the_current_refused(drive: int, hold: int, message: str) -> None:
+    joint, *_ = dxl()
+    assert (
+        refused(InvalidArgumentError, joint.enable, drive, hold)
+        == f"j1: {message} must be an integer percent 0-100"
+    )
+
+
+def test_torque_and_mode_writes_touch_only_their_own_item() -> None:
+    # Torque Enable (64) and Operating Mode (11) are 1 byte: LED (65) and Secondary ID (12) stay
+    joint, _, emulated, _ = dxl()
+    servo = emulated.servos[1]
+    servo.set("LED", 1)
+    joint.enable(20, 20)
+    joint.set_velocity(0.1)  # torque off, Operating Mode 1, torque on
+    joint.disable()
+    assert (servo.get("LED"), servo.get("Secondary ID")) == (1, 255)
+    assert servo.get("Operating Mode") == ct.OperatingMode.VELOCITY
+
+
+# ------------------------------------------------------------------ loops and the joint
+
+
+def test_pv_and_torque_requests_are_sent_once() -> None:
+    joint, bus, emulated, clock = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_position(0.1)
+    joint.request_torque(True)
+    bus.write_loops()
+    assert not joint.has_pv_command() and not joint.has_torque_request()
+    clock.sleep(1.0)
+    emulated.keep_log = True
+    bus.write_loops()
+    assert emulated.log == []
+
+
+def test_a_torque_off_request_marks_the_joint_not_enabled() -> None:
+    joint, bus, emulated, _ = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.request_torque(False)
+    bus.write_loops()
+    assert joint.flags == Flag.NOT_ENABLED and not emulated.servos[1].torque
+
+
+def test_synced_velocity_sends_the_signed_goal_velocity_and_keeps_the_goal_position() -> None:
+    joint, bus, emulated, _ = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_velocity(-20 * RADS)
+    bus.write_loops()
+    servo = emulated.servos[1]
+    assert (servo.get("Goal Velocity"), servo.get("Goal Position")) == (-20, 2047)
+
+
+def test_synced_position_after_velocity_sends_goal_velocity_0() -> None:
+    joint, bus, emulated, clock = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_velocity(0.5)
+    bus.write_loops()
+    clock.sleep(0.02)
+    joint.set_position(0.1)
+    bus.write_loops()
+    assert emulated.servos[1].get("Goal Velocity") == 0
+
+
+@pytest.mark.parametrize("drop", ["disable", "reboot"])
+def test_commands_pending_for_the_writers_are_dropped_by_disable_and_reboot(drop: str) -> None:
+    joint, bus, emulated, clock = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_position(0.1)
+    joint.request_torque(True)
+    getattr(joint, drop)()
+    clock.sleep(1.0)
+    emulated.keep_log = True
+    bus.write_loops()
+    assert emulated.log == []
+
+
+def test_a_position_pending_for_the_pv_writer_is_dropped_by_stop() -> None:
+    joint, bus, emulated, clock = dxl()
+    joint.enable(20, 20)
+    bus.start_loops()
+    joint.set_position(0.1)
+    joint.stop()
+    clock.sleep(1.0)
+    emulated.keep_log = True
+    bus.write_loops()
+    assert emulated.log == []
+
+
+def test_fresh_loop_values_are_used_for_three_periods_then_read_again() -> None:
+    joint, bus, emulated, clock = dxl()
+    bus.start_loops()
+    clock.sleep(1.0)
+    bus.read_loops()  # pvl_reader at 1.0 s: Present Position 2047, velocity 0
+    servo = emulated.servos[1]
+    servo.set("Present Position", 2147)
+    servo.set("Present Velocity", 10)
+    emulated.keep_log = True
+    assert (joint.get_position(), joint.get_velocity()) == (0.0, 0.0)
+    assert (joint.get_position(), joint.get_velocity()) == (0.0, 0.0)  # still fresh
+    assert emulated.log == []
+    clock.sleep(0.05)  # five 100 Hz periods: stale
+    servo.update()  # the motor model catches up with the clock, then the position changes behind it
+    servo.set("Present Position", 2147)
+    assert joint.get_position() == pytest.approx(100 * RAD)
+
+
+def test_effort_is_the_pvl_reader_s_load() -> None:
+    joint, bus, emulated, _ = dxl()
+    bus.start_loops()
+    emulated.servos[1].set("Present Load", -100)
+    bus.read_loops()
+    assert joint.get_effort() == pytest.approx(-100 * 0.0014)
+
+
+# ------------------------------------------------------------------ units and reduction
+
+
+def test_reduction_scales_position_velocity_and_profiles() -> None:
+    # q = ((raw - 2047) * RAD) / reduction + offset (MH5), the same for velocities and profiles
+    joint, _, emulated, clock = dxl(reduction=2.0)
+    servo = emulated.servos[1]
+    joint.enable(20, 20)
+    joint.set_max_acceleration(10.0)
+    joint.set_max_velocity(1.0)
+    assert (servo.get("Profile Acceleration"), servo.get("Profile Velocity")) == (53, 83)  # 20/RADS2, 2/RADS
+    joint.set_position(0.1)
+    assert servo.get("Goal Position") == 2047 + 130  # round(0.2 / RAD)
+    clock.sleep(5.0)
+    assert joint.get_position() == pytest.approx(130 * RAD / 2)
+    joint.set_velocity(0.5)
+    assert servo.get("Goal Velocity") == 42  # round(1.0 / RADS)
+    clock.sleep(1.0)
+    assert joint.get_velocity() == pytest.approx(42 * RADS / 2)
+
+
+def test_a_negative_present_position_reads_negative() -> None:
+    joint, _, emulated, _ = dxl()
+    emulated.servos[1].set("Present Position", -5000)  # extended position range (e-Manual)
+    assert joint.get_position() == pytest.approx((-5000 - 2047) * RAD)
+
+
+@pytest.mark.parametrize("raw", [0, 4095])
+def test_goal_positions_0_and_4095_are_accepted(raw: int) -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    joint.set_position((raw - 2047) * RAD)
+    assert emulated.servos[1].get("Goal Position") == raw
+
+
+@pytest.mark.parametrize(("raw", "shown"), [(-1, "-3.14159"), (4096, "3.14313")])
+def test_goal_positions_beyond_0_4095_are_refused(raw: int, shown: str) -> None:
+    joint, *_ = dxl()
+    joint.enable(20, 20)
+    message = refused(InvalidArgumentError, joint.set_position, (raw - 2047) * RAD)
+    assert message == f"j1: position {shown} is outside the servo's range"
+
+
+def test_profiles_are_at_least_1_unit() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.set_max_acceleration(0.1)  # 0.27 units
+    joint.set_max_velocity(0.001)  # 0.04 units
+    servo = emulated.servos[1]
+    assert (servo.get("Profile Acceleration"), servo.get("Profile Velocity")) == (1, 1)
+
+
+def test_profiles_of_0_are_refused_and_below_1_accepted() -> None:
+    joint, _, emulated, _ = dxl()
+    assert (
+        refused(InvalidArgumentError, joint.set_max_acceleration, 0) == "j1: max acceleration 0.0 must be > 0"
+    )
+    assert refused(InvalidArgumentError, joint.set_max_velocity, 0) == "j1: max velocity 0.0 must be > 0"
+    joint.set_max_velocity(0.5)
+    assert emulated.servos[1].get("Profile Velocity") == 21  # round(0.5 / RADS)
+
+
+@pytest.mark.parametrize(
+    ("method", "args", "what"),
+    [
+        ("set_position", (math.nan,), "position nan"),
+        ("set_velocity", (math.inf,), "velocity inf"),
+        ("set_max_acceleration", (math.nan,), "max acceleration nan"),
+        ("set_max_velocity", (math.nan,), "max velocity nan"),
+        ("start_homing", (math.nan, 10, 20), "homing velocity nan"),
+        ("check_orientation", (math.nan,), "orientation angle nan"),
+    ],
+)
+def test_a_non_finite_argument_is_named(method: str, args: tuple[float, ...], what: str) -> None:
+    joint, *_ = dxl()
+    joint.enable(20, 20)
+    assert refused(InvalidArgumentError, getattr(joint, method), *args) == f"j1: {what} must be finite"
+
+
+# ------------------------------------------------------------------ move_steps, stop
+
+
+def test_move_steps_goes_from_the_present_position() -> None:
+    joint, bus, emulated, _ = dxl()
+    servo = emulated.servos[1]
+    joint.enable(20, 20)
+    servo.set("Present Position", 3000)
+    joint.move_steps(-100)
+    assert servo.get("Goal Position") == 2900
+    bus.start_loops()
+    joint.set_velocity(0.1)  # the next pv block keeps the move's goal
+    bus.write_loops()
+    assert servo.get("Goal Position") == 2900
+
+
+def test_move_steps_from_velocity_mode_switches_to_position_mode() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    joint.set_velocity(0.1)
+    joint.move_steps(10)
+    assert emulated.servos[1].get("Operating Mode") == ct.OperatingMode.POSITION
+
+
+@pytest.mark.parametrize(("steps", "shown"), [(True, "True"), (1.5, "1.5")])
+def test_move_steps_refuses_what_is_not_an_int(steps: object, shown: str) -> None:
+    joint, *_ = dxl()
+    joint.enable(20, 20)
+    assert refused(InvalidArgumentError, joint.move_steps, steps) == f"j1: steps {shown} must be an integer"
+
+
+def test_stop_in_position_mode_holds_the_present_position() -> None:
+    joint, bus, emulated, _ = dxl()
+    servo = emulated.servos[1]
+    joint.enable(20, 20)
+    joint.set_position(1.0)
+    servo.set("Present Position", 2100)  # on the way
+    joint.stop()
+    assert servo.get("Goal Position") == 2100
+    bus.start_loops()
+    joint.set_velocity(0.1)
+    bus.write_loops()
+    assert servo.get("Goal Position") == 2100
+
+
+# ------------------------------------------------------------------ currents, brake, homing, repr
+
+
+@pytest.mark.parametrize("method", ["set_drive_current", "set_hold_current"])
+def test_current_0_turns_torque_off_and_others_are_only_checked(method: str) -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    getattr(joint, method)(1)
+    getattr(joint, method)(100)
+    assert emulated.servos[1].torque
+    getattr(joint, method)(0)
+    assert not emulated.servos[1].torque and joint.flags == Flag.NOT_ENABLED
+    what = method.removeprefix("set_").replace("_", " ")
+    message = refused(InvalidArgumentError, getattr(joint, method), 101)
+    assert message == f"j1: {what} 101 must be an integer percent 0-100"
+
+
+def test_brake_modes_0_to_2_are_accepted_and_3_refused() -> None:
+    joint, *_ = dxl()
+    for mode in (0, 1, 2):
+        joint.set_brake_mode(mode)
+    assert refused(InvalidArgumentError, joint.set_brake_mode, 3) == "j1: brake mode 3 must be 0, 1 or 2"
+
+
+def test_homing_and_stall_detection_name_the_argument_refused() -> None:
+    joint, *_ = dxl()
+    joint.enable(20, 20)
+    assert (
+        refused(InvalidArgumentError, joint.start_homing, 0.0, 10, 20)
+        == "j1: homing velocity must be non-zero"
+    )
+    assert (
+        refused(InvalidArgumentError, joint.start_homing, 1.0, 256, 20)
+        == "j1: homing sensitivity 256 must be 0-255"
+    )
+    message = refused(InvalidArgumentError, joint.start_homing, 1.0, 10, 101)
+    assert message == "j1: homing current 101 must be an integer percent 0-100"
+    assert (
+        refused(InvalidArgumentError, joint.enable_stallguard, 256)
+        == "j1: stall sensitivity 256 must be 0-255"
+    )
+
+
+def test_homing_states_are_the_blocking_command() -> None:
+    joint, *_ = dxl()
+    joint.enable(20, 20)
+    joint.start_homing(1.0, 10, 20)
+    assert joint.current_blocking_command is Reg.HOME
+    joint.post_homing()
+    assert joint.current_blocking_command is Reg.NONE
+    joint.adopt_homing(1.0)
+    assert joint.current_blocking_command is Reg.HOME
+
+
+def test_bioscara_registers_are_refused_by_name() -> None:
+    joint, *_ = dxl()
+    assert (
+        refused(JointError, joint._command, Reg.SETRPM, 1)
+        == "j1: SETRPM: a Dynamixel joint has no Bioscara registers"
+    )
+    assert refused(JointError, joint._query, Reg.GETMOTORSTATE) == (
+        "j1: GETMOTORSTATE: a Dynamixel joint has no Bioscara registers"
+    )
+
+
+def test_repr_names_the_joint_its_id_and_flags() -> None:
+    joint, *_ = dxl()
+    assert repr(joint) == "DynamixelJoint('j1', id=1, flags=<Flag.NOT_ENABLED: 8>)"
+
+
+def test_reboot_pings_five_times_and_keeps_the_operating_mode() -> None:
+    joint, _, emulated, _ = dxl()
+    joint.enable(20, 20)
+    joint.set_velocity(0.1)
+    n = emulated.statuses  # the REBOOT's status; the next three PING replies are lost
+    emulated.faults = FaultPlan(schedule={n + 1: Fault.DROP, n + 2: Fault.DROP, n + 3: Fault.DROP})
+    joint.reboot()
+    assert joint.mode == ct.OperatingMode.VELOCITY and joint.flags == Flag.NOT_ENABLED
+
+
+def test_a_joint_found_with_torque_on_holds_the_present_position() -> None:
+    # a host restart: the servo kept torque on, so no enable() re-reads the goal before a synced command
+    clock = ManualClock()
+    emulated = EmulatedRS485Bus.with_ids([1], clock=clock)
+    servo = emulated.servos[1]
+    servo.set("Torque Enable", 1)
+    servo.set("Present Position", 3000)
+    bus = DynamixelBus(EmulatedPortHandler(emulated), clock=clock)
+    joint = DynamixelJoint("j1", 1, bus, clock=clock)
+    joint.init()
+    bus.start_loops()
+    joint.set_velocity(0.1)
+    bus.write_loops()
+    assert servo.get("Goal Position") == 3000
+
+
+def test_no_model_number_before_a_servo_answered() -> None:
+    bus, emulated, _ = rig()
+    joint = DynamixelJoint("j1", 1, bus)
+    emulated.servos[1].powered = False
+    with pytest.raises(CommError):
+        joint.init()
+    assert joint.model_number is None
