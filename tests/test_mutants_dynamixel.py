@@ -1127,3 +1127,40 @@ def test_no_model_number_before_a_servo_answered() -> None:
     with pytest.raises(CommError):
         joint.init()
     assert joint.model_number is None
+
+
+# ------------------------------------------------------------------ stuffing what the driver sends
+
+
+def test_a_write_whose_data_holds_ff_ff_fd_arrives_stuffed_and_whole() -> None:
+    # Homing Offset 0x00FDFFFF: data bytes FF FF FD 00, which the protocol stuffs to
+    # FF FF FD FD 00 (LEN 10, not 9). dynamixel-sdk's txPacket drops addStuffing's result
+    # and sent it unstuffed: the servo read 3 data bytes and answered a Data Length Error.
+    bus, emulated, _ = rig()
+    joint = DynamixelJoint("j1", 1, bus)
+    assert bus.write(joint, 20, 4, 0x00FDFFFF) == 0
+    assert emulated.servos[1].get("Homing Offset") == 0x00FDFFFF
+
+
+def test_the_packet_handler_sends_the_stuffed_packet() -> None:
+    sent: list[bytes] = []
+
+    class Port:
+        is_using = False
+
+        def clearPort(self) -> None:
+            pass
+
+        def writePort(self, packet: list[int]) -> int:
+            sent.append(bytes(packet))
+            return len(packet)
+
+    from bioscara_gym.hardware.dynamixel.bus import packet_handler
+
+    handler = packet_handler(sdk)
+    assert handler.writeTxOnly(Port(), 1, 20, 4, [0xFF, 0xFF, 0xFD, 0x00]) == sdk.COMM_SUCCESS
+    # e-Manual: INST 03, address 14 00, data FF FF FD FD 00 (stuffed), LEN 0A 00 (INST, 7
+    # parameter bytes, CRC); the CRC over all of it.
+    body = h("FF FF FD 00 01 0A 00 03 14 00 FF FF FD FD 00")
+    crc = sdk.PacketHandler(2.0).updateCRC(0, list(body), len(body))
+    assert sent == [body + bytes((crc & 0xFF, crc >> 8))]

@@ -108,6 +108,29 @@ def load_sdk() -> Any:
     return dynamixel_sdk
 
 
+def packet_handler(sdk: Any) -> Any:
+    """The SDK's Protocol 2.0 packet handler, with its byte stuffing of what it sends made to take effect.
+
+    dynamixel-sdk's ``Protocol2PacketHandler.txPacket`` calls
+    ``addStuffing(txpacket)`` and drops the result; when stuffing lengthens
+    the packet, ``addStuffing`` builds a new list and the caller's goes out
+    unstuffed, LEN too. Any ``FF FF FD`` in the data (a Homing Offset of
+    ``0x00FDFFFF``; a negative Goal Velocity beside a Profile Acceleration
+    whose low byte is ``FD`` in a SYNC WRITE) then reaches the servo one
+    byte short: a WRITE is refused with a Data Length Error, a SYNC WRITE
+    dropped without a word. This handler's ``addStuffing`` writes the
+    stuffed packet back into the caller's list, which ``txPacket`` sends.
+    """
+    base = type(sdk.PacketHandler(2.0))
+
+    class StuffingPacketHandler(base):  # type: ignore[misc, valid-type]
+        def addStuffing(self, packet: list[int]) -> list[int]:  # the SDK's name
+            packet[:] = super().addStuffing(packet)
+            return packet
+
+    return StuffingPacketHandler()
+
+
 def port_module() -> Any:
     """The :mod:`~bioscara_gym.hardware.dynamixel.port` module (needs the SDK)."""
     load_sdk()
@@ -291,7 +314,7 @@ class DynamixelBus:
             raise ValueError(f"unknown loops {sorted(unknown)}; known: {', '.join(DEFAULT_LOOP_RATES)}")
         self.sdk = sdk
         self.port = port
-        self.packet_handler = sdk.PacketHandler(2.0)
+        self.packet_handler = packet_handler(sdk)
         self.baudrate = baudrate
         self.rs485 = rs485
         self.clock: Clock = clock if clock is not None else WallClock()
