@@ -528,6 +528,8 @@ class StackExpert:
 
     #: A block counts as in place within this horizontal distance (m) and ``Z_TOL`` in height.
     PLACED_M = 0.005
+    #: ... and within this height of it (m): the task's own height tolerance.
+    PLACED_Z = STACK_Z_TOL
     #: Fingertips 1 cm above the lower block's top before they leave it (PickPlace's approach height), m.
     CLEAR_Z = BLOCK_SIZE + 0.01
     #: The carried upper block's centre (m) until it is over the lower one: its bottom 5 mm over that top.
@@ -559,10 +561,10 @@ class StackExpert:
         parts = [o[: s["lower_pos"].start], pos, *own]
         return {"observation": np.concatenate(parts), "achieved_goal": pos, "desired_goal": target}
 
-    @staticmethod
-    def _placed(pos: np.ndarray, place: np.ndarray, tol: float) -> bool:
-        """Whether ``pos`` is within ``tol`` of ``place`` horizontally and the stack's height tolerance."""
-        return bool(math.hypot(*(pos[:2] - place[:2])) < tol and abs(pos[2] - place[2]) < STACK_Z_TOL)
+    @classmethod
+    def _placed(cls, pos: np.ndarray, place: np.ndarray, tol: float) -> bool:
+        """Whether ``pos`` is within ``tol`` of ``place`` horizontally and ``PLACED_Z`` in height."""
+        return bool(math.hypot(*(pos[:2] - place[:2])) < tol and abs(pos[2] - place[2]) < cls.PLACED_Z)
 
     def phase_of(self, obs: dict[str, np.ndarray]) -> str:
         """The phase ``obs`` is in (see the class docstring)."""

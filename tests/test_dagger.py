@@ -313,6 +313,20 @@ def test_extractor_sees_millimetres_near_the_block(pick_env: gym.Env) -> None:
         PickPlaceExtractor(reach.observation_space)
 
 
+def test_stack_learner_reads_the_joint_ranges_off_the_env(tmp_path: Path) -> None:
+    # StackExtractor turns joint_pos back into radians for the wrist's turn; the trainer
+    # hands it the env's ranges (the packaged URDF limits), and the saved model keeps them.
+    path = tmp_path / "stack.yaml"
+    path.write_text(yaml.safe_dump({"Bioscara-Stack-v0": {**TINY, "n_timesteps": 700}}), encoding="utf-8")
+    train(tiny_args(tmp_path, env="Bioscara-Stack-v0", config=path))
+    model, _ = load_model(tmp_path / "run" / "model.zip")
+    extractor = model.policy.actor.features_extractor
+    lo = [-3.04647, -0.0016, -2.62672, -3.01069]
+    span = [2 * 3.04647, 0.338 + 0.0016, 2 * 2.62672, 2 * 3.01069]
+    np.testing.assert_allclose(extractor.q_lo.numpy(), lo, rtol=1e-6)
+    np.testing.assert_allclose(extractor.q_span.numpy(), span, rtol=1e-6)
+
+
 def test_demos_from_a_dataset_replace_the_experts_own_episodes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -290,10 +290,13 @@ class DAgger(TrainingMethod):
             model, self.data, self.iteration_done, self.env_steps = loaded
             return model
         cfg = plan.config
+        extractor = task_of(self.env).extractor_class()
+        # What the extractor takes from the env (FROM_ENV: names of its public properties).
+        from_env = {name: getattr(self.env.unwrapped, name) for name in getattr(extractor, "FROM_ENV", ())}
         policy_kwargs = {
             "net_arch": list(cfg.net_arch),
-            "features_extractor_class": task_of(self.env).extractor_class(),
-            "features_extractor_kwargs": dict(cfg.features),
+            "features_extractor_class": extractor,
+            "features_extractor_kwargs": {**cfg.features, **from_env},
         }
         try:
             return SAC(

@@ -21,7 +21,8 @@ names it in :data:`bioscara_gym.tasks.TASKS`): lengths in 10 cm, and
 block-from-TCP and the goal error also in 5 mm, where the phases are decided.
 :class:`PushExtractor` adds the push's frame (the TCP behind and beside the
 block on its line to the target, the pushing face's turn) and
-:class:`StackExtractor` both blocks' views to those features.
+:class:`StackExtractor` both blocks' views, and the view of the block being
+worked on (which one, where it goes, the wrist's turn to it).
 :class:`InsertExtractor` is Insert's: lengths in 10 cm, and the alignment
 also in millimetres and hundredths of a radian. All read the observation by
 name, from the task's layout.
@@ -29,11 +30,12 @@ name, from the task's layout.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Mapping, Sequence
 
 from gymnasium import spaces
 
-from bioscara_gym.tasks import GOAL_KEYS, task
+from bioscara_gym.tasks import GOAL_KEYS, load_entry_point, task
 from bioscara_gym.training.extras import needs_train
 
 with needs_train():
@@ -230,12 +232,34 @@ class PushExtractor(PickPlaceExtractor):
 
 
 class StackExtractor(PickPlaceExtractor):
-    """PickPlace's features of Stack's observation: both blocks' lengths in ``coarse_m``, both fine views.
+    """PickPlace's features of Stack's observation, plus a view of the block being worked on.
 
     Features, in order: ``observation`` with every length over ``coarse_m``;
     the goal error (both blocks, 6 values) over ``coarse_m``; then each
     block's position from the TCP and the goal error over ``fine_m``, clipped
-    to ``+-fine_clip``.
+    to ``+-fine_clip``. Then the active block's view, as the observation
+    expert (:class:`~bioscara_gym.experts.StackExpert`) decides it:
+
+    - 1 once the lower block is in place (the expert's own test,
+      ``PLACED_M`` and ``PLACED_Z``), else 0; 1 once the upper one is too;
+    - the active block from the TCP and from where it goes (the lower one:
+      the target; the upper one: a block height over the lower one,
+      wherever that is), over ``coarse_m`` and over ``fine_m`` (clipped);
+    - its yaw (rad), and the wrist's turn that squares the fingers to it,
+      the least of the four (over pi/4, so in [-1, 1)); the joints are read
+      back in rad from ``joint_pos`` with ``joint_range``, the env's
+      (``FROM_ENV``: the trainer passes it).
+
+    Without the view the network has to find the switch between the blocks
+    and the wrist's quarter-turn wrap itself: seed 0, 120k steps, 12 %
+    success over 100 episodes (learners froze beside the block they were
+    to fetch or lower); with the switch and the active block 55 %; with
+    the second switch 59 %; with the yaw 68 %; with the wrist's turn 87 %
+    (the wrist's share of the squared error on the learner's own states
+    fell from 10.9e-3 to 1.9e-3).
+
+    Raises:
+        ValueError: As PickPlace's, or ``joint_range`` not four ``[min, max]`` pairs.
     """
 
     TASK = "Bioscara-Stack-v0"
@@ -249,6 +273,67 @@ class StackExtractor(PickPlaceExtractor):
         "upper_vel",
     )
     FINE = ("lower_from_tcp", "upper_from_tcp")
+    #: Features added to PickPlace's: the two switches, two 3-vectors twice, the active
+    #: block's yaw and the wrist's turn to it.
+    N_ACTIVE = 16
+    #: Arguments the trainer reads off the env (its public properties of these names).
+    FROM_ENV = ("joint_range",)
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        coarse_m: float = 0.1,
+        fine_m: float = 0.005,
+        fine_clip: float = 3.0,
+        joint_range: Sequence[Sequence[float]] = ((-1.0, 1.0),) * 4,
+    ) -> None:
+        """PickPlace's checks and scales, the slices of both blocks and the expert's placing test."""
+        super().__init__(observation_space, coarse_m, fine_m, fine_clip)
+        lo_hi = th.as_tensor(joint_range, dtype=th.float32)
+        if lo_hi.shape != (4, 2) or not bool((lo_hi[:, 1] > lo_hi[:, 0]).all()):
+            raise ValueError(f"{type(self).__name__}: joint_range {joint_range} must be 4 [min, max] pairs")
+        self.register_buffer("q_lo", lo_hi[:, 0].clone())
+        self.register_buffer("q_span", lo_hi[:, 1] - lo_hi[:, 0])
+        spec = task(self.TASK)
+        slices = spec.obs_slices()
+        self._joint_pos = slices["joint_pos"]
+        self._lower, self._lower_tcp = slices["lower_pos"], slices["lower_from_tcp"]
+        self._upper, self._upper_tcp = slices["upper_pos"], slices["upper_from_tcp"]
+        self._yaws = (slices["lower_yaw"], slices["upper_yaw"])
+        expert = load_entry_point(spec.observation_expert)
+        self.placed_m, self.placed_z = float(expert.PLACED_M), float(expert.PLACED_Z)
+        self._features_dim += self.N_ACTIVE
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """PickPlace's features and the active block's view."""
+        o, goal = observations["observation"], observations["desired_goal"]
+        lower, upper = o[:, self._lower], o[:, self._upper]
+        target, on_target = goal[:, :3], goal[:, 3:6]
+        off = target - lower
+        on_lower = lower + (on_target - target) - upper
+        p = self._placed(off).unsqueeze(1)
+        done = p * self._placed(on_lower).unsqueeze(1)
+        from_tcp = p * o[:, self._upper_tcp] + (1 - p) * o[:, self._lower_tcp]
+        error = p * on_lower + (1 - p) * off
+        view = th.cat((from_tcp, error), dim=1)
+        fine = th.clamp(view / self.fine_m, -self.fine_clip, self.fine_clip)
+        yaw = p * o[:, self._yaws[1]] + (1 - p) * o[:, self._yaws[0]]
+        return th.cat(
+            (super().forward(observations), p, done, view / self.coarse_m, fine, yaw, self._turn(o, yaw)),
+            dim=1,
+        )
+
+    def _turn(self, o: th.Tensor, yaw: th.Tensor) -> th.Tensor:
+        """The wrist's turn (over pi/4) that squares the fingers to a block at ``yaw``: the least of four."""
+        q = self.q_lo + (o[:, self._joint_pos] + 1.0) / 2.0 * self.q_span
+        tool = (q[:, 0] + q[:, 2] + q[:, 3]).unsqueeze(1)
+        quarter = math.pi / 2
+        return (th.remainder(yaw - tool - quarter + quarter / 2, quarter) - quarter / 2) / (quarter / 2)
+
+    def _placed(self, off: th.Tensor) -> th.Tensor:
+        """1.0 where a block ``off`` from its place (m, ``(n, 3)``) counts as there, else 0.0."""
+        near = th.linalg.vector_norm(off[:, :2], dim=1) < self.placed_m
+        return (near & (off[:, 2].abs() < self.placed_z)).to(off.dtype)
 
 
 #: Entries of Insert's ``observation`` given in m, scaled by ``coarse_m``.

@@ -222,6 +222,11 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return self.backend.sim
 
     @property
+    def joint_range(self) -> list[list[float]]:
+        """``[min, max]`` of each joint (rad, m for j2): what ``joint_pos`` scales to [-1, 1]."""
+        return [[float(lo), float(hi)] for lo, hi in zip(self._lo, self._hi, strict=True)]
+
+    @property
     def command_mode(self) -> CommandMode:
         """The joint command interface the control mode uses (position for cartesian)."""
         return JOINT_MODE[self.control_mode]
