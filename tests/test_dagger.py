@@ -338,3 +338,55 @@ def test_demos_from_a_dataset_replace_the_experts_own_episodes(
     first = checkpoint_data(tmp_path / "run")[0]
     assert len(first["actions"]) == 200 and int(first["env_steps"]) == 0  # the dataset's episode, no env step
     assert json.loads(result.metadata_path.read_text(encoding="utf-8"))["dagger"]["demos"] == "pp"
+
+
+class _Outcomes(gym.Env):
+    """One-step episodes that succeed as ``outcomes`` says, in turn."""
+
+    observation_space = gym.spaces.Box(-1, 1, (1,))
+    action_space = gym.spaces.Box(-1, 1, (1,))
+
+    def __init__(self, outcomes: list[bool]) -> None:
+        self.outcomes, self.resets = list(outcomes), 0
+
+    def reset(self, *, seed: int | None = None, options: object = None) -> tuple[np.ndarray, dict]:
+        self.resets += 1
+        return np.zeros(1, dtype=np.float32), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        success = self.outcomes[self.resets - 1]
+        return np.zeros(1, dtype=np.float32), 0.0, False, True, {"is_success": success}
+
+
+def test_an_evaluation_can_stop_once_more_failures_than_allowed() -> None:
+    # 10 allowed (a 90 % target over 100): the 11th failure, in episode 13, ends it.
+    env = _Outcomes([True, False, True] + [False] * 10 + [True] * 87)
+    stats = run_episodes(env, lambda obs: np.zeros(1), 100, max_failures=10)
+    assert (env.resets, stats.episodes) == (13, 13)
+    assert stats.success_rate == 2 / 13
+    # Never more than the episodes asked for, and all of them when the failures stay within.
+    env = _Outcomes([False] * 10 + [True] * 90)
+    assert run_episodes(env, lambda obs: np.zeros(1), 100, max_failures=10).episodes == 100
+
+
+def test_dagger_confirms_its_target_no_longer_than_the_target_stays_in_reach(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    seen: list[int | None] = []
+    original = dagger.run_episodes
+
+    def spy(*args: object, max_failures: int | None = None, **kwargs: object) -> object:
+        seen.append(max_failures)
+        return original(*args, max_failures=max_failures, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(dagger, "run_episodes", spy)
+    # The learner's own rollouts "reach" the target of 0.7 at once (the expert's share is
+    # negligible from iteration 1); 10 evaluation episodes then allow 3 failures.
+    monkeypatch.setattr(dagger.Rollouts, "success_rate", property(lambda self: 1.0))
+    (tmp_path / "cfg").mkdir()  # tiny_args writes its own tmp_path / "dagger.yaml"
+    config = tiny_config(tmp_path / "cfg", target_success=0.7, eval_episodes=10, beta=0.01)
+    train(tiny_args(tmp_path, config=config))
+    assert seen[0] == 3
+    # The tiny learner fails: each confirmation stops at its 4th failure, then the budget's
+    # own evaluation runs all 10.
+    assert seen[-1] is None

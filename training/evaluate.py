@@ -47,6 +47,7 @@ def run_episodes(
     on_reset: Callable[[], None] | None = None,
     on_frame: Callable[[np.ndarray], None] | None = None,
     video_episodes: int | None = None,
+    max_failures: int | None = None,
 ) -> EvalStats:
     """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...).
 
@@ -60,6 +61,8 @@ def run_episodes(
             so a long evaluation does not hold its video in memory).
         video_episodes: Render only the first this many episodes (all if ``None``):
             headless software rendering costs far more than simulating.
+        max_failures: Stop after the episode that fails once more than this
+            (a target out of reach); the stats are of the episodes run.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -84,9 +87,11 @@ def run_episodes(
         distances.append(float(info.get("distance", math.nan)))
         returns.append(total)
         lengths.append(steps)
+        if max_failures is not None and len(lengths) - successes > max_failures:
+            break
     return EvalStats(
-        episodes=episodes,
-        success_rate=successes / episodes,
+        episodes=len(lengths),
+        success_rate=successes / len(lengths),
         mean_final_distance=float(np.mean(distances)),
         mean_return=float(np.mean(returns)),
         std_return=float(np.std(returns)),
