@@ -175,3 +175,31 @@ def test_stack_extractor_refuses_joint_ranges_it_cannot_unscale() -> None:
         StackExtractor(space, joint_range=[[0.0, 1.0]] * 3)
     with pytest.raises(ValueError, match="must be 4"):
         StackExtractor(space, joint_range=[[1.0, 0.0]] * 4)
+
+
+def _pick_extractor(**kwargs: object) -> th.nn.Module:
+    from bioscara_gym.training.features import PickPlaceExtractor
+
+    env = gym.make("Bioscara-PickPlace-v1", backend="mock")
+    try:
+        return PickPlaceExtractor(env.observation_space, **kwargs)
+    finally:
+        env.close()
+
+
+def test_pickplace_features_without_joint_ranges_are_those_older_models_were_trained_on() -> None:
+    # 22 observation values (the docstring's table), the goal error coarse (3) and fine (3),
+    # block-from-TCP fine (3): a model saved before the wrist's turn loads with its shapes.
+    assert _pick_extractor().features_dim == 22 + 3 + 3 + 3
+
+
+@pytest.mark.parametrize(("j4", "turn"), [(0.0, 0.3 / (math.pi / 4)), (0.5, 0.3708 / (math.pi / 4))])
+def test_pickplace_features_end_with_the_wrist_turn_given_joint_ranges(j4: float, turn: float) -> None:
+    # As Stack's: block yaw 0.3 rad, j1 + j3 + j4 = 0 (or j4 1.5 rad: 0.3708 rad, see above).
+    extractor = _pick_extractor(joint_range=JOINT_RANGE)
+    o = th.zeros(1, 22)
+    o[0, 21], o[0, 3] = 0.3, j4  # block_yaw, j4's joint_pos
+    goal = th.zeros(1, 3)
+    features = extractor({"observation": o, "achieved_goal": goal, "desired_goal": goal})
+    assert features.shape == (1, 22 + 9 + 1) == (1, extractor.features_dim)
+    th.testing.assert_close(features[0, -1], th.tensor(turn), atol=2e-4, rtol=0)

@@ -126,14 +126,25 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
     within 3 mm of the block), which a network sees in metres only as tiny
     inputs; the whole workspace in ``fine_m`` would be inputs of 50.
 
+    Given ``joint_range`` (the env's: the trainer passes it, ``FROM_ENV``),
+    one feature more: the wrist's turn that squares the fingers to the block
+    (``TURN_YAW``), the least of the four quarter turns, over pi/4. The
+    joints are read back in rad from ``joint_pos``. A network given only the
+    raw yaws has to find the quarter-turn wrap itself, and fits the wrist
+    worst of all the actions. Models saved without ``joint_range`` load as
+    they were trained, without it.
+
     Args:
         observation_space: Bioscara-PickPlace's ``Dict`` space.
         coarse_m: Length that maps to 1.0 in the coarse view.
         fine_m: Length that maps to 1.0 in the fine view.
         fine_clip: Bound of the fine view.
+        joint_range: ``[min, max]`` of each joint (the env's ``joint_range``), or
+            ``None``: no wrist feature.
 
     Raises:
-        ValueError: Not PickPlace's observation space, or a scale not positive.
+        ValueError: Not PickPlace's observation space, a scale not positive,
+            or ``joint_range`` not four ``[min, max]`` pairs.
     """
 
     #: The task whose observation layout (``OBS_SLICES``) the features are read from.
@@ -142,6 +153,10 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
     LENGTHS: tuple[str, ...] = LENGTH_SLICES
     #: Its entries also seen in ``fine_m``, before the goal error.
     FINE: tuple[str, ...] = ("block_from_tcp",)
+    #: The yaw (an ``OBS_SLICES`` name) the wrist's turn squares the fingers to, or ``None``.
+    TURN_YAW: str | None = "block_yaw"
+    #: Arguments the trainer reads off the env (its public properties of these names).
+    FROM_ENV: tuple[str, ...] = ("joint_range",)
 
     def __init__(
         self,
@@ -149,6 +164,7 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
         coarse_m: float = 0.1,
         fine_m: float = 0.005,
         fine_clip: float = 3.0,
+        joint_range: Sequence[Sequence[float]] | None = None,
     ) -> None:
         """Check the space and build the scale vector."""
         name = type(self).__name__
@@ -164,15 +180,34 @@ class PickPlaceExtractor(BaseFeaturesExtractor):
             scale[slices[name]] = 1.0 / coarse_m
         self.register_buffer("scale", scale)
         self.coarse_m, self.fine_m, self.fine_clip = float(coarse_m), float(fine_m), float(fine_clip)
+        self._joint_pos = slices["joint_pos"]
+        self._turn_yaw: slice | None = None
+        if joint_range is not None:
+            lo_hi = th.as_tensor(joint_range, dtype=th.float32)
+            if lo_hi.shape != (4, 2) or not bool((lo_hi[:, 1] > lo_hi[:, 0]).all()):
+                raise ValueError(f"{name}: joint_range {joint_range} must be 4 [min, max] pairs")
+            self.register_buffer("q_lo", lo_hi[:, 0].clone())
+            self.register_buffer("q_span", lo_hi[:, 1] - lo_hi[:, 0])
+            if self.TURN_YAW is not None:
+                self._turn_yaw = slices[self.TURN_YAW]
+                self._features_dim += 1
 
     def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
         """Features of a batch of dict observations."""
         o = observations["observation"]
         error = observations["desired_goal"] - observations["achieved_goal"]
         fine = th.cat([o[:, part] for part in self._fine] + [error], dim=1) / self.fine_m
-        return th.cat(
-            (o * self.scale, error / self.coarse_m, th.clamp(fine, -self.fine_clip, self.fine_clip)), dim=1
-        )
+        parts = [o * self.scale, error / self.coarse_m, th.clamp(fine, -self.fine_clip, self.fine_clip)]
+        if self._turn_yaw is not None:
+            parts.append(self._turn(o, o[:, self._turn_yaw]))
+        return th.cat(parts, dim=1)
+
+    def _turn(self, o: th.Tensor, yaw: th.Tensor) -> th.Tensor:
+        """The wrist's turn (over pi/4) that squares the fingers to a block at ``yaw``: the least of four."""
+        q = self.q_lo + (o[:, self._joint_pos] + 1.0) / 2.0 * self.q_span
+        tool = (q[:, 0] + q[:, 2] + q[:, 3]).unsqueeze(1)
+        quarter = math.pi / 2
+        return (th.remainder(yaw - tool - quarter + quarter / 2, quarter) - quarter / 2) / (quarter / 2)
 
 
 class PushExtractor(PickPlaceExtractor):
@@ -189,6 +224,9 @@ class PushExtractor(PickPlaceExtractor):
     """
 
     TASK = "Bioscara-Push-v0"
+    #: The pushing face is turned by the push's own features, not squared to the block.
+    TURN_YAW = None
+    FROM_ENV = ()
     #: Features added to PickPlace's.
     N_PUSH = 9
 
@@ -276,8 +314,8 @@ class StackExtractor(PickPlaceExtractor):
     #: Features added to PickPlace's: the two switches, two 3-vectors twice, the active
     #: block's yaw and the wrist's turn to it.
     N_ACTIVE = 16
-    #: Arguments the trainer reads off the env (its public properties of these names).
-    FROM_ENV = ("joint_range",)
+    #: The wrist's turn is the active block's, added with the rest of its view.
+    TURN_YAW = None
 
     def __init__(
         self,
@@ -285,18 +323,14 @@ class StackExtractor(PickPlaceExtractor):
         coarse_m: float = 0.1,
         fine_m: float = 0.005,
         fine_clip: float = 3.0,
-        joint_range: Sequence[Sequence[float]] = ((-1.0, 1.0),) * 4,
+        joint_range: Sequence[Sequence[float]] | None = None,
     ) -> None:
         """PickPlace's checks and scales, the slices of both blocks and the expert's placing test."""
-        super().__init__(observation_space, coarse_m, fine_m, fine_clip)
-        lo_hi = th.as_tensor(joint_range, dtype=th.float32)
-        if lo_hi.shape != (4, 2) or not bool((lo_hi[:, 1] > lo_hi[:, 0]).all()):
-            raise ValueError(f"{type(self).__name__}: joint_range {joint_range} must be 4 [min, max] pairs")
-        self.register_buffer("q_lo", lo_hi[:, 0].clone())
-        self.register_buffer("q_span", lo_hi[:, 1] - lo_hi[:, 0])
+        if joint_range is None:
+            raise ValueError(f"{type(self).__name__}: joint_range is needed (the env's joint_range)")
+        super().__init__(observation_space, coarse_m, fine_m, fine_clip, joint_range)
         spec = task(self.TASK)
         slices = spec.obs_slices()
-        self._joint_pos = slices["joint_pos"]
         self._lower, self._lower_tcp = slices["lower_pos"], slices["lower_from_tcp"]
         self._upper, self._upper_tcp = slices["upper_pos"], slices["upper_from_tcp"]
         self._yaws = (slices["lower_yaw"], slices["upper_yaw"])
@@ -322,13 +356,6 @@ class StackExtractor(PickPlaceExtractor):
             (super().forward(observations), p, done, view / self.coarse_m, fine, yaw, self._turn(o, yaw)),
             dim=1,
         )
-
-    def _turn(self, o: th.Tensor, yaw: th.Tensor) -> th.Tensor:
-        """The wrist's turn (over pi/4) that squares the fingers to a block at ``yaw``: the least of four."""
-        q = self.q_lo + (o[:, self._joint_pos] + 1.0) / 2.0 * self.q_span
-        tool = (q[:, 0] + q[:, 2] + q[:, 3]).unsqueeze(1)
-        quarter = math.pi / 2
-        return (th.remainder(yaw - tool - quarter + quarter / 2, quarter) - quarter / 2) / (quarter / 2)
 
     def _placed(self, off: th.Tensor) -> th.Tensor:
         """1.0 where a block ``off`` from its place (m, ``(n, 3)``) counts as there, else 0.0."""
