@@ -175,6 +175,8 @@ def test_stack_extractor_refuses_joint_ranges_it_cannot_unscale() -> None:
         StackExtractor(space, joint_range=[[0.0, 1.0]] * 3)
     with pytest.raises(ValueError, match="must be 4"):
         StackExtractor(space, joint_range=[[1.0, 0.0]] * 4)
+    with pytest.raises(ValueError, match="StackExtractor: joint_range is needed"):
+        StackExtractor(space)
 
 
 def _pick_extractor(**kwargs: object) -> th.nn.Module:

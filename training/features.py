@@ -297,7 +297,7 @@ class StackExtractor(PickPlaceExtractor):
     fell from 10.9e-3 to 1.9e-3).
 
     Raises:
-        ValueError: As PickPlace's, or ``joint_range`` not four ``[min, max]`` pairs.
+        ValueError: As PickPlace's, or ``joint_range`` missing (Stack's features need it).
     """
 
     TASK = "Bioscara-Stack-v0"
