@@ -199,3 +199,31 @@ def test_pick_place_scene_shows_the_kinematic_block_on_mock(pick: gym.Env) -> No
     pos, yaw = scene.bodies["block"]
     np.testing.assert_allclose(pos, obs["achieved_goal"], atol=1e-9)
     assert yaw == pytest.approx(float(obs["observation"][21]))
+
+
+# ------------------------------------------------------------ the sim block
+
+
+def test_pick_place_sim_puts_the_block_where_drawn_at_rest_with_its_yaw() -> None:
+    env = gym.make(PICK)  # sim backend: the block is MuJoCo's
+    try:
+        obs, _ = env.reset(seed=5)
+        o = obs["observation"]
+        data = env.unwrapped.sim.data
+        block = obs["achieved_goal"]
+        assert block[2] == pytest.approx(0.015, abs=1e-9)
+        np.testing.assert_allclose(data.body("block").xpos, block, atol=1e-9)
+        assert o[18:21].tolist() == [0.0, 0.0, 0.0]
+        # yaw about z from the body's rotation matrix (plain geometry)
+        xmat = data.body("block").xmat
+        yaw = math.atan2(xmat[3], xmat[0])
+        assert abs(yaw) > 0.05
+        assert float(o[21]) == pytest.approx(yaw, abs=1e-6)
+        np.testing.assert_allclose(o[15:18], block - o[9:12], atol=1e-6)
+        obs, *_ = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+        joint = data.joint("block")  # the block's free joint: position, then quaternion
+        np.testing.assert_allclose(obs["observation"][12:15], joint.qpos[:3], atol=1e-12)
+        np.testing.assert_allclose(obs["observation"][18:21], joint.qvel[:3], atol=1e-6)
+        assert np.any(joint.qvel[:3] != 0.0)  # it settles on the table: a velocity to show
+    finally:
+        env.close()
