@@ -634,6 +634,22 @@ def dxl(
     return joint, bus, emulated, clock
 
 
+def synced(**joint_kwargs: float) -> tuple[DynamixelJoint, DynamixelBus, EmulatedRS485Bus, ManualClock]:
+    """:func:`dxl`, enabled at 20 %, its commands going through the bus's loops."""
+    joint, bus, emulated, clock = dxl(**joint_kwargs)
+    joint.enable(20, 20)
+    bus.start_loops()
+    return joint, bus, emulated, clock
+
+
+def writers_send_nothing(bus: DynamixelBus, emulated: EmulatedRS485Bus, clock: ManualClock) -> bool:
+    """Whether the writer loops, due again a second later, put nothing on the bus."""
+    clock.sleep(1.0)
+    emulated.keep_log = True
+    bus.write_loops()
+    return emulated.log == []
+
+
 def refused(error: type[Exception], call: object, *args: object) -> str:
     """The message of the error ``call(*args)`` raises (its joint checked to be j1)."""
     with pytest.raises(error) as e:
@@ -805,32 +821,23 @@ def test_torque_and_mode_writes_touch_only_their_own_item() -> None:
 
 
 def test_pv_and_torque_requests_are_sent_once() -> None:
-    joint, bus, emulated, clock = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, clock = synced()
     joint.set_position(0.1)
     joint.request_torque(True)
     bus.write_loops()
     assert not joint.has_pv_command() and not joint.has_torque_request()
-    clock.sleep(1.0)
-    emulated.keep_log = True
-    bus.write_loops()
-    assert emulated.log == []
+    assert writers_send_nothing(bus, emulated, clock)
 
 
 def test_a_torque_off_request_marks_the_joint_not_enabled() -> None:
-    joint, bus, emulated, _ = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, _ = synced()
     joint.request_torque(False)
     bus.write_loops()
     assert joint.flags == Flag.NOT_ENABLED and not emulated.servos[1].torque
 
 
 def test_synced_velocity_sends_the_signed_goal_velocity_and_keeps_the_goal_position() -> None:
-    joint, bus, emulated, _ = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, _ = synced()
     joint.set_velocity(-20 * RADS)
     bus.write_loops()
     servo = emulated.servos[1]
@@ -838,9 +845,7 @@ def test_synced_velocity_sends_the_signed_goal_velocity_and_keeps_the_goal_posit
 
 
 def test_synced_position_after_velocity_sends_goal_velocity_0() -> None:
-    joint, bus, emulated, clock = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, clock = synced()
     joint.set_velocity(0.5)
     bus.write_loops()
     clock.sleep(0.02)
@@ -851,28 +856,18 @@ def test_synced_position_after_velocity_sends_goal_velocity_0() -> None:
 
 @pytest.mark.parametrize("drop", ["disable", "reboot"])
 def test_commands_pending_for_the_writers_are_dropped_by_disable_and_reboot(drop: str) -> None:
-    joint, bus, emulated, clock = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, clock = synced()
     joint.set_position(0.1)
     joint.request_torque(True)
     getattr(joint, drop)()
-    clock.sleep(1.0)
-    emulated.keep_log = True
-    bus.write_loops()
-    assert emulated.log == []
+    assert writers_send_nothing(bus, emulated, clock)
 
 
 def test_a_position_pending_for_the_pv_writer_is_dropped_by_stop() -> None:
-    joint, bus, emulated, clock = dxl()
-    joint.enable(20, 20)
-    bus.start_loops()
+    joint, bus, emulated, clock = synced()
     joint.set_position(0.1)
     joint.stop()
-    clock.sleep(1.0)
-    emulated.keep_log = True
-    bus.write_loops()
-    assert emulated.log == []
+    assert writers_send_nothing(bus, emulated, clock)
 
 
 def test_fresh_loop_values_are_used_for_three_periods_then_read_again() -> None:
