@@ -18,7 +18,8 @@ import time
 from pathlib import Path
 
 from bioscara_gym.hardware import load_config
-from bioscara_gym.validation import validate
+from bioscara_gym.validation import Validation, validate
+from bioscara_gym.validation.experiments import stall
 from bioscara_gym.validation.report import Row
 
 #: Target -> (experiment prefix, quantity test): which rows each target is judged on.
@@ -63,7 +64,29 @@ def report(folder: Path | None, config_path: Path | None) -> int:
             print(f"  {target:<62} {passed:>3}/{len(rows):<3} {_worst(rows)}")
     failed = [r for r in result.rows if not r.passed]
     print(f"  all rows: {len(result.rows) - len(failed)}/{len(result.rows)} pass")
+    stall_reproducibility(result)
     return len(failed)
+
+
+def stall_reproducibility(result: Validation) -> None:
+    """The stall bands of each replay beside the real runs of the same joint against each other.
+
+    The band target (every 5 rad/s band's median within 30 %) asks more of a
+    replay than the arm's own runs give against each other: these lines put
+    the two side by side, raw |PID error|, both ramp directions.
+    """
+    signals = result.recordings.stall_signal
+    pairs = stall.run_to_run(signals)
+    if not pairs:
+        return
+    print(f"  stall bands within {stall.BAND_BOUND_PCT:g} % (raw |PID error|, both ramps):")
+    sims = result.replays.get("stall_signal", {})
+    for sig in signals:
+        if sig.name in sims and any(sig.name in (p.first, p.second) for p in pairs):
+            within, bands, worst = stall.replay_agreement(sig, sims[sig.name])
+            print(f"    simulated vs {sig.name:<52} {within:>3}/{bands:<3} worst {worst:.0f} %")
+    for p in pairs:
+        print(f"    real {p.first} vs real {p.second}: {p.within}/{p.bands}, worst {p.worst:.0f} %")
 
 
 def main() -> None:

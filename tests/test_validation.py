@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bioscara_gym.errors import RecordingError
@@ -24,6 +25,7 @@ from bioscara_gym.validation import validate
 from bioscara_gym.validation.experiments import max_accel, rw, setting_max_val, stall, tracking
 from bioscara_gym.validation.recordings import (
     DATA_DIR,
+    StallSignal,
     find_recordings,
     read_max_accel,
     read_setting_max_val,
@@ -126,6 +128,35 @@ def test_the_real_blocks_are_the_passes_between_block_and_trip() -> None:
     # their builds' low-pass: filtered 19.19 -> 54.55 on 196 is a fifth of the
     # way (tau 0.05 s); 18.34 -> 58.5 on 420 a tenth (the packaged 0.1 s)
     assert [e.rule.tau_s for e in events] == [0.05, 0.1]
+
+
+def _ramp(joint: str, raw_per_band: list[float], name: str) -> StallSignal:
+    """A run up a ramp through 5 rad/s bands, 100 passes each, with the given raw error."""
+    n = 100 * len(raw_per_band)
+    speed = np.arange(n) * 0.05  # 100 passes per 5 rad/s band
+    raw = np.repeat(raw_per_band, 100).astype(float)
+    zeros = np.zeros(n)
+    return StallSignal(Path(f"{name}.csv"), joint, speed / 100, raw, raw, raw, speed, speed, zeros, zeros)
+
+
+def test_two_runs_are_compared_band_by_band_with_the_replays_bound() -> None:
+    # 30 against 20 is 50 %, 25 against 20 is 25 % (bound 30); a 4 against 3 is
+    # below the 10 floor: 10 %; a j3 run is not compared with j4's
+    a = _ramp("j4", [20, 20, 20, 3], "a")
+    b = _ramp("j4", [20, 30, 25, 4], "b")
+    pairs = stall.run_to_run([a, b, _ramp("j3", [20, 20, 20, 20], "c")])
+    assert pairs == [stall.RunToRun("a", "b", 3, 4, 50.0)]
+
+
+def test_the_real_j4_runs_do_not_meet_the_band_bound_against_each_other() -> None:
+    # the packaged high_speed_stall_test/ files, raw |PID error|, both ramps
+    runs = [s for s in find_recordings().stall_signal if "LOW_SPEED" not in s.name]
+    pairs = {(p.first, p.second): (p.within, p.bands, round(p.worst)) for p in stall.run_to_run(runs)}
+    assert pairs == {
+        ("j4_STALL_adaptive_stall_threshold", "j4_adaptive_stall_threshold"): (40, 48, 80),
+        ("j4_STALL_adaptive_stall_threshold", "j4_adaptive_stall_threshold_two_levels"): (44, 48, 58),
+        ("j4_adaptive_stall_threshold", "j4_adaptive_stall_threshold_two_levels"): (40, 48, 473),
+    }
 
 
 def test_the_packaged_firmware_would_not_have_flagged_the_real_blocks() -> None:

@@ -268,8 +268,97 @@ def band_medians(
     return out
 
 
+def band_cells(
+    real: dict[tuple[int, int], tuple[float, int]],
+    other: dict[tuple[int, int], tuple[float, int]],
+    direction: int,
+) -> list[tuple[int, float, float, float]]:
+    """(band, real median, other median, error %) of each band of one ramp direction both cover.
+
+    A band is compared when both have :data:`MIN_BAND_ROWS` passes in it; the
+    error is relative to the real median, or to :data:`ERROR_FLOOR` if that
+    is larger.
+    """
+    cells = []
+    for key in sorted(k for k in real if k[0] == direction and k in other):
+        (rv, rn), (ov, on) = real[key], other[key]
+        if rn >= MIN_BAND_ROWS and on >= MIN_BAND_ROWS:
+            cells.append((key[1], rv, ov, 100.0 * abs(ov - rv) / max(rv, ERROR_FLOOR)))
+    return cells
+
+
+@dataclass(frozen=True)
+class RunToRun:
+    """Two real runs of one joint compared band by band, as a replay is compared with a run.
+
+    Attributes:
+        first, second: The files' names.
+        within: Bands whose medians agree within :data:`BAND_BOUND_PCT`.
+        bands: Bands both runs cover (both ramp directions).
+        worst: The largest disagreement, percent.
+    """
+
+    first: str
+    second: str
+    within: int
+    bands: int
+    worst: float
+
+
+def real_band_medians(sig: StallSignal) -> dict[tuple[int, int], tuple[float, int]]:
+    """Band medians of a real run's raw |PID error|, over the passes a replay compares."""
+    return band_medians(sig.raw, sig.speed, sig.set_speed, _real_keep(sig))
+
+
+def run_to_run(signals: list[StallSignal]) -> list[RunToRun]:
+    """Every pair of real runs of one joint, compared band by band on the raw |PID error|.
+
+    How far the arm agrees with itself: the bound a replay is held to
+    (:data:`BAND_BOUND_PCT` in every band) is one the real runs of one joint
+    do not meet against each other either. The raw error is the motor's,
+    the same in every firmware build; the filtered signals are not.
+    """
+    out = []
+    medians = {sig.name: real_band_medians(sig) for sig in signals}
+    for i, a in enumerate(signals):
+        for b in signals[i + 1 :]:
+            if a.joint != b.joint:
+                continue
+            cells = band_cells(medians[a.name], medians[b.name], 1)
+            cells += band_cells(medians[a.name], medians[b.name], -1)
+            if cells:
+                within = sum(c[3] <= BAND_BOUND_PCT for c in cells)
+                out.append(RunToRun(a.name, b.name, within, len(cells), max(c[3] for c in cells)))
+    return out
+
+
 def _trip_times(t: np.ndarray, stalled: np.ndarray) -> list[float]:
     return [float(x) for x in t[stalled > 0]]
+
+
+def _real_keep(sig: StallSignal) -> np.ndarray:
+    """The passes of a real run that are compared: no stalled rows, no command the log does not show."""
+    return (sig.raw < 10_000) & ~((sig.set_speed == 0) & (np.abs(sig.speed) > 2.0))
+
+
+def _compared(sig: StallSignal, sim: StallReplay) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The real passes within the replayed spans, those compared, and the replay's passes compared."""
+    t_real = sig.t - sig.t[0]
+    in_span = np.zeros(len(t_real), dtype=bool)
+    sim_keep = np.zeros(len(sim.t), dtype=bool)
+    for a, b in sim.spans:
+        in_span |= (t_real >= a - 1e-6) & (t_real <= b + 1e-6)
+        sim_keep |= (sim.t >= a - 1e-6) & (sim.t <= b + 1e-6)
+    return in_span, in_span & _real_keep(sig), sim_keep
+
+
+def replay_agreement(sig: StallSignal, sim: StallReplay) -> tuple[int, int, float]:
+    """Bands of the raw |PID error| within the bound, bands compared, the worst error (%), both directions."""
+    _, real_keep, sim_keep = _compared(sig, sim)
+    real_m = band_medians(sig.raw, sig.speed, sig.set_speed, real_keep)
+    sim_m = band_medians(sim.raw, sim.speed, sim.set_speed, sim_keep)
+    cells = band_cells(real_m, sim_m, 1) + band_cells(real_m, sim_m, -1)
+    return sum(c[3] <= BAND_BOUND_PCT for c in cells), len(cells), max((c[3] for c in cells), default=0.0)
 
 
 def compare(sig: StallSignal, sim: StallReplay) -> list[Row]:
@@ -277,14 +366,7 @@ def compare(sig: StallSignal, sim: StallReplay) -> list[Row]:
     name = f"high_speed_stall_test/{sig.name}"
     rows = []
     t_real = sig.t - sig.t[0]
-    spans = sim.spans
-    in_span = np.zeros(len(t_real), dtype=bool)
-    for a, b in spans:
-        in_span |= (t_real >= a - 1e-6) & (t_real <= b + 1e-6)
-    real_keep = in_span & (sig.raw < 10_000) & ~((sig.set_speed == 0) & (np.abs(sig.speed) > 2.0))
-    sim_keep = np.zeros(len(sim.t), dtype=bool)
-    for a, b in spans:
-        sim_keep |= (sim.t >= a - 1e-6) & (sim.t <= b + 1e-6)
+    in_span, real_keep, sim_keep = _compared(sig, sim)
     rule = sim.rule
     rule_note = (
         f"build: spike limit {rule.spike_limit:g}, slope {rule.slope:.3g}, "
@@ -298,13 +380,7 @@ def compare(sig: StallSignal, sim: StallReplay) -> list[Row]:
         real_m = band_medians(real_v, sig.speed, sig.set_speed, real_keep)
         sim_m = band_medians(sim_v, sim.speed, sim.set_speed, sim_keep)
         for direction in (1, -1):
-            cells = []
-            for key in sorted(k for k in real_m if k[0] == direction and k in sim_m):
-                (rv, rn), (sv, sn) = real_m[key], sim_m[key]
-                if rn < MIN_BAND_ROWS or sn < MIN_BAND_ROWS:
-                    continue
-                err = 100.0 * abs(sv - rv) / max(rv, ERROR_FLOOR)
-                cells.append((key[1], rv, sv, err))
+            cells = band_cells(real_m, sim_m, direction)
             if not cells:
                 continue
             worst = max(cells, key=lambda c: c[3])
