@@ -16,7 +16,9 @@ file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 
 from __future__ import annotations
 
+import errno
 import functools
+import json
 import math
 import os
 import subprocess
@@ -25,7 +27,7 @@ import textwrap
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
@@ -821,3 +823,94 @@ class FakeMotor:
 
     def advance(self, dt: float) -> None:
         pass
+
+
+# ------------------------------------------- faults the deploy tests inject
+class ConstantPolicy:
+    """Returns ``action`` every call; ``bad_from`` on it returns NaN instead."""
+
+    def __init__(self, action: list[float], bad_from: int | None = None) -> None:
+        self.action = np.asarray(action, dtype=np.float32)
+        self.bad_from = bad_from
+        self.calls = 0
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        self.calls += 1
+        if self.bad_from is not None and self.calls > self.bad_from:
+            return np.array([np.nan, 0.0, 0.0, 0.0], dtype=np.float32)
+        return self.action
+
+
+class AnswersFF:
+    """A joint that has stopped sending: every byte read is 0xFF (the bus left high).
+
+    Its firmware keeps running (its main loop, its deadman); only the replies are lost.
+    """
+
+    def __init__(self, firmware: Any) -> None:
+        self.firmware = firmware
+
+    def transfer(self, data: bytes, read_len: int) -> bytes:
+        return b"\xff" * read_len
+
+    def update(self) -> None:
+        self.firmware.update()
+
+
+class FlipsNextReply:
+    """A joint whose next reply to ``reg`` comes back with bit ``bit`` flipped; the rest as they are.
+
+    Bits count from the reply's first byte, least significant first: in
+    ANGLEMOVED's 5-byte reply bit 30 is the float's top exponent bit and bit
+    33 the flags byte's BUSY.
+    """
+
+    def __init__(self, firmware: Any, bit: int, reg: Reg = Reg.ANGLEMOVED) -> None:
+        self.firmware, self.bit, self.reg = firmware, bit, reg
+
+    def transfer(self, data: bytes, read_len: int) -> bytes:
+        reply = bytearray(self.firmware.transfer(data, read_len))
+        if data == bytes((self.reg,)) and self.bit is not None:
+            reply[self.bit // 8] ^= 1 << (self.bit % 8)
+            self.bit = None
+        return bytes(reply)
+
+    def update(self) -> None:
+        self.firmware.update()
+
+
+class FillingDisk:
+    """``os.write`` of the run log on a disk that fills: while ``full``, half of the bytes land, then ENOSPC.
+
+    ``full_for`` writes later space returns (``None``: never), as when another
+    process frees some.
+    """
+
+    def __init__(self, full_for: int | None) -> None:
+        self.full_for = full_for
+        self.full = False
+        self.fd: int | None = None
+
+    def __call__(self, fd: int, data: Any) -> int:
+        if not self.full or fd != self.fd:
+            return os.write(fd, data)
+        if self.full_for is not None:
+            self.full_for -= 1
+            self.full = self.full_for > 0
+        os.write(fd, bytes(data)[: len(data) // 2])  # what a full disk takes before it refuses
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def nan_actor_weights(run: Path) -> list[str]:
+    """The actor's output layer full of NaN, model and metadata otherwise intact."""
+    import torch
+    from stable_baselines3 import SAC
+
+    from bioscara_gym.training.metadata import save_policy
+
+    act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
+    sac = SAC.load(run / "model.zip", device="cpu", custom_objects=act_only)
+    with torch.no_grad():
+        sac.policy.actor.mu.weight.fill_(float("nan"))
+    save_policy(sac, run, json.loads((run / "metadata.json").read_text()))
+    return ["--model", str(run / "model.zip")]

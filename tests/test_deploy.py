@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from rich.console import Console
-from rigs import place_obstacle, train_tiny_sac
+from rigs import AnswersFF, ConstantPolicy, FillingDisk, FlipsNextReply, place_obstacle, train_tiny_sac
 
 from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.arm import Arm
@@ -107,21 +107,6 @@ def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., Run]:
         return Run(deployment, out.getvalue(), error, Path(fields["log"]))
 
     return run
-
-
-class ConstantPolicy:
-    """Returns ``action`` every call; ``bad_from`` on it returns NaN instead."""
-
-    def __init__(self, action: list[float], bad_from: int | None = None) -> None:
-        self.action = np.asarray(action, dtype=np.float32)
-        self.bad_from = bad_from
-        self.calls = 0
-
-    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        self.calls += 1
-        if self.bad_from is not None and self.calls > self.bad_from:
-            return np.array([np.nan, 0.0, 0.0, 0.0], dtype=np.float32)
-        return self.action
 
 
 class PushJ1:
@@ -265,22 +250,6 @@ def test_bus_lost_mid_run_reports_the_joints_it_could_not_disable(deploy: Callab
     assert "NOT confirmed disabled" in run.output and "cut the power" in run.output
 
 
-class AnswersFF:
-    """A joint that has stopped sending: every byte read is 0xFF (the bus left high).
-
-    Its firmware keeps running (its main loop, its deadman); only the replies are lost.
-    """
-
-    def __init__(self, firmware: Any) -> None:
-        self.firmware = firmware
-
-    def transfer(self, data: bytes, read_len: int) -> bytes:
-        return b"\xff" * read_len
-
-    def update(self) -> None:
-        self.firmware.update()
-
-
 @pytest.mark.parametrize(
     ("fault", "wording"),
     [
@@ -326,23 +295,6 @@ def test_a_joint_lost_mid_run_is_named_and_never_counted_as_disabled(
     assert f"confirmed disabled: {', '.join(others)}" in run.output
 
 
-class FlipsNextPosition:
-    """A joint whose next ANGLEMOVED reply comes back with one bit flipped; the rest as they are."""
-
-    def __init__(self, firmware: Any, bit: int) -> None:
-        self.firmware, self.bit = firmware, bit
-
-    def transfer(self, data: bytes, read_len: int) -> bytes:
-        reply = bytearray(self.firmware.transfer(data, read_len))
-        if data == bytes((0x18,)) and self.bit is not None:
-            reply[self.bit // 8] ^= 1 << (self.bit % 8)
-            self.bit = None
-        return bytes(reply)
-
-    def update(self) -> None:
-        self.firmware.update()
-
-
 def test_a_flipped_exponent_bit_in_a_position_is_read_again_and_logged(deploy: Callable[..., Run]) -> None:
     # Seen: one flipped exponent bit in j2's position reply, and the log showed
     # q 0.174 -> 0.338 -> 0.176 m within 40 ms on a 0.03 m/s joint, no error
@@ -351,7 +303,7 @@ def test_a_flipped_exponent_bit_in_a_position_is_read_again_and_logged(deploy: C
     def flip(cycle: int, env: gym.Env) -> None:
         if cycle == 20:
             devices = env.unwrapped.backend.bus.devices
-            devices[0x12] = FlipsNextPosition(devices[0x12], bit=30)
+            devices[0x12] = FlipsNextReply(devices[0x12], bit=30)
 
     run = deploy(policy=ConstantPolicy([0.0, -0.5, 0.0, 0.0]), env=REACH, on_cycle=flip)
     assert run.error is None, run.output
@@ -393,28 +345,6 @@ def test_recovered_bus_errors_appear_in_the_cycles_and_the_summary(deploy: Calla
     assert sum(t["transactions"] for t in summary["bus"].values()) == run.backend.bus.transactions
     assert sum(t["errors"]["bus"] for t in summary["bus"].values()) > 0
     assert "bus j1: transactions / retries / errors" in run.output
-
-
-class FillingDisk:
-    """``os.write`` of the run log on a disk that fills: while ``full``, half of the bytes land, then ENOSPC.
-
-    ``full_for`` writes later space returns (``None``: never), as when another
-    process frees some.
-    """
-
-    def __init__(self, full_for: int | None) -> None:
-        self.full_for = full_for
-        self.full = False
-        self.fd: int | None = None
-
-    def __call__(self, fd: int, data: Any) -> int:
-        if not self.full or fd != self.fd:
-            return os.write(fd, data)
-        if self.full_for is not None:
-            self.full_for -= 1
-            self.full = self.full_for > 0
-        os.write(fd, bytes(data)[: len(data) // 2])  # what a full disk takes before it refuses
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
 
 @pytest.mark.parametrize("full_for", [1, None], ids=["space-returns", "stays-full"])

@@ -18,7 +18,7 @@ from typing import Any
 
 import gymnasium as gym
 import pytest
-from rigs import train_tiny_sac
+from rigs import nan_actor_weights, train_tiny_sac
 
 from bioscara_gym.cli import main
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
@@ -152,21 +152,6 @@ def mode_and_rate_edited_in_both_places(run: Path) -> list[str]:
 def saved_without_its_copy(run: Path) -> list[str]:
     """A model.zip saved before the metadata travelled inside it."""
     embed(run, None)
-    return ["--model", str(run / "model.zip")]
-
-
-def nan_actor_weights(run: Path) -> list[str]:
-    """The actor's output layer full of NaN, model and metadata otherwise intact."""
-    import torch
-    from stable_baselines3 import SAC
-
-    from bioscara_gym.training.metadata import save_policy
-
-    act_only = {"replay_buffer_class": None, "replay_buffer_kwargs": {}, "buffer_size": 1}
-    sac = SAC.load(run / "model.zip", device="cpu", custom_objects=act_only)
-    with torch.no_grad():
-        sac.policy.actor.mu.weight.fill_(float("nan"))
-    save_policy(sac, run, json.loads((run / "metadata.json").read_text()))
     return ["--model", str(run / "model.zip")]
 
 
