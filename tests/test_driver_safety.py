@@ -151,7 +151,8 @@ def test_rehoming_a_joint_with_a_lost_offset_clears_the_mark(scripted_bus: Any) 
     joint = Joint("j3", 0x13, 24.0, -2.62672, 2.62672, scripted_bus, clock=ManualClock())
     scripted_bus.queue(ack(READY), f32(math.nan) + flags(READY))
     joint.init()
-    scripted_bus.queue(flags(READY), flags(BUSY | NOT_HOMED), ack(READY), ack(READY), flags(READY))
+    # HOMEOFFSET, HOME, PING (done), 2 PINGs confirming it, post_homing's PING, HOMEOFFSET
+    scripted_bus.queue(flags(READY), flags(BUSY | NOT_HOMED), *[ack(READY)] * 4, flags(READY))
     joint.home(0.05, 25, 10)
     assert joint.is_homed()
     assert joint.offset == 2.62672

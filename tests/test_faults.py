@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from rigs import J1, J2, EmulatedJoint, build_emulated
+from rigs import J1, J2, EmulatedJoint, FlipsNextReply, build_emulated
 
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, Fault, FaultPlan
@@ -128,6 +128,32 @@ def test_short_read_command_is_delivered(make_emulated_j1: MakeJ1) -> None:
 def test_every_reply_corrupted_raises_only_joint_errors(make_emulated_j1: MakeJ1) -> None:
     emu = make_emulated_j1(faults=FaultPlan(corrupt=1.0, seed=3))
     session(emu, seed=3, calls=200)
+
+
+@pytest.mark.parametrize("read", ["get_position", "get_flags"])
+def test_a_flipped_busy_bit_does_not_end_a_homing(read: str) -> None:
+    # Seen (benchmarks/fault_matrix.py, corrupt=0.05): j3's reply flags
+    # BUSY | NOT_HOMED came back as NOT_HOMED alone; the arm took the homing for
+    # aborted and stopped the joint on its way. The firmware clears BUSY once,
+    # at the end of HOME or on STOP (joint.ino), so the end is read again.
+    emu = build_emulated(J1, 2.9)
+    j = emu.joint
+    j.init()
+    j.enable(J1.drive_current, J1.hold_current)
+    j.start_homing(J1.homing.speed, J1.homing.threshold, J1.homing.current)
+    emu.advance(0.1)
+    # the next reply's flags byte with BUSY (bit 1) flipped: ANGLEMOVED's 5th byte, PING's 2nd
+    flipped = (33, Reg.ANGLEMOVED) if read == "get_position" else (9, Reg.PING)
+    emu.bus.devices[J1.address] = FlipsNextReply(emu.firmware, *flipped)
+    getattr(j, read)()
+    assert j.is_busy() and not j.is_homed()
+    assert j.stats.total_implausible == 1
+    for _ in range(500):
+        if not j.get_flags() & Flag.BUSY:
+            break
+        emu.advance(0.04)
+    j.post_homing()  # homed: no NotHomedError
+    assert j.is_homed()
 
 
 # ------------------------------------------------------------ absent joint

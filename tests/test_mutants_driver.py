@@ -282,7 +282,7 @@ def test_check_orientation_turns_2_degrees_by_default(
 ) -> None:
     # docs/arm.md: check_orientation(angle=2.0); CHECKORIENTATION float32 degrees.
     joint = make_j1()
-    scripted_bus.queue(flags(BUSY), ack(READY))  # CHECKORIENTATION (BUSY), PING: done
+    scripted_bus.queue(flags(BUSY), *[ack(READY)] * 3)  # CHECKORIENTATION (BUSY), PING: done, twice more
     joint.check_orientation()
     assert scripted_bus.writes()[0] == bytes([0x2B, 0x00, 0x00, 0x00, 0x40])
 
@@ -534,7 +534,7 @@ def test_adopt_homing_during_another_blocking_command_is_refused_by_name(
                 refused.append(e)
 
     joint.on_exchange(adopt)
-    scripted_bus.queue(flags(BUSY), ack(READY))  # CHECKORIENTATION, PING: done
+    scripted_bus.queue(flags(BUSY), *[ack(READY)] * 3)  # CHECKORIENTATION, PING: done, twice more
     joint.check_orientation()
     assert [str(e) for e in refused] == ["j1: CHECKORIENTATION is running; cannot adopt a homing"]
     assert refused[0].joint == "j1"  # type: ignore[attr-defined]

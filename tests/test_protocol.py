@@ -648,10 +648,13 @@ def test_check_orientation_sends_degrees_then_pings_until_not_busy(
     scripted_bus: Any, make_ready: Callable[..., Joint], clock: ManualClock
 ) -> None:
     joint = make_ready("j1")
-    scripted_bus.queue(flags(BUSY), ack(BUSY), ack(READY))
+    # BUSY gone is read twice more (STICKY_CONFIRMATIONS): one flipped bit could fake the end
+    scripted_bus.queue(flags(BUSY), ack(BUSY), ack(READY), ack(READY), ack(READY))
     joint.check_orientation(2.0)
     assert scripted_bus.log == [
         (0x11, CHECKORIENTATION + b"\x00\x00\x00\x40", 1),
+        (0x11, PING, 2),
+        (0x11, PING, 2),
         (0x11, PING, 2),
         (0x11, PING, 2),
     ]
@@ -749,6 +752,8 @@ def test_home_waits_while_busy_then_stores_offset(
         flags(BUSY | NOT_HOMED),  # HOME
         ack(BUSY | NOT_HOMED),  # wait_while_busy
         ack(READY),
+        ack(READY),  # BUSY gone, read twice more
+        ack(READY),
         ack(READY),  # post_homing
         flags(READY),  # HOMEOFFSET
     )
@@ -756,6 +761,8 @@ def test_home_waits_while_busy_then_stores_offset(
     assert scripted_bus.writes() == [
         HOMEOFFSET + NAN_OFFSET,
         HOME + bytes((0, 10, 30, 15)),
+        PING,
+        PING,
         PING,
         PING,
         PING,

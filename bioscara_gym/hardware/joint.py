@@ -12,6 +12,7 @@ from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import CommError, InvalidArgumentError
 from bioscara_gym.hardware.registers import (
     ACK,
+    FLAG_BUSY,
     FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
     FLAGS_SIZE,
@@ -213,20 +214,26 @@ class Joint(BaseJoint):
         return value
 
     def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int) -> None:
-        """Read the flags again if ``flags`` shows a sticky flag newly set (:data:`STICKY_FLAGS`).
+        """Read the flags again if ``flags`` shows a sticky flag newly set, or a blocking command's end.
 
-        The flag counts as real only when :data:`STICKY_CONFIRMATIONS` further
-        readings (PINGs) all show it: one flipped bit in the reply and another
-        in a single confirming PING would otherwise stop a run on a stall or
-        deadman trip that never happened.
+        A sticky flag (:data:`STICKY_FLAGS`) newly set, or BUSY gone while
+        HOME or CHECKORIENTATION runs (the firmware clears it once, at the
+        command's end or on STOP), counts as real only when
+        :data:`STICKY_CONFIRMATIONS` further readings (PINGs) all show it: one
+        flipped bit in the reply and another in a single confirming PING would
+        otherwise stop a run on a stall or deadman trip that never happened,
+        and one flipped BUSY bit ended a homing half-way (``corrupt=0.05``:
+        the arm took the homing for aborted and stopped j3 on its way).
 
         Raises:
-            _BadReply: ``implausible``: a later reading lacks it, so the
-                first reply's flags byte was corrupted.
+            _BadReply: ``implausible``: a later reading does not show it, so
+                the first reply's flags byte was corrupted.
         """
         may_set = self._flags_set_by(reg, sent) | (FLAG_NOT_ENABLED if reg == Reg.DISABLECLOSEDLOOP else 0)
         appeared = flags & ~self._flags & STICKY_FLAGS & ~may_set
-        if not appeared:
+        running = self._current_b_cmd is not Reg.NONE and reg is not Reg.STOP
+        ended = FLAG_BUSY if running and self._flags & ~flags & FLAG_BUSY else 0
+        if not appeared and not ended:
             return
         for _ in range(STICKY_CONFIRMATIONS):
             _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
@@ -235,6 +242,12 @@ class Joint(BaseJoint):
                     "implausible",
                     f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
                     f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
+                )
+            if ended & confirmed:
+                raise _BadReply(
+                    "implausible",
+                    f"flags {Flag(flags)!r} lack BUSY while {self._current_b_cmd.name} runs, but the "
+                    f"flags read right after ({Flag(confirmed)!r}) show it, and it cannot come back",
                 )
 
     # ------------------------------------------------------------ transfer
