@@ -9,6 +9,7 @@ READMEs) as literals.
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 import subprocess
 import sys
@@ -19,8 +20,9 @@ import pytest
 
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.hardware import load_config
-from bioscara_gym.hardware.drive import KICK_ACCEL
+from bioscara_gym.hardware.drive import KICK_ACCEL, DriveParams
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE
+from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.validation import validate
 from bioscara_gym.validation.experiments import max_accel, rw, setting_max_val, stall, tracking
 from bioscara_gym.validation.recordings import (
@@ -93,6 +95,19 @@ def test_j1_at_2_rad_per_s_loses_steps_as_the_real_one_did() -> None:
     assert rows["lost steps"].real == "yes" and rows["lost steps"].sim == "yes"
     assert sim.lost_sync >= 1
     assert max(abs(sim.qd)) < 1.0  # it never got near the 2 rad/s asked
+
+
+def test_the_largest_share_of_the_pull_out_torque_asked_for_is_kept() -> None:
+    # Pull-out 1000 rad/s^2 at full current, no fall with speed, no friction: 500 at 50 %.
+    # 0 -> 1 rad/s within one 10 ms tick asks 100 rad/s^2, a fifth of it.
+    motor = KinematicStepper(0.0, drive=DriveParams(pullout_accel=1000.0))
+    motor.command(math.degrees(1.0), 0.5)
+    motor.advance(0.05)
+    assert motor.peak_demand == pytest.approx(0.2) and motor.lost_sync == 0
+    # 1 -> 11 rad/s within a tick asks 1000 rad/s^2: twice what it has; it loses its field
+    motor.command(math.degrees(11.0), 0.5)
+    motor.advance(0.05)
+    assert motor.peak_demand == pytest.approx(2.0) and motor.lost_sync == 1
 
 
 def test_ten_million_deg_per_s2_is_cut_to_the_16_bit_register() -> None:

@@ -167,6 +167,12 @@ class KinematicStepper:
         self.lost_sync = 0
         self.pole_slips = 0
         self.resyncs = 0
+        #: The largest share of the pull-out torque the field's motion has asked
+        #: for so far (acceleration, friction and load over the pull-out at the
+        #: field's speed; above 1 the rotor cannot follow): how close a run came
+        #: to losing steps, or how far past it (never reset by the model; a
+        #: caller may set it to 0 to start a new count).
+        self.peak_demand = 0.0
         self._position = float(position_deg)
         self._field = float(position_deg)
         self._rotor_dps = 0.0
@@ -376,6 +382,7 @@ class KinematicStepper:
         pullout = self.drive.pullout(self._torque_fraction, v * _RAD)
         if abs(needed) > pullout or self._at_stop(v):
             return False
+        self._demand(needed, pullout)
         lag = 0.0
         if math.isfinite(pullout) and pullout > 0.0 and needed:
             lag = math.copysign(
@@ -428,6 +435,9 @@ class KinematicStepper:
         v_field = self._command_dps
         advance = v_field * h
         self._field += advance
+        if not (self.blocked or self._held):
+            pullout = self.drive.pullout(self._torque_fraction, v_field * _RAD)
+            self._demand(self._needed(v_field, accel), pullout)
         if self._synced:
             self._follow(v_field, accel, h)
         else:
@@ -466,6 +476,11 @@ class KinematicStepper:
         if amplitude * USTEPS_PER_DEG < 1.0:
             x_new = v_new = 0.0
         self._swing_deg, self._swing_dps = x_new, v_new
+
+    def _demand(self, needed: float, pullout: float) -> None:
+        """Keep the largest share of the pull-out torque asked for (:attr:`peak_demand`)."""
+        if math.isfinite(pullout) and pullout > 0.0:
+            self.peak_demand = max(self.peak_demand, abs(needed) / pullout)
 
     def _needed(self, v_dps: float, accel: float) -> float:
         """Acceleration the motor must supply to move the rotor so, rad/s²."""

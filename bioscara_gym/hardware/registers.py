@@ -313,9 +313,10 @@ REPLY_FLAGS_SET: dict[Reg, int] = {
 #: second reading lacks it, the first was corrupted (docs/protocol.md).
 STICKY_FLAGS = int(Flag.STALL | Flag.NOT_ENABLED | Flag.NOT_HOMED)
 #: Readings of the flags (PINGs) that must all show a newly set sticky flag
-#: (or BUSY gone while HOME or CHECKORIENTATION runs) before the driver believes it. With one, a flipped bit in the reply and the
-#: same bit flipped in its confirming PING ended a deploy on a false
-#: NOT_ENABLED at ``corrupt=0.05`` (issue #24); with two, a false flag needs
+#: (or BUSY gone while HOME or CHECKORIENTATION runs) before the driver
+#: believes it. With one, a flipped bit in the reply and the same bit
+#: flipped in its confirming PING ended a deploy on a false NOT_ENABLED at
+#: ``corrupt=0.05`` (issue #24); with two, a false flag needs
 #: three flips of the same bit in a row, while a real stall or deadman trip
 #: costs two PINGs once (our choice).
 STICKY_CONFIRMATIONS = 2

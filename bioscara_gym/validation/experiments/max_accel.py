@@ -31,13 +31,19 @@ POSITION_RMS_BOUND_PCT = 5.0
 
 @dataclass(frozen=True)
 class MaxAccelReplay:
-    """The simulated run: one sample per recorded sample (joint units), and the motor's counters."""
+    """The simulated run: one sample per recorded sample (joint units), and the motor's counters.
+
+    The counters count from the velocity command on (not the homing before it).
+    """
 
     t: np.ndarray  # simulated time of each sample, s from the velocity command
     q: np.ndarray
     qd: np.ndarray
     lost_sync: int
     pole_slips: int
+    #: Per sample, the largest share of the pull-out torque the command had
+    #: asked for since the velocity command (:attr:`KinematicStepper.peak_demand`).
+    demand: np.ndarray | None = None
 
 
 def replay(run: MaxAccelRun, config: ArmConfig, seed: int = 0) -> MaxAccelReplay:
@@ -49,9 +55,12 @@ def replay(run: MaxAccelRun, config: ArmConfig, seed: int = 0) -> MaxAccelReplay
     current = round(run.current)
     joint.enable(current, current)
     start = rig.now
+    motor = rig.motor
+    motor.peak_demand = 0.0  # the homing's own is not the run's
+    lost0, slips0 = motor.lost_sync, motor.pole_slips
     joint.set_velocity(run.max_velocity)
     overhead = config.bus_timing.program_overhead_s
-    t, q, qd = [], [], []
+    t, q, qd, demand = [], [], [], []
     last = 0.0
     for logged in run.t:
         rig.sleep(logged - last)
@@ -59,9 +68,10 @@ def replay(run: MaxAccelRun, config: ArmConfig, seed: int = 0) -> MaxAccelReplay
         q.append(joint.get_position())
         qd.append(joint.get_velocity())
         t.append(rig.now - start)
+        demand.append(rig.motor.peak_demand)
         rig.sleep(overhead)
-    motor = rig.motor
-    return MaxAccelReplay(np.array(t), np.array(q), np.array(qd), motor.lost_sync, motor.pole_slips)
+    lost, slips = motor.lost_sync - lost0, motor.pole_slips - slips0
+    return MaxAccelReplay(np.array(t), np.array(q), np.array(qd), lost, slips, np.array(demand))
 
 
 def window(run: MaxAccelRun, config: ArmConfig) -> np.ndarray:
@@ -98,6 +108,18 @@ def lost_steps(qd: np.ndarray, commanded: np.ndarray, run: MaxAccelRun) -> bool:
         return False
     shortfall = np.abs(commanded) - np.abs(qd)
     return bool(np.max(shortfall) > 0.1 * abs(run.max_velocity))
+
+
+def peak_demand(sim: MaxAccelReplay, mask: np.ndarray) -> float | None:
+    """The largest share of the pull-out torque the command asked for within the compared samples."""
+    if sim.demand is None or not mask.any():
+        return None
+    return float(sim.demand[np.nonzero(mask)[0][-1]])
+
+
+def _demand_note(sim: MaxAccelReplay, mask: np.ndarray) -> str:
+    demand = peak_demand(sim, mask)
+    return "" if demand is None else f"; the command asked up to {demand:.3g}x its pull-out torque"
 
 
 def ideal(config: ArmConfig, joint: str) -> ArmConfig:
@@ -138,7 +160,8 @@ def compare(
             "yes" if real_lost else "no",
             "yes" if sim_lost else "no",
             real_lost == sim_lost,
-            note=f"motor lost its field {sim.lost_sync}x, {sim.pole_slips} pole slips",
+            note=f"motor lost its field {sim.lost_sync}x, {sim.pole_slips} pole slips"
+            + _demand_note(sim, mask),
         )
     )
     real_move = run.q[mask] - run.q[0]
