@@ -491,7 +491,19 @@ def test_a_failing_write_is_tried_retries_plus_one_times_and_names_the_sdk_reaso
         bus.write(joint, 116, 4, 5000)
     assert emulated.instructions - before == 3
     assert str(e.value) == f"j1: WRITE 116 failed after 3 attempts: {LIMIT}{CHECK}"
-    assert joint.stats.total_errors == 3
+    assert (joint.stats.total_errors, joint.stats.total_retries) == (3, 2)
+
+
+def test_an_attempt_after_a_failed_one_counts_as_a_retry() -> None:
+    # Seen: a Dynamixel joint's retries stayed 0 whatever the bus did (the I2C joint counts them).
+    bus, _, _ = rig()
+    joint = DynamixelJoint("j1", 1, bus)
+    joint.init()
+    before = (joint.stats.total_transactions, joint.stats.total_retries)
+    results = iter([(0, -3001, 0), (7, 0, 0)])  # COMM_TX_FAIL, then COMM_SUCCESS
+    assert bus.transact(joint, "READ 132", lambda: next(results)) == (7, 0)
+    stats = joint.stats
+    assert (stats.total_transactions - before[0], stats.total_retries - before[1]) == (2, 1)
 
 
 @pytest.mark.parametrize("retries", [0, 1, 4])

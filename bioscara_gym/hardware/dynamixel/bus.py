@@ -377,13 +377,13 @@ class DynamixelBus:
         self.open()
         last = ""
         with self.lock:
-            for _ in range(self.retries + 1):
+            for attempt in range(self.retries + 1):
                 value, result, error = call()
                 if result == COMM_SUCCESS and not error & ~ALERT & 0xFF:
-                    joint.stats.record(ok=True)
+                    joint.stats.record(ok=True, retry=attempt > 0)
                     joint.note_status(error)
                     return value, error
-                joint.stats.record(ok=False)
+                joint.stats.record(ok=False, retry=attempt > 0)
                 if result != COMM_SUCCESS:
                     last = self.packet_handler.getTxRxResult(result)
                 else:
