@@ -68,7 +68,7 @@ def replay(run: MaxAccelRun, config: ArmConfig, seed: int = 0) -> MaxAccelReplay
         q.append(joint.get_position())
         qd.append(joint.get_velocity())
         t.append(rig.now - start)
-        demand.append(rig.motor.peak_demand)
+        demand.append(motor.peak_demand)
         rig.sleep(overhead)
     lost, slips = motor.lost_sync - lost0, motor.pole_slips - slips0
     return MaxAccelReplay(np.array(t), np.array(q), np.array(qd), lost, slips, np.array(demand))
