@@ -287,7 +287,10 @@ class KinematicStepper:
 
     def snapshot(self) -> dict[str, object]:
         """The model's state, the random generator's included (not the drive's parameters: configuration)."""
-        state = {k: v for k, v in vars(self).items() if k not in ("rng", "drive", "_loop", "_estimator")}
+        # peak_demand is a reading for the caller (validation), not the motor's state:
+        # state files saved before it existed still restore.
+        skip = ("rng", "drive", "_loop", "_estimator", "peak_demand")
+        state = {k: v for k, v in vars(self).items() if k not in skip}
         state["_loop"] = (self._loop.xactual_deg, self._loop.error)
         est = self._estimator
         state["_estimator"] = (est._pos_est, est._vel_est, est._vel_int)
