@@ -317,6 +317,26 @@ def test_a_flipped_exponent_bit_in_a_position_is_read_again_and_logged(deploy: C
     assert lines[-1]["bus"]["j2"]["errors"]["implausible"] == 1
 
 
+@pytest.mark.parametrize("bad_from", [10, None], ids=["safe-stop", "completed"])
+def test_the_joints_are_braked_to_rest_before_their_current_is_cut(
+    deploy: Callable[..., Run], bad_from: int | None
+) -> None:
+    # Seen (a hostile test): j3 at 4.5 rad/s and j4 at 9.4 rad/s when the
+    # policy returned NaN; the safe stop sent STOP and cut the currents a
+    # millisecond later, and the unbraked arm coasted on: j3 0.9 rad, j1 (never
+    # commanded) spun up to 2 rad/s by j3's momentum, 3.5 rad in 3 s. The
+    # firmware's STOP ramps the speed down, which takes current.
+    run = deploy(policy=ConstantPolicy([0.0, -0.5, 1.0, 1.0], bad_from=bad_from), env=REACH)
+    assert (run.error is not None) == (bad_from is not None)
+    assert_every_joint_disabled(run.summary)
+    backend = run.backend
+    before = backend.sim.joint_positions().copy()
+    for _ in range(15):
+        backend.step(0.2)
+    travel = np.abs(backend.sim.joint_positions() - before)
+    assert travel.max() < 1e-3, f"moved after the run ended: {travel}"
+
+
 def test_deadman_guard_stops_when_a_joint_is_silent_over_50_ms(deploy: Callable[..., Run]) -> None:
     run = deploy(faults="latency_ms=30")
     assert run.error is not None and run.error.code == EXIT_SAFETY_STOP

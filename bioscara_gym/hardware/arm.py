@@ -39,8 +39,16 @@ from bioscara_gym.hardware.errors import (
     NotHomedError,
 )
 from bioscara_gym.hardware.registers import DEADMAN_S, TICK_S, Flag, Reg
-from bioscara_gym.hardware.safety import DeadmanGuard, SafeStopReport, final_state, safe_stop
+from bioscara_gym.hardware.safety import (
+    REST_RPM,
+    DeadmanGuard,
+    SafeStopReport,
+    final_state,
+    safe_stop,
+    wait_for_rest,
+)
 from bioscara_gym.hardware.stats import CommStats
+from bioscara_gym.hardware.transmission import velocity_to_rpm
 
 #: The firmware's deadman stops a joint after 50 ms of silence: 20 Hz is the floor of a
 #: control loop's rate.
@@ -420,8 +428,21 @@ class Arm:
             self._homing.clear()
 
     def _disable_devices(self, joints: Iterable[str], gripper: bool) -> None:
-        """Best effort: try every named device even if one fails, then raise the first error."""
+        """Best effort: try every named device even if one fails, then raise the first error.
+
+        Joints that were moving at the last read are stopped and braked to
+        rest first (:func:`~bioscara_gym.hardware.safety.wait_for_rest`):
+        with its current cut, a moving joint coasts.
+        """
         first: BaseException | None = None
+        joints = tuple(joints)
+        moving = {n: self.joints[n] for n in joints if self.joints[n].initialized and self._moving(n)}
+        for joint in moving.values():
+            try:
+                joint.stop()
+            except JointError as e:
+                first = first or e
+        wait_for_rest(moving)
         for name in joints:
             joint = self.joints[name]
             try:
@@ -436,6 +457,11 @@ class Arm:
             first = first or e
         if first is not None:
             raise first
+
+    def _moving(self, name: str) -> bool:
+        """Whether the joint moved at the last read (faster than the rest speed)."""
+        rpm = velocity_to_rpm(self.joint_states[name].velocity, self.joints[name].reduction)
+        return abs(rpm) >= REST_RPM
 
     def cleanup(self) -> None:
         """Disconnect the joints and the gripper."""
@@ -1022,9 +1048,7 @@ class Arm:
 
     def describe_joints(self) -> str:
         """The joints, each with its bus address where it has one: ``"j1 0x11, j2 0x12, ..."``."""
-        return ", ".join(
-            n if j.address is None else f"{n} {j.address:#04x}" for n, j in self.joints.items()
-        )
+        return ", ".join(n if j.address is None else f"{n} {j.address:#04x}" for n, j in self.joints.items())
 
     def watch_deadman(self, limit_s: float = DEADMAN_S) -> DeadmanGuard:
         """A :class:`~bioscara_gym.hardware.safety.DeadmanGuard` on every joint (``detach()`` it after)."""

@@ -39,6 +39,7 @@ from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.errors import CommError, DeadmanError, JointError
 from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.registers import DEADMAN_S, Flag
+from bioscara_gym.hardware.transmission import velocity_to_rpm
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
 #: backend can see the device; otherwise they are the flags of the joint's last reply.
@@ -153,13 +154,53 @@ class StoppableArm(Protocol):
         ...
 
 
+#: A stopped joint counts as at rest once its encoder reads below this motor
+#: speed, RPM (12 deg/s at the motor: 0.5 deg/s at j3's 24:1).
+REST_RPM = 2.0
+#: The longest a stop waits for the joints to come to rest before their
+#: current is cut, s. The firmware's STOP ramps the speed down at the joint's
+#: max acceleration, and braking takes the current: j3 from 5 rad/s at its
+#: 14 rad/s² takes 0.36 s, and the encoder's speed estimate settles some
+#: 0.15 s after (a 53 ms time constant).
+REST_TIMEOUT_S = 1.0
+#: How often the waiting stop reads the speeds, s (each reading feeds the joint's deadman).
+REST_POLL_S = 0.02
+
+
+def wait_for_rest(joints: Mapping[str, BaseJoint]) -> list[str]:
+    """Read the stopped joints' speeds until each is at rest, at most :data:`REST_TIMEOUT_S`.
+
+    The joints were sent STOP; cutting their current before they have
+    braked lets a moving arm coast on, unbraked (a j3 at 4.5 rad/s turned
+    0.9 rad further, and swung j1 up to 2 rad/s). A joint whose speed cannot
+    be read is not waited for. Returns the joints still moving at the end.
+    """
+    moving = dict(joints)
+    if not moving:
+        return []
+    clock = next(iter(moving.values())).clock
+    end = clock.now() + REST_TIMEOUT_S
+    while True:
+        for name, joint in list(moving.items()):
+            try:
+                rpm = velocity_to_rpm(joint.get_velocity(), joint.reduction)
+            except JointError:
+                rpm = 0.0  # cannot be watched; its disable follows
+            if abs(rpm) < REST_RPM:
+                del moving[name]
+        if not moving or clock.now() >= end:
+            return list(moving)
+        clock.sleep(REST_POLL_S)
+
+
 def safe_stop(arm: StoppableArm) -> SafeStopReport:
     """Speed 0 to every joint, cut every joint's current, disable the gripper, shut the arm down.
 
     Best effort: each step is tried on every device even if another failed.
-    The order stops all motion first (one STOP per joint), then disables
-    each joint (stop, currents 0, freewheel), so a slow or failing bus
-    delays no joint's stop behind another's disable. Every joint is
+    The order stops all motion first (one STOP per joint), waits for the
+    joints to brake to rest (:func:`wait_for_rest`: braking takes current),
+    then disables each joint (stop, currents 0, freewheel), so a slow or
+    failing bus delays no joint's stop behind another's disable. Every joint is
     disabled whatever its flags say: a deadman trip sets NOT_ENABLED but
     leaves the currents on (docs/firmware.md, deadman). Joints the arm's
     on-error transition disconnected are connected again first, so their
@@ -171,6 +212,8 @@ def safe_stop(arm: StoppableArm) -> SafeStopReport:
     why: dict[str, str] = {}
     problems = _reconnect_joints(arm, why)
     problems += _stop_joints(arm)
+    still = wait_for_rest({n: j for n, j in arm.joints.items() if j.initialized})
+    problems += [f"{n}: still moving {REST_TIMEOUT_S:g} s after STOP; current cut anyway" for n in still]
     disabled, failures = _disable_joints(arm, why)
     problems += failures + _disable_gripper(arm)
     not_confirmed = [n for n in arm.names if n not in disabled]
