@@ -858,7 +858,7 @@ class AnswersFF:
 
 
 class FlipsNextReply:
-    """A joint whose next reply to ``reg`` comes back with bit ``bit`` flipped; the rest as they are.
+    """A joint whose next reply to ``reg`` (a read or a command) comes back with bit ``bit`` flipped.
 
     Bits count from the reply's first byte, least significant first: in
     ANGLEMOVED's 5-byte reply bit 30 is the float's top exponent bit and bit
@@ -870,7 +870,7 @@ class FlipsNextReply:
 
     def transfer(self, data: bytes, read_len: int) -> bytes:
         reply = bytearray(self.firmware.transfer(data, read_len))
-        if data == bytes((self.reg,)) and self.bit is not None:
+        if data[:1] == bytes((self.reg,)) and self.bit is not None:
             reply[self.bit // 8] ^= 1 << (self.bit % 8)
             self.bit = None
         return bytes(reply)

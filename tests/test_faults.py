@@ -156,6 +156,29 @@ def test_a_flipped_busy_bit_does_not_end_a_homing(read: str) -> None:
     assert j.is_homed()
 
 
+@pytest.mark.parametrize("bit", [0, 3], ids=["STALL", "NOT_ENABLED"])
+@pytest.mark.parametrize("command", ["home", "check_orientation"])
+def test_a_flipped_flag_in_a_blocking_commands_reply_does_not_cancel_it(command: str, bit: int) -> None:
+    # Seen (a hostile test): the PINGs confirming a flag that a flipped bit set in
+    # HOME's reply went out at once, inside the pick-up window; the firmware
+    # dropped the pending HOME, BUSY stayed set, and the driver waited 30 s.
+    emu = build_emulated(J1, 2.9)
+    j = emu.joint
+    j.init()
+    j.enable(J1.drive_current, J1.hold_current)
+    if command == "home":
+        emu.bus.devices[J1.address] = FlipsNextReply(emu.firmware, bit, Reg.HOME)
+        j.home(J1.homing.speed, J1.homing.threshold, J1.homing.current, timeout_s=30.0)
+        assert j.is_homed()
+    else:  # not homed: a homed j1 rests against its end stop
+        emu.bus.devices[J1.address] = FlipsNextReply(emu.firmware, bit, Reg.CHECKORIENTATION)
+        start = emu.motor.position_deg
+        j.check_orientation(2.0)
+        assert emu.motor.position_deg == pytest.approx(start, abs=0.5)  # there and back
+        assert emu.firmware.core.time > 0.2  # it ran: out and back at its speed
+    assert j.stats.total_implausible == 1 and not j.is_busy()
+
+
 # ------------------------------------------------------------ absent joint
 
 

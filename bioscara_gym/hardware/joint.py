@@ -12,6 +12,8 @@ from bioscara_gym.hardware.clock import Clock
 from bioscara_gym.hardware.errors import CommError, InvalidArgumentError
 from bioscara_gym.hardware.registers import (
     ACK,
+    BLOCKING_COMMANDS,
+    BLOCKING_PICKUP_S,
     FLAG_BUSY,
     FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
@@ -146,8 +148,7 @@ class Joint(BaseJoint):
             m = self._margin()
             if not self.min - m <= value <= self.max + m:
                 return (
-                    f"HOMEOFFSET {value:g} is beyond the limits {self.min:g}..{self.max:g} "
-                    f"by more than {m:g}"
+                    f"HOMEOFFSET {value:g} is beyond the limits {self.min:g}..{self.max:g} by more than {m:g}"
                 )
             return None
         if reg == Reg.ANGLEMOVED:
@@ -235,6 +236,10 @@ class Joint(BaseJoint):
         ended = FLAG_BUSY if running and self._flags & ~flags & FLAG_BUSY else 0
         if not appeared and not ended:
             return
+        if reg in BLOCKING_COMMANDS:
+            # The firmware cancels a blocking command its main loop has not picked up
+            # yet (BaseJoint._wait_for_pickup): a PING at once would end the homing.
+            self._sleep_until(self.clock.now() + BLOCKING_PICKUP_S)
         for _ in range(STICKY_CONFIRMATIONS):
             _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
             if appeared & ~confirmed:
@@ -361,9 +366,13 @@ class Joint(BaseJoint):
         if pending and self._agree(pending[-1], reading):
             return None
         if belief is None:
-            return "" if not pending else (
-                f"ANGLEMOVED {reading.deg:g} deg disagrees with the reading just before it "
-                f"({pending[-1].deg:g} deg)"
+            return (
+                ""
+                if not pending
+                else (
+                    f"ANGLEMOVED {reading.deg:g} deg disagrees with the reading just before it "
+                    f"({pending[-1].deg:g} deg)"
+                )
             )
         return (
             f"ANGLEMOVED {reading.deg:g} deg is {abs(reading.deg - belief.deg):.6g} deg from the last "
