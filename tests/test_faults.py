@@ -179,6 +179,31 @@ def test_a_flipped_flag_in_a_blocking_commands_reply_does_not_cancel_it(command:
     assert j.stats.total_implausible == 1 and not j.is_busy()
 
 
+def test_a_homing_the_driver_can_no_longer_watch_is_stopped() -> None:
+    # Seen (a hostile test): three NACKs in a row while home() polled raised
+    # CommError and left the homing running: the motor turned 600 degrees in
+    # the next 10 s with nobody watching.
+    emu = build_emulated(J1, 0.0)  # mid-range: the homing has some 3 rad to go
+    j = emu.joint
+    j.init()
+    j.enable(J1.drive_current, J1.hold_current)
+    transfer, count = emu.bus.transfer, [0]
+
+    def nack_burst(address: int, data: bytes, read_len: int) -> bytes:
+        count[0] += 1
+        if 100 <= count[0] < 103:  # retries 2: three attempts lost
+            raise OSError(errno.EREMOTEIO, "Remote I/O error")
+        return transfer(address, data, read_len)
+
+    emu.bus.transfer = nack_burst
+    with pytest.raises(CommError):
+        j.home(J1.homing.speed, J1.homing.threshold, J1.homing.current)
+    emu.bus.transfer = transfer
+    at = emu.motor.position_deg
+    emu.advance(10.0)
+    assert emu.motor.position_deg == pytest.approx(at, abs=1.0)  # motor degrees: it stays
+
+
 # ------------------------------------------------------------ absent joint
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import contextlib
 import math
 from collections.abc import Callable
 
@@ -643,13 +644,20 @@ class BaseJoint(abc.ABC):
 
         Raises:
             The errors of :meth:`start_homing` and :meth:`post_homing`, and
-            IncorrectStateError when it takes longer than ``timeout_s``.
+            IncorrectStateError when it takes longer than ``timeout_s``. A
+            homing this call can no longer watch (the bus failed while it
+            waited) is stopped first, best effort: a joint left homing turns
+            on until its end stop with nobody watching.
         """
         self.start_homing(velocity, sensitivity, current)
         try:
             self.wait_while_busy(timeout_s=timeout_s)
         except IncorrectStateError:
             self._current_b_cmd = Reg.NONE
+            raise
+        except JointError:
+            with contextlib.suppress(JointError):
+                self.stop()
             raise
         self.post_homing()
 
