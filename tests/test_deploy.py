@@ -405,6 +405,39 @@ def test_a_full_disk_stops_the_run_safely_and_leaves_no_torn_line(
         assert "log incomplete: 3 record(s) not written: cycle 5, stop, summary" in run.output
 
 
+def test_a_trace_the_disk_cannot_take_stays_whole_and_the_run_goes_on(
+    deploy: Callable[..., Run], tmp_path: Path
+) -> None:
+    # Seen (a hostile test): with --record on a full disk every transaction raised
+    # ENOSPC into the driver, so the deploy stopped on "communication error ...
+    # Check wiring", named every joint "no answer, ... cut the power" (their
+    # currents were 0), and left half a line that `bioscara replay` refused.
+    trace = tmp_path / "trace.jsonl"
+    writes = [0]
+
+    def filling(fd: int, data: Any) -> int:
+        writes[0] += 1
+        if writes[0] < 500:
+            return os.write(fd, data)
+        if writes[0] == 500:
+            os.write(fd, bytes(data)[: len(data) // 2])  # what a full disk takes before it refuses
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("bioscara_gym.hardware.recording._os_write", filling)
+        run = deploy(record=trace)
+    assert run.error is None, run.output
+    assert_every_joint_disabled(run.summary)
+    # the header was write 1: transactions 0-497 recorded, the rest not
+    lines = [json.loads(line) for line in trace.read_text(encoding="utf-8").splitlines()]
+    assert [d["type"] for d in lines] == ["header"] + ["tx"] * 498
+    assert run.summary["trace_error"] == (
+        f"cannot write the bus trace {trace}: No space left on device; "
+        "transactions from 498 on were not recorded"
+    )
+    assert "trace      incomplete: cannot write the bus trace" in run.output
+
+
 def test_every_bus_event_is_in_a_cycle_or_a_phase_record(deploy: Callable[..., Run]) -> None:
     # Seen: retries during deactivate appeared only in the summary's totals (22 + 11 logged of 34).
     def nack_from_the_last_cycle(cycle: int, env: gym.Env) -> None:

@@ -404,14 +404,26 @@ class Deployment:
                 "saved_width_m": arm.gripper.saved_width_m,
             },
             "log_error": None if self._log.error is None else str(self._log.error),
+            "trace_error": self._trace_error(),
             "log_records_lost": list(self._log.lost),
             "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
 
+    def _trace_error(self) -> str | None:
+        """Why the bus trace (``--record``) stops short, if it does."""
+        from bioscara_gym.hardware.recording import RecordingBus
+
+        bus = getattr(self.target.arm.backend, "bus", None) if self.target else None
+        if not isinstance(bus, RecordingBus) or bus.error is None:
+            return None
+        return f"{bus.error.strerror}; transactions from {bus.unrecorded_from} on were not recorded"
+
     def _report(self, outcome: Outcome) -> dict[str, Any]:
         """Print the summary; return it, or raise what the exit code needs."""
         print_summary(self.console, self.summary, self._log)
+        if self.summary.get("trace_error"):
+            self.console.print(f"trace      incomplete: {escape(self.summary['trace_error'])}")
         if outcome.reason is StopReason.COMPLETED:
             return self.summary
         self.console.print(disabled_line(self.summary))

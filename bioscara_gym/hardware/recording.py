@@ -21,6 +21,7 @@ transaction that differs from the recording.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -30,7 +31,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock, ManualClock
@@ -136,12 +137,21 @@ def jsonable_args(args: object) -> dict[str, Any]:
     return out
 
 
+#: ``os.write``, looked up here so a test can fill the disk at the OS boundary.
+_os_write = os.write
+
+
 class RecordingBus:
     """An :class:`~.bus.I2CBus` that writes every transaction of ``inner`` to a trace.
 
-    Each line is written and flushed as the transaction ends, so a trace is
-    complete up to a crash or Ctrl-C. Attributes it does not have are the
-    inner bus's (``bus.faults`` of an emulated bus still works).
+    Each line is written (one unbuffered ``write``) as the transaction ends,
+    so a trace is complete up to a crash or Ctrl-C. A line the disk takes
+    only in part is cut off again, and from then on nothing more is
+    recorded: the trace stays a whole prefix of the session, :attr:`error`
+    says why and :attr:`unrecorded_from` from which transaction. A trace that
+    cannot be written never fails a transaction: the bus carried it. Attributes
+    it does not have are the inner bus's (``bus.faults`` of an emulated bus
+    still works).
 
     Args:
         inner: The bus that carries the transactions.
@@ -162,8 +172,13 @@ class RecordingBus:
         self.path = Path(recording.path)
         self.transactions = 0
         self._previous = ""  # the last line's digest in this session
+        #: The write that failed, if one did; nothing is recorded after it.
+        self.error: OSError | None = None
+        #: The first transaction not recorded (``None``: every one was).
+        self.unrecorded_from: int | None = None
         try:
-            self._file: IO[str] | None = self.path.open("a", encoding="utf-8")
+            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            self._size = os.fstat(self._fd).st_size  # bytes of whole lines in the file
         except OSError as e:
             raise OSError(e.errno, f"cannot write the bus trace {self.path} (--record): {e.strerror}") from e
         self._write(
@@ -183,11 +198,23 @@ class RecordingBus:
         )
 
     def _write(self, record: Mapping[str, Any]) -> None:
-        if self._file is None:
+        if self._fd is None:
             raise OSError(f"trace {self.path} is closed")
+        if self.error is not None:
+            return
         digest = line_digest(record, self._previous)
-        self._file.write(json.dumps({**record, "digest": digest}) + "\n")
-        self._file.flush()
+        data = (json.dumps({**record, "digest": digest}) + "\n").encode()
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[_os_write(self._fd, view) :]
+        except OSError as e:
+            self.error = OSError(e.errno, f"cannot write the bus trace {self.path}: {e.strerror or e}")
+            self.unrecorded_from = int(record.get("i", 0)) if record.get("type") == "tx" else 0
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self._size)  # the line in part: cut off again
+            return
+        self._size += len(data)
         self._previous = digest
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
@@ -221,9 +248,9 @@ class RecordingBus:
         try:
             self.inner.close()
         finally:
-            if self._file is not None:
-                self._file.close()
-                self._file = None
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
 
     def __getattr__(self, name: str) -> Any:
         """The inner bus's attribute (``faults``, ``update()`` of an emulated bus)."""
