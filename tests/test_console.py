@@ -246,6 +246,35 @@ def test_homing_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run
     assert enabled(table, "gripper") == "yes"
 
 
+def test_enabling_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run, state: Path) -> None:
+    # Seen (a hostile test): refused in words, yet every homing was aborted and the arm disabled.
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "--no-wait", "--state", str(state))
+    code, _, err = bioscara("enable", "j1", "--state", str(state))
+    assert code == 2
+    assert err == (
+        "bioscara enable: error: j1: busy (a homing is running); enabling it again would stop it; "
+        "abort it first with `bioscara home j1 --abort`"
+    )
+    table = status(bioscara, state)
+    for name in ("j1", "j2", "j3", "j4"):
+        assert table[name][2:5] == ["yes", "homing…", "BUSY NOT_HOMED"], name
+
+
+@pytest.mark.parametrize("command", [("move", "j1", "0.1"), ("home", "j1")], ids=["move", "home"])
+@pytest.mark.parametrize("timeout", ["nan", "inf", "-1", "0"])
+def test_a_timeout_that_is_not_a_positive_number_is_refused(
+    capsys: pytest.CaptureFixture[str], state: Path, command: tuple[str, ...], timeout: str
+) -> None:
+    # Seen (a hostile test): nan never timed out; -1 and 0 sent the motion, then disabled the arm.
+    with pytest.raises(SystemExit) as done:  # argparse's refusal
+        main([*command, "--timeout", timeout, "--state", str(state)])
+    assert done.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.endswith(f"argument --timeout: {timeout} must be a positive, finite number of seconds")
+    assert not state.exists()  # refused before the arm was brought up
+
+
 def test_homing_left_running_is_finished_by_a_later_command(bioscara: Run, state: Path) -> None:
     bioscara("enable", "--state", str(state))
     bioscara("home", "j4", "--no-wait", "--state", str(state))

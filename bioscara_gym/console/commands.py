@@ -486,6 +486,17 @@ def _check_monitor_args(args: argparse.Namespace) -> None:
 
 
 # ------------------------------------------------------------------ parser
+def _seconds(text: str) -> float:
+    """A ``--timeout``: a positive, finite number of seconds (NaN never times out)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text} must be a positive, finite number of seconds")
+    return value
+
+
 def _common(parser: argparse.ArgumentParser) -> None:
     """Add the options every operator subcommand takes."""
     parser.add_argument(
@@ -541,7 +552,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--abort", action="store_true", help="abort a running homing instead")
     p.add_argument("--no-wait", action="store_true", help="start homing and return (needs --state)")
     p.add_argument(
-        "--timeout", type=float, metavar="S", help="seconds (default: the whole range at homing speed)"
+        "--timeout", type=_seconds, metavar="S", help="seconds (default: the whole range at homing speed)"
     )
     _common(p)
     p.set_defaults(func=cmd_home)
@@ -549,7 +560,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("move", help="move a homed, enabled joint to a position and wait")
     p.add_argument("joint", metavar="JOINT")
     p.add_argument("value", type=float, metavar="VALUE", help="rad (m for the prismatic j2)")
-    p.add_argument("--timeout", type=float, metavar="S", help="seconds (default: from the joint's limits)")
+    p.add_argument("--timeout", type=_seconds, metavar="S", help="seconds (default: from the joint's limits)")
     _common(p)
     p.set_defaults(func=cmd_move)
 

@@ -341,10 +341,12 @@ class Session:
         """
         joints = [n for n in target.joints if not (skip_busy and self.arm.joints[n].is_busy())]
         for name in joints:
-            if self.arm.joints[name].is_busy():
-                raise IncorrectStateError(
-                    f"{name}: busy (a homing is running); enabling it again would stop it; abort it "
-                    f"first with `bioscara home {name} --abort`"
+            if self.arm.joints[name].is_busy():  # refused before any byte: the homings go on
+                raise _refusal(
+                    IncorrectStateError(
+                        f"{name}: busy (a homing is running); enabling it again would stop it; abort it "
+                        f"first with `bioscara home {name} --abort`"
+                    )
                 )
         self.arm.enable(joints)
         if target.gripper:
