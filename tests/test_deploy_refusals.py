@@ -314,6 +314,19 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         "model.zip is not a directory",
     ),
     ("other-task", model, ["--env", PICK_PLACE], "policy was trained on Bioscara-Reach-v0"),
+    # Seen (a hostile test): an output naming an input overwrote it (exit 0).
+    (
+        "log-is-the-model",
+        lambda run: [*model(run), "--log", str(run / "model.zip")],
+        [],
+        "model.zip is the --model file; writing it would destroy it",
+    ),
+    (
+        "state-file-is-the-metadata",
+        lambda run: [*model(run), "--state-file", str(run / "metadata.json")],
+        [],
+        "metadata.json is the policy's metadata.json file; writing it would destroy it",
+    ),
 ]
 
 

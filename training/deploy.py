@@ -178,7 +178,12 @@ class Deployment:
         self.state_file = args.state_file
         if self.state_file is None and args.backend != "i2c":
             self.state_file = self.log_path.parent / "gripper.json"
-        check_outputs({"--log": self.log_path, "--state-file": self.state_file, "--record": args.record})
+        policy = args.model or args.onnx
+        inputs = {"--config": args.config, "--model": args.model, "--onnx": args.onnx}
+        if policy is not None:
+            inputs["policy's metadata.json"] = Path(policy).parent / "metadata.json"
+        outputs = {"--log": self.log_path, "--state-file": self.state_file, "--record": args.record}
+        check_outputs(outputs, inputs)
         self._t0 = time.perf_counter()
         self._gripper_width: float | None = None
         self._early_phases: list[dict[str, Any]] = []

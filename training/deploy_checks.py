@@ -204,17 +204,20 @@ def keyword_parameters(creator: Any) -> list[str]:
     return [n for n in dict.fromkeys(names) if n != "self"]
 
 
-def check_outputs(outputs: dict[str, Path | None]) -> None:
-    """Refuse output files that are one and the same, or that cannot be files.
+def check_outputs(outputs: dict[str, Path | None], inputs: dict[str, Path | None] | None = None) -> None:
+    """Refuse output files that are one and the same, that cannot be files, or that are inputs.
 
     The run log, the gripper state file (``None``: the backend's, on the arm)
     and the bus trace are written side by side: one path for two of them
-    would leave neither readable.
+    would leave neither readable. An output that names an input (the
+    configuration, the policy) would overwrite it before it is read.
 
     Raises:
         DeployError: Two options name one file, or one names a directory, a
-            device or a FIFO, or a path under something that is not a directory.
+            device or a FIFO, or a path under something that is not a directory,
+            or an input file.
     """
+    read = {Path(p).resolve(): option for option, p in (inputs or {}).items() if p is not None}
     seen: dict[Path, str] = {}
     for option, path in outputs.items():
         if path is None:
@@ -223,6 +226,8 @@ def check_outputs(outputs: dict[str, Path | None]) -> None:
         if resolved in seen:
             raise DeployError(f"{seen[resolved]} and {option} name the same file {path}; each needs its own")
         seen[resolved] = option
+        if resolved in read:
+            raise DeployError(f"{option} {path} is the {read[resolved]} file; writing it would destroy it")
         if resolved.exists() and not resolved.is_file():
             raise DeployError(f"{option} {path} is not a regular file")
         parent = next((p for p in resolved.parents if p.exists()), None)
