@@ -204,6 +204,30 @@ def test_a_homing_the_driver_can_no_longer_watch_is_stopped() -> None:
     assert emu.motor.position_deg == pytest.approx(at, abs=1.0)  # motor degrees: it stays
 
 
+def test_a_flipped_not_enabled_bit_in_setups_reply_does_not_fail_enable() -> None:
+    # Seen (a hostile test, corrupt=0.05 over 120 fault seeds): 7 bring-ups ended
+    # in "failed to enable; the joint still reports not enabled". SETUP clears it.
+    emu = build_emulated(J1, 2.9)
+    j = emu.joint
+    j.init()
+    emu.bus.devices[J1.address] = FlipsNextReply(emu.firmware, 3, Reg.SETUP)  # NOT_ENABLED is bit 3
+    j.enable(J1.drive_current, J1.hold_current)
+    assert j.is_enabled() and j.stats.total_implausible == 1
+    assert emu.firmware.core.drive_current == J1.drive_current
+
+
+def test_a_flipped_busy_bit_in_a_reading_is_not_believed_while_nothing_runs() -> None:
+    # Seen (the same sweep): 3 bring-ups refused to enable or home a joint a
+    # flipped bit had shown busy ("a homing ... is running and enabling would hang it").
+    emu = build_emulated(J1, 2.9)
+    j = emu.joint
+    j.init()
+    j.enable(J1.drive_current, J1.hold_current)
+    emu.bus.devices[J1.address] = FlipsNextReply(emu.firmware, 33, Reg.ANGLEMOVED)  # BUSY in the flags byte
+    j.get_position()
+    assert not j.is_busy() and j.stats.total_implausible == 1
+
+
 # ------------------------------------------------------------ absent joint
 
 

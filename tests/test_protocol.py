@@ -246,10 +246,10 @@ def test_enable_fails_when_joint_still_reports_not_enabled(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:
     joint = make_ready("j1", state=POWER_UP)
-    scripted_bus.queue(flags(POWER_UP))
+    scripted_bus.queue(flags(POWER_UP), ack(POWER_UP), ack(POWER_UP))  # SETUP, its 2 confirming PINGs
     with pytest.raises(NotEnabledError, match="j1"):
         joint.enable(20, 30)
-    assert len(scripted_bus.log) == 1
+    assert len(scripted_bus.log) == 3
 
 
 @pytest.mark.parametrize(("drive", "hold"), [(101, 20), (20, -1), (20, 100.0)])

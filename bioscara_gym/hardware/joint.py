@@ -214,12 +214,13 @@ class Joint(BaseJoint):
             raise _BadReply("implausible", problem)
         return value
 
-    def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int) -> None:
-        """Read the flags again if ``flags`` shows a sticky flag newly set, or a blocking command's end.
+    def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int, read: bool) -> None:
+        """Read the flags again when the reply shows a change the driver must not take on one reading.
 
-        A sticky flag (:data:`STICKY_FLAGS`) newly set, or BUSY gone while
-        HOME or CHECKORIENTATION runs (the firmware clears it once, at the
-        command's end or on STOP), counts as real only when
+        A sticky flag (:data:`STICKY_FLAGS`) newly set, BUSY gone while HOME
+        or CHECKORIENTATION runs (the firmware clears it once, at the
+        command's end or on STOP), or NOT_ENABLED still set in SETUP's reply
+        (SETUP clears it), counts as real only when
         :data:`STICKY_CONFIRMATIONS` further readings (PINGs) all show it: one
         flipped bit in the reply and another in a single confirming PING would
         otherwise stop a run on a stall or deadman trip that never happened,
@@ -234,7 +235,17 @@ class Joint(BaseJoint):
         appeared = flags & ~self._flags & STICKY_FLAGS & ~may_set
         running = self._current_b_cmd is not Reg.NONE and reg is not Reg.STOP
         ended = FLAG_BUSY if running and self._flags & ~flags & FLAG_BUSY else 0
-        if not appeared and not ended:
+        # SETUP clears NOT_ENABLED: a reply still showing it is read again before
+        # enable() believes it (one flipped bit stopped 7 of 120 bring-ups at corrupt=0.05).
+        kept = FLAG_NOT_ENABLED if reg is Reg.SETUP and flags & FLAG_NOT_ENABLED else 0
+        # BUSY in a reading while no blocking command of this host's runs: the arm would
+        # refuse to enable or home a joint it believes busy (3 of 120 bring-ups at
+        # corrupt=0.05). Not in a command's reply: the firmware shows BUSY while it
+        # handles some commands, and sending one again shows it again.
+        idle = read and self._current_b_cmd is Reg.NONE
+        busy = FLAG_BUSY if idle and flags & ~self._flags & FLAG_BUSY else 0
+        appeared |= busy
+        if not appeared and not ended and not kept:
             return
         if reg in BLOCKING_COMMANDS:
             # The firmware cancels a blocking command its main loop has not picked up
@@ -247,6 +258,12 @@ class Joint(BaseJoint):
                     "implausible",
                     f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
                     f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
+                )
+            if kept & ~confirmed:
+                raise _BadReply(
+                    "implausible",
+                    f"flags {Flag(flags)!r} after SETUP still show NOT_ENABLED, which SETUP clears and the "
+                    f"flags read right after ({Flag(confirmed)!r}) do not",
                 )
             if ended & confirmed:
                 raise _BadReply(
@@ -287,7 +304,7 @@ class Joint(BaseJoint):
                 self._exchanged()  # delivered: the device reset its deadman timer
                 value = self._check(reg, reply, read_len, size, read_payload, sent)
                 if confirm:
-                    self._confirm_sticky_flags(reg, sent, reply[-1])
+                    self._confirm_sticky_flags(reg, sent, reply[-1], read_payload)
             except OSError as e:
                 self.stats.record(ok=False, kind="bus", retry=retry)
                 failed, last = failed + 1, e

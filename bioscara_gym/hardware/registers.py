@@ -299,7 +299,8 @@ IDEMPOTENT_COMMANDS = frozenset(
 #: them is corrupted. SETCURRENT 0 and SETHOLDCURRENT 0 also set NOTENABLED
 #: (checked by the driver, the payload decides). Left out on purpose: SETUP's
 #: reply with NOTENABLED raises NotEnabledError as the C++ API's enable does
-#: (only STALL is checked), and DISABLECLOSEDLOOP's reply is not checked.
+#: (only STALL is checked), once two PINGs agree with it (a flipped bit does
+#: not: ``Joint._confirm_sticky_flags``), and DISABLECLOSEDLOOP's reply is not checked.
 REPLY_FLAGS_SET: dict[Reg, int] = {
     Reg.HOME: int(Flag.BUSY | Flag.NOT_HOMED),
     Reg.CHECKORIENTATION: int(Flag.BUSY),
