@@ -13,8 +13,10 @@ disable was acknowledged; the emulator's currents are the check.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -29,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 import itertools
 
+import numpy as np
 from rich.console import Console
 from rigs import (
     J1,
@@ -42,6 +45,7 @@ from rigs import (
 )
 
 from bioscara_gym.errors import DeployError
+from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import NotEnabledError
 from bioscara_gym.training.deploy import DeployArgs, Deployment
 
@@ -130,17 +134,22 @@ def deploy_api(
     on_cycle: Callable[[int, Any], None],
     policy: Any = None,
     output: io.StringIO | None = None,
+    record: Path | None = None,
+    backend_options: dict[str, Any] | None = None,
 ) -> tuple[int, Deployment]:
     """A Reach deploy in-process with a hook that injects a fault mid-run."""
     args = DeployArgs(
         expert=policy is None,
         env=REACH,
-        episodes=2,
+        episodes=1 if backend_options else 2,
         log=tmp / f"{name}.jsonl",
         state_file=tmp / f"{name}-gripper.json",
+        record=record,
     )
     console = Console(file=output or io.StringIO(), width=200)
-    deployment = Deployment(args, policy=policy, console=console, on_cycle=on_cycle)
+    deployment = Deployment(
+        args, policy=policy, console=console, on_cycle=on_cycle, backend_options=backend_options or {}
+    )
     try:
         deployment.run()
         return 0, deployment
@@ -239,6 +248,70 @@ def full_disk(tmp: Path) -> Row:
         f"`{run.summary['stop_reason']}`",
         f'safe stop, exit {code}; {parsed} of {len(lines)} lines parse; "{said}"',
         arm_after(run.summary),
+    )
+
+
+def moving_stop(tmp: Path) -> Row:
+    """NaN while j3 and j4 turn fast: do the joints brake before their current is cut?"""
+    code, run = deploy_api(
+        tmp, "coast", lambda cycle, env: None, policy=ConstantPolicy([0.0, -0.5, 1.0, 1.0], 10)
+    )
+    backend = run.env.unwrapped.backend
+    before = backend.sim.joint_positions().copy()
+    for _ in range(15):
+        backend.step(0.2)
+    travel = np.abs(backend.sim.joint_positions() - before).max()
+    injected, found, ended, arm = from_log(
+        "the policy returns NaN at cycle 10, j3 and j4 turning at full speed", run.args.log, code
+    )
+    return injected, found, ended, f"{arm}; largest joint travel in the 3 s after: {travel:.4f} rad"
+
+
+def trace_disk_full(tmp: Path) -> Row:
+    """``--record`` onto a disk that fills at its 500th write."""
+    writes = [0]
+
+    def filling(fd: int, data: Any) -> int:
+        writes[0] += 1
+        if writes[0] < 500:
+            return os.write(fd, data)
+        if writes[0] == 500:
+            os.write(fd, bytes(data)[: len(data) // 2])
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    trace = tmp / "full-trace.jsonl"
+    with mock.patch("bioscara_gym.hardware.recording._os_write", filling):
+        code, run = deploy_api(tmp, "tracefull", lambda cycle, env: None, record=trace)
+    lines = trace.read_text().splitlines()
+    whole = sum(1 for line in lines if json.loads(line))
+    injected, _, ended, arm = from_log(
+        "`--record` onto a disk that fills (half of a line lands)", run.args.log, code
+    )
+    return (
+        injected,
+        f"`trace_error`: {run.summary['trace_error']}",
+        f"{ended}; {whole} of {len(lines)} lines whole",
+        arm,
+    )
+
+
+def corrupt_seeds(tmp: Path, seeds: int = 40) -> Row:
+    """``corrupt=0.05`` on many fault seeds, one Reach episode each: bring-ups stopped on a flipped bit."""
+    stops = []
+    for seed in range(seeds):
+        code, run = deploy_api(
+            tmp,
+            f"seed{seed}",
+            lambda cycle, env: None,
+            backend_options={"faults": FaultPlan(corrupt=0.05, seed=seed)},
+        )
+        if code:
+            stops.append(f"seed {seed}: {run.summary['message'][:60]}")
+    return (
+        f"`corrupt=0.05` on fault seeds 0-{seeds - 1}, one episode each",
+        f"{len(stops)} of {seeds} runs stopped" + (f" ({'; '.join(stops)})" if stops else ""),
+        f"{seeds - len(stops)} of {seeds} completed",
+        "every stop a safe stop",
     )
 
 
@@ -349,9 +422,12 @@ def main() -> None:
             flipped_bit(tmp),
             host_pause(tmp),
             nan_action(tmp),
+            moving_stop(tmp),
             full_disk(tmp),
+            trace_disk_full(tmp),
             *refusals(tmp),
             tampered_trace(tmp),
+            corrupt_seeds(tmp),
         ]
         print("| fault injected | detected as | recovered | arm after |")
         print("|---|---|---|---|")
