@@ -679,6 +679,18 @@ INVALID_CASES = [
         r"config\.yaml: joint j3: homing\.threshold 19 is below 20",
         id="homing-threshold-19",
     ),
+    # Seen (a hostile test): accepted, and the deploy then stopped on a stall standing still.
+    pytest.param(
+        _set_joint("j1", "stall_threshold", 0),
+        r"config\.yaml: joint j1: stall_threshold 0 is below 2: its threshold \(0 at standstill\) lies "
+        r"under a free joint's PID error at rest \(17\), so it would trip standing still",
+        id="stall-threshold-zero",
+    ),
+    pytest.param(
+        _set_joint("j4", "stall_threshold", 1),
+        r"config\.yaml: joint j4: stall_threshold 1 is below 2",
+        id="stall-threshold-1",
+    ),
     pytest.param(
         _set_homing("j2", "current", 0),
         r"config\.yaml: joint j2: homing\.current 0 % gives the motor no torque: the homing would stop",

@@ -217,6 +217,8 @@ CASES = [
     ),
     # Seen: a 30-line traceback from gymnasium's seeding.
     pytest.param(new_run("--seed", "-1"), r"--seed must be >= 0, got -1$", id="seed-negative"),
+    # Seen (a hostile test): accepted, and training started.
+    pytest.param(new_run("--threads", "0"), r"--threads must be >= 1, got 0$", id="threads-zero"),
     pytest.param(
         new_run("--seed", "-1", "--algo", "dagger", "--env", "Bioscara-PickPlace"),
         r"--seed must be >= 0, got -1$",

@@ -94,5 +94,7 @@ def train(args: TrainArgs) -> TrainResult:
     check_n_envs(args.n_envs)
     if args.seed < 0:
         raise TrainingError(f"--seed must be >= 0, got {args.seed}")
+    if args.threads is not None and args.threads < 1:
+        raise TrainingError(f"--threads must be >= 1, got {args.threads}")
     spec = choose_method(args, env_id)
     return spec.method_class()(args, env_id, spec).run()

@@ -98,6 +98,7 @@ from bioscara_gym.hardware.registers import (
     MOTOR_ACCELERATION_MAX_DPS2,
     MOTOR_RPM_MAX,
     SENSITIVITY_MAX,
+    STALL_SENSITIVITY_MIN,
 )
 from bioscara_gym.hardware.registry import DRIVERS
 from bioscara_gym.hardware.transmission import rate_to_degrees, velocity_to_rpm
@@ -430,7 +431,13 @@ class JointConfig:
             "max_acceleration",
             _positive(self.max_acceleration, "max_acceleration", f"{unit}/s²"),
         )
-        _integer(self.stall_threshold, "stall_threshold", high=SENSITIVITY_MAX)
+        sensitivity = _integer(self.stall_threshold, "stall_threshold", high=SENSITIVITY_MAX)
+        if sensitivity < STALL_SENSITIVITY_MIN:
+            raise ConfigError(
+                f"stall_threshold {sensitivity} is below {STALL_SENSITIVITY_MIN}: its threshold "
+                f"({10 * sensitivity} at standstill) lies under a free joint's PID error at rest (17), "
+                "so it would trip standing still (registers.STALL_SENSITIVITY_MIN)"
+            )
         _integer(self.hold_current, "hold_current", high=CURRENT_MAX_PCT, unit=" %")
         drive = _integer(self.drive_current, "drive_current", high=CURRENT_MAX_PCT, unit=" %")
         if drive < DRIVE_CURRENT_MIN_PCT:

@@ -190,6 +190,10 @@ HOMING_RPM_MAX = 250.0
 #: "homed" j1 at once, believed 3.0465 rad, true 2.9246 (issue #24). The arm
 #: uses 25-50 (parameter file); 20 leaves room above the noise (our choice).
 HOMING_THRESHOLD_MIN = 20
+#: Lowest stall sensitivity a configuration may ask for: the stall threshold
+#: is 10 x the sensitivity at standstill (firmware), so below 2 it lies under
+#: the PID error of a free joint at rest (17, as above) and trips standing still.
+STALL_SENSITIVITY_MIN = 2
 #: Lowest homing and drive current, percent: at 0 % the motor has no torque,
 #: so a homing "finds its stop" where it stands and a drive cannot move.
 DRIVE_CURRENT_MIN_PCT = 1
