@@ -125,6 +125,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.video_episodes < 1:
         raise CliError(f"--video-episodes must be >= 1, got {args.video_episodes}")
+    if args.expert and args.model is not None:
+        raise CliError("--expert and --model both name a policy; give one")
+    if args.json is not None and Path(args.json).is_dir():  # refused before the episodes run
+        raise CliError(f"--json {args.json} is a directory; give a file")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id

@@ -417,8 +417,11 @@ def test_eval_refuses_the_same_policy_files_in_one_line(
         (["--seed", "-1"], "--seed must be >= 0, got -1"),
         (["--video-episodes", "0"], "--video-episodes must be >= 1, got 0"),
         (["--episodes", "0"], "episodes must be >= 1, got 0"),
+        # Seen (a hostile test): --model was ignored; a directory failed after every episode ran.
+        (["--model", "model.zip"], "--expert and --model both name a policy; give one"),
+        (["--json", "."], "--json . is a directory; give a file"),
     ],
-    ids=["seed-negative", "video-episodes-zero", "episodes-zero"],
+    ids=["seed-negative", "video-episodes-zero", "episodes-zero", "model-and-expert", "json-a-directory"],
 )
 def test_eval_refuses_bad_arguments_in_one_line(
     argv: list[str], expected: str, capsys: pytest.CaptureFixture[str]
