@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import math
+import re
 from collections.abc import Callable
 
 import numpy as np
@@ -378,6 +379,27 @@ def test_fault_plan_accepts_rates_0_and_1(name: str, rate: float) -> None:
 def test_fault_plan_rejects_negative_latency() -> None:
     with pytest.raises(ValueError, match="latency_s"):
         FaultPlan(latency_s=-0.001)
+
+
+def test_a_fault_spec_may_name_its_own_seed() -> None:
+    # Seen (a hostile test): --seed seeds the episodes, not the faults, so the
+    # fault stream could not be varied; the spec names it (default 0).
+    assert FaultPlan.parse("corrupt=0.05,seed=7").seed == 7
+    assert FaultPlan.parse("seed=3, nack=0.1") == FaultPlan(nack=0.1, seed=3)
+    assert FaultPlan.parse("corrupt=0.05").seed == 0
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("corrupt=0.05,seed=-1", "fault 'seed': '-1' must be a whole number >= 0"),
+        ("seed=1.5", "fault 'seed': '1.5' must be a whole number >= 0"),
+        ("seed=1,seed=2", "fault 'seed' given twice"),
+    ],
+)
+def test_a_bad_fault_seed_is_one_line(spec: str, message: str) -> None:
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        FaultPlan.parse(spec)
 
 
 def test_same_seed_gives_the_same_faults() -> None:

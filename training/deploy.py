@@ -498,7 +498,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--faults",
         help="emulated bus faults: nack, short_read, corrupt (rates per transaction), latency_ms, "
-        "jitter_ms (extra time per transaction), drift_ppm (host clock), e.g. latency_ms=2,jitter_ms=3",
+        "jitter_ms (extra time per transaction), drift_ppm (host clock), seed (of the faults' draws, "
+        "default 0; --seed is the episodes'), e.g. latency_ms=2,jitter_ms=3,seed=7",
     )
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")

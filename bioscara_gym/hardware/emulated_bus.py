@@ -147,11 +147,23 @@ class FaultPlan:
 
         The I2C bus's: ``"nack=0.01,short_read=0.001,corrupt=0,latency_ms=2,jitter_ms=3,drift_ppm=50"``;
         the RS-485 bus's (:data:`RS485_FAULTS`): ``"drop=0.01,corrupt=0.001,delay_ms=2"``.
+        Either may end with ``seed=N`` (a whole number >= 0): the faults' own
+        random stream, in place of ``seed``.
 
         Raises:
             ValueError: Unknown key (the message lists the known ones) or a
                 value that is not a number.
         """
+        items = [item.strip() for item in spec.split(",")]
+        seeds = [item for item in items if item.partition("=")[0].strip() == "seed"]
+        if seeds:
+            if len(seeds) > 1:
+                raise ValueError("fault 'seed' given twice")
+            text = seeds[0].partition("=")[2].strip()
+            if not text.isdigit():
+                raise ValueError(f"fault 'seed': {text!r} must be a whole number >= 0")
+            seed = int(text)
+            spec = ",".join(item for item in items if item not in seeds)
         kwargs = parse_fault_spec(spec, kinds.rates, tuple(kinds.durations), numbers=kinds.numbers)
         for name, stem in kinds.durations.items():
             if f"{name}_s" in kwargs:
