@@ -299,6 +299,21 @@ def test_calibrate_refuses_a_missing_output_folder_before_fitting(tmp_path: Path
     )
 
 
+def test_calibrate_refuses_an_output_under_a_file_naming_it_a_file(tmp_path: Path) -> None:
+    # Seen (a hostile test): "folder ... does not exist" for a folder that was a file.
+    (tmp_path / "notes").write_text("x")
+    out = tmp_path / "notes" / "arm.yaml"
+    proc = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym", "calibrate", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 2
+    expected = f"bioscara calibrate: error: --out {out}: {out.parent} is a file, not a folder"
+    assert proc.stderr.strip() == expected
+
+
 def test_calibrate_refuses_zero_workers_in_one_line(tmp_path: Path) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "bioscara_gym", "calibrate", "--out", str(tmp_path / "a.yml"), "--workers=0"],

@@ -22,6 +22,8 @@ def _check_output(path: Path | None, what: str) -> None:
         return
     if path.is_dir():
         raise CliError(f"{what} {path} is a folder; give a file name")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise CliError(f"{what} {path}: {path.parent} is a file, not a folder")
     if not path.parent.is_dir():
         raise CliError(f"{what} {path}: folder {path.parent} does not exist")
 
