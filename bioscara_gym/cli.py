@@ -127,8 +127,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise CliError(f"--video-episodes must be >= 1, got {args.video_episodes}")
     if args.expert and args.model is not None:
         raise CliError("--expert and --model both name a policy; give one")
-    if args.json is not None and Path(args.json).is_dir():  # refused before the episodes run
-        raise CliError(f"--json {args.json} is a directory; give a file")
+    for option, path in (("--json", args.json), ("--video", args.video)):
+        if path is None:
+            continue
+        if option == "--json" and Path(path).is_dir():  # refused before the episodes run
+            raise CliError(f"--json {path} is a directory; give a file")
+        above = next((p for p in Path(path).parents if p.exists()), None)
+        if above is not None and not above.is_dir():
+            raise CliError(f"{option} {path}: {above} is a file, not a folder")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id

@@ -420,8 +420,16 @@ def test_eval_refuses_the_same_policy_files_in_one_line(
         # Seen (a hostile test): --model was ignored; a directory failed after every episode ran.
         (["--model", "model.zip"], "--expert and --model both name a policy; give one"),
         (["--json", "."], "--json . is a directory; give a file"),
+        (["--json", f"{__file__}/x.json"], f"{__file__} is a file, not a folder"),
     ],
-    ids=["seed-negative", "video-episodes-zero", "episodes-zero", "model-and-expert", "json-a-directory"],
+    ids=[
+        "seed-negative",
+        "video-episodes-zero",
+        "episodes-zero",
+        "model-and-expert",
+        "json-a-directory",
+        "json-under-a-file",
+    ],
 )
 def test_eval_refuses_bad_arguments_in_one_line(
     argv: list[str], expected: str, capsys: pytest.CaptureFixture[str]

@@ -71,6 +71,12 @@ def new_run(*extra: str, **changes: Any) -> Setup:
     return setup
 
 
+def out_a_file(root: Path) -> list[str]:
+    """``--out`` naming a file (seen: "[Errno 17] File exists")."""
+    (root / "run").write_text("notes")
+    return ["train", "--out", str(root / "run"), "--config", str(_config(root)), "--no-progress"]
+
+
 def resume(state_text: Callable[[Path], str] | None, *extra: str, checkpoint: bool = False) -> Setup:
     """``--resume`` of a run whose ``train_state.json`` is ``state_text(config)`` (``None``: no file)."""
 
@@ -219,6 +225,7 @@ CASES = [
     pytest.param(new_run("--seed", "-1"), r"--seed must be >= 0, got -1$", id="seed-negative"),
     # Seen (a hostile test): accepted, and training started.
     pytest.param(new_run("--threads", "0"), r"--threads must be >= 1, got 0$", id="threads-zero"),
+    pytest.param(out_a_file, r"--out .*run is a file; give a folder for the run$", id="out-a-file"),
     pytest.param(
         new_run("--seed", "-1", "--algo", "dagger", "--env", "Bioscara-PickPlace"),
         r"--seed must be >= 0, got -1$",

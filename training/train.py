@@ -96,5 +96,8 @@ def train(args: TrainArgs) -> TrainResult:
         raise TrainingError(f"--seed must be >= 0, got {args.seed}")
     if args.threads is not None and args.threads < 1:
         raise TrainingError(f"--threads must be >= 1, got {args.threads}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise TrainingError(f"--out {out} is a file; give a folder for the run")
     spec = choose_method(args, env_id)
     return spec.method_class()(args, env_id, spec).run()
