@@ -96,12 +96,19 @@ from bioscara_gym.training.deploy_checks import (
     LoadedPolicy,
     Policy,
     check_args,
-    check_outputs,
+    check_files,
     load_policy,
     make_env,
     probe_policy,
 )
-from bioscara_gym.training.deploy_log import BusStats, CycleTiming, RunLog, disabled_line, print_summary
+from bioscara_gym.training.deploy_log import (
+    BusStats,
+    CycleTiming,
+    RunLog,
+    disabled_line,
+    print_summary,
+    trace_error,
+)
 from bioscara_gym.training.deploy_loop import ControlLoop, Target
 from bioscara_gym.training.deploy_safety import (
     EXIT_REFUSED,
@@ -178,12 +185,7 @@ class Deployment:
         self.state_file = args.state_file
         if self.state_file is None and args.backend != "i2c":
             self.state_file = self.log_path.parent / "gripper.json"
-        policy = args.model or args.onnx
-        inputs = {"--config": args.config, "--model": args.model, "--onnx": args.onnx}
-        if policy is not None:
-            inputs["policy's metadata.json"] = Path(policy).parent / "metadata.json"
-        outputs = {"--log": self.log_path, "--state-file": self.state_file, "--record": args.record}
-        check_outputs(outputs, inputs)
+        check_files(args, self.log_path, self.state_file)
         self._t0 = time.perf_counter()
         self._gripper_width: float | None = None
         self._early_phases: list[dict[str, Any]] = []
@@ -409,26 +411,15 @@ class Deployment:
                 "saved_width_m": arm.gripper.saved_width_m,
             },
             "log_error": None if self._log.error is None else str(self._log.error),
-            "trace_error": self._trace_error(),
+            "trace_error": trace_error(arm.backend),
             "log_records_lost": list(self._log.lost),
             "exit_code": outcome.exit_code,
             "wall_time_s": time.perf_counter() - self._t0,
         }
 
-    def _trace_error(self) -> str | None:
-        """Why the bus trace (``--record``) stops short, if it does."""
-        from bioscara_gym.hardware.recording import RecordingBus
-
-        bus = getattr(self.target.arm.backend, "bus", None) if self.target else None
-        if not isinstance(bus, RecordingBus) or bus.error is None:
-            return None
-        return f"{bus.error.strerror}; transactions from {bus.unrecorded_from} on were not recorded"
-
     def _report(self, outcome: Outcome) -> dict[str, Any]:
         """Print the summary; return it, or raise what the exit code needs."""
         print_summary(self.console, self.summary, self._log)
-        if self.summary.get("trace_error"):
-            self.console.print(f"trace      incomplete: {escape(self.summary['trace_error'])}")
         if outcome.reason is StopReason.COMPLETED:
             return self.summary
         self.console.print(disabled_line(self.summary))

@@ -204,6 +204,19 @@ def keyword_parameters(creator: Any) -> list[str]:
     return [n for n in dict.fromkeys(names) if n != "self"]
 
 
+def check_files(args: DeployArgs, log: Path, state_file: Path | None) -> None:
+    """:func:`check_outputs` on a deploy's outputs, against the files it reads.
+
+    Raises:
+        DeployError: As :func:`check_outputs`.
+    """
+    inputs = {"--config": args.config, "--model": args.model, "--onnx": args.onnx}
+    policy = args.model or args.onnx
+    if policy is not None:
+        inputs["policy's metadata.json"] = Path(policy).parent / "metadata.json"
+    check_outputs({"--log": log, "--state-file": state_file, "--record": args.record}, inputs)
+
+
 def check_outputs(outputs: dict[str, Path | None], inputs: dict[str, Path | None] | None = None) -> None:
     """Refuse output files that are one and the same, that cannot be files, or that are inputs.
 

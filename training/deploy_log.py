@@ -57,6 +57,16 @@ def _jsonable(value: Any) -> Any:
 _os_write = os.write
 
 
+def trace_error(backend: Any) -> str | None:
+    """Why the backend's bus trace (``--record``) stops short, if it does."""
+    from bioscara_gym.hardware.recording import RecordingBus
+
+    bus = getattr(backend, "bus", None)
+    if not isinstance(bus, RecordingBus) or bus.error is None:
+        return None
+    return f"{bus.error.strerror}; transactions from {bus.unrecorded_from} on were not recorded"
+
+
 def describe_record(record: dict[str, Any]) -> str:
     """A record in a few words, for the list of records lost: ``cycle 57``, ``episode 3``, ``summary``."""
     kind = str(record.get("type", "record"))
@@ -299,6 +309,8 @@ def print_summary(console: Console, s: dict[str, Any], log: RunLog) -> None:
             f"({log.error.strerror or log.error}); every line in it is a whole record",
             markup=False,
         )
+    if s.get("trace_error"):
+        console.print(f"trace      incomplete: {s['trace_error']}", markup=False)
 
 
 def disabled_line(s: dict[str, Any]) -> str:

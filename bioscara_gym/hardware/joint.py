@@ -14,8 +14,6 @@ from bioscara_gym.hardware.registers import (
     ACK,
     BLOCKING_COMMANDS,
     BLOCKING_PICKUP_S,
-    FLAG_BUSY,
-    FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
     FLAGS_SIZE,
     I2C_ADDRESS_MAX,
@@ -28,10 +26,8 @@ from bioscara_gym.hardware.registers import (
     POSITION_MARGIN_FRACTION,
     POSITION_UNHOMED_EXTRA_DEG,
     REPLY_FLAGS_CLEAR,
-    REPLY_FLAGS_SET,
     RESERVED_FLAG_BITS,
     STICKY_CONFIRMATIONS,
-    STICKY_FLAGS,
     Flag,
     Reg,
 )
@@ -170,14 +166,6 @@ class Joint(BaseJoint):
             return f"GETENCODERRPM {value:g} RPM is beyond the motor's {MAX_PLAUSIBLE_RPM:g} RPM"
         return None
 
-    @staticmethod
-    def _flags_set_by(reg: Reg, sent: float | int) -> int:
-        """The flags a command's handler sets in its own reply (:data:`REPLY_FLAGS_SET`)."""
-        must_set = REPLY_FLAGS_SET.get(reg, 0)
-        if reg in (Reg.SETCURRENT, Reg.SETHOLDCURRENT) and sent == 0:
-            must_set |= FLAG_NOT_ENABLED
-        return must_set
-
     def _implausible_flags(self, reg: Reg, sent: float | int, flags: int) -> str | None:
         """Why a command's reply flags cannot follow that command, or ``None``."""
         must_set = self._flags_set_by(reg, sent)
@@ -231,20 +219,7 @@ class Joint(BaseJoint):
             _BadReply: ``implausible``: a later reading does not show it, so
                 the first reply's flags byte was corrupted.
         """
-        may_set = self._flags_set_by(reg, sent) | (FLAG_NOT_ENABLED if reg == Reg.DISABLECLOSEDLOOP else 0)
-        appeared = flags & ~self._flags & STICKY_FLAGS & ~may_set
-        running = self._current_b_cmd is not Reg.NONE and reg is not Reg.STOP
-        ended = FLAG_BUSY if running and self._flags & ~flags & FLAG_BUSY else 0
-        # SETUP clears NOT_ENABLED: a reply still showing it is read again before
-        # enable() believes it (one flipped bit stopped 7 of 120 bring-ups at corrupt=0.05).
-        kept = FLAG_NOT_ENABLED if reg is Reg.SETUP and flags & FLAG_NOT_ENABLED else 0
-        # BUSY in a reading while no blocking command of this host's runs: the arm would
-        # refuse to enable or home a joint it believes busy (3 of 120 bring-ups at
-        # corrupt=0.05). Not in a command's reply: the firmware shows BUSY while it
-        # handles some commands, and sending one again shows it again.
-        idle = read and self._current_b_cmd is Reg.NONE
-        busy = FLAG_BUSY if idle and flags & ~self._flags & FLAG_BUSY else 0
-        appeared |= busy
+        appeared, ended, kept = self._doubtful_flags(reg, sent, flags, read)
         if not appeared and not ended and not kept:
             return
         if reg in BLOCKING_COMMANDS:

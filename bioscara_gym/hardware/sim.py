@@ -34,7 +34,14 @@ from bioscara_gym.hardware.firmware import FirmwareCore
 from bioscara_gym.hardware.gripper import BaseGripper
 from bioscara_gym.hardware.i2c_timing import WIRE_ONLY, TransactionTiming, check_clock_hz
 from bioscara_gym.hardware.motor import KinematicStepper
-from bioscara_gym.hardware.registers import FLAGS_SIZE, TICK_S, Reg
+from bioscara_gym.hardware.registers import (
+    BLOCKING_COMMANDS,
+    BLOCKING_PICKUP_S,
+    FLAGS_SIZE,
+    STICKY_CONFIRMATIONS,
+    TICK_S,
+    Reg,
+)
 
 
 class MujocoMotor:
@@ -447,6 +454,7 @@ class SimJoint(BaseJoint):
         """Bind the joint to its firmware core."""
         super().__init__(config.name, config.reduction, config.min, config.max, clock)
         self.core = core
+        self._confirming = False
         self.i2c_clock_hz = None if i2c_clock_hz is None else check_clock_hz(i2c_clock_hz)
         # register -> (s before the handler, s after): a command writes [REG][payload] and
         # reads the flags; a query writes [REG] and reads payload and flags (as Joint does).
@@ -462,11 +470,13 @@ class SimJoint(BaseJoint):
         wire = self._command_wire.get(reg)
         if wire is None:
             self.core.write(reg, value, self.clock.now())
-            return self.core.flags
-        self.clock.sleep(wire[0])
-        self.core.write(reg, value, self.clock.now())
-        flags = self.core.flags
-        self.clock.sleep(wire[1])
+            flags = self.core.flags
+        else:
+            self.clock.sleep(wire[0])
+            self.core.write(reg, value, self.clock.now())
+            flags = self.core.flags
+            self.clock.sleep(wire[1])
+        self._confirm(reg, value, flags, read=False)
         return flags
 
     def _query(self, reg: Reg) -> tuple[float | int, int]:
@@ -477,7 +487,27 @@ class SimJoint(BaseJoint):
         flags = self.core.flags
         if wire is not None:
             self.clock.sleep(wire[1])
+        self._confirm(reg, 0, flags, read=True)
         return (0 if value is None else value), flags
+
+    def _confirm(self, reg: Reg, sent: float | int, flags: int, read: bool) -> None:
+        """The readings the I2C driver takes before it believes such ``flags`` (their wire time).
+
+        :meth:`Joint._confirm_sticky_flags`: two PINGs (after the pick-up
+        window, for a blocking command's reply). Here they always agree; they
+        are taken so that a simulated joint's clock and firmware see what the
+        real driver's would.
+        """
+        if self._confirming or not any(self._doubtful_flags(reg, sent, flags, read)):
+            return
+        self._confirming = True
+        try:
+            if reg in BLOCKING_COMMANDS:
+                self._sleep_until(self.clock.now() + BLOCKING_PICKUP_S)
+            for _ in range(STICKY_CONFIRMATIONS):
+                self._query(Reg.PING)
+        finally:
+            self._confirming = False
 
 
 class SimGripper(BaseGripper):
