@@ -357,10 +357,13 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     # ------------------------------------------------------ reset, in order
     def _randomize(self) -> None:
         """Draw the episode's latency and physics; seed the sensor noise."""
-        # Independent streams, so turning noise or latency on does not change the tasks.
-        self._noise_rng = np.random.default_rng(self.np_random.integers(2**63))
-        latency_draw = int(self.np_random.integers(0, self.randomization.latency_steps + 1))
-        self._latency_steps = latency_draw if self.randomization.latency_steps else 0
+        # Streams of their own, seeded by one draw whatever the settings, so turning
+        # noise or latency on does not change the tasks. (Drawing the latency from
+        # np_random did: integers(0, 1) takes no bits from it, integers(0, 4) does.)
+        seed = int(self.np_random.integers(2**63))
+        self._noise_rng = np.random.default_rng(seed)
+        latency_rng = np.random.default_rng((seed, 1))
+        self._latency_steps = int(latency_rng.integers(0, self.randomization.latency_steps + 1))
         self._latency.clear()
         if self.sim is not None:
             self._physics.randomize(self.sim.model, self.np_random)
