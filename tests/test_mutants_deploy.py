@@ -739,3 +739,269 @@ def test_a_summary_names_the_log_error_and_the_records_lost(tmp_path: Path) -> N
         and summary["problems"] == []
         and summary["not_confirmed_warnings"] == []
     )
+
+
+# ------------------------------------------------------------------ deploy_checks.py
+def test_a_policy_source_is_exactly_one_of_model_onnx_and_expert() -> None:
+    from bioscara_gym.training.deploy_checks import load_policy
+
+    message = "deploy needs exactly one of --model PATH, --onnx FILE or --expert --env ID"
+    for args in (DeployArgs(), DeployArgs(expert=True, env=REACH, onnx=Path("p.onnx"))):
+        with pytest.raises(DeployError) as caught:
+            load_policy(args)
+        assert str(caught.value) == message
+
+
+@pytest.mark.parametrize(
+    ("action", "shown"),
+    [
+        ([None, 0, 0, 0], "[nan,  0.,  0.,  0.]"),
+        ([0.123456, float("nan"), 0, 0], "[0.123,   nan, 0.   , 0.   ]"),
+    ],
+    ids=["none-is-nan", "three-decimals"],
+)
+def test_a_probe_action_that_is_not_finite_is_refused_as_numbers_to_three_decimals(
+    action: list[Any], shown: str
+) -> None:
+    from bioscara_gym.training.deploy_checks import LoadedPolicy, probe_policy
+
+    env = gym.make(REACH, backend="mock")
+    made_for: list[gym.Env] = []
+
+    def make(for_env: gym.Env) -> Callable[[dict[str, np.ndarray]], list[Any]]:
+        made_for.append(for_env)
+        return lambda obs: action
+
+    try:
+        with pytest.raises(DeployError) as caught:
+            probe_policy(LoadedPolicy(make, None, "given policy"), env, 0)
+    finally:
+        env.close()
+    assert made_for == [env]  # the policy is made for the env it will drive
+    assert str(caught.value) == (
+        f"refused: given policy gives a non-finite action {shown} on a probe observation; "
+        "nothing was sent to the arm"
+    )
+
+
+@pytest.mark.parametrize(
+    ("error", "line"),
+    [
+        (ValueError("first\nsecond"), "first"),
+        (ValueError(), "no message"),
+        (ValueError("  \n "), "no message"),
+    ],
+)
+def test_first_line_of_an_error_or_no_message(error: Exception, line: str) -> None:
+    from bioscara_gym.training.deploy_checks import first_line
+
+    assert first_line(error) == line
+
+
+def test_env_kwargs_the_env_does_not_take_are_refused_naming_what_it_takes() -> None:
+    from bioscara_gym.training.deploy_checks import check_env_kwargs
+
+    check_env_kwargs(REACH, {"control_mode": "velocity", "control_freq": 25.0})
+    with pytest.raises(DeployError) as caught:
+        check_env_kwargs(REACH, {"control_mode": "velocity", "arm_speed": 1})
+    assert str(caught.value) == (
+        "the policy's env_kwargs has 'arm_speed', which Bioscara-Reach-v0 does not take; it takes "
+        "goal_horizon_s, goal_radius, control_mode, control_freq, reward_type, distance_threshold, "
+        "randomization, render_mode, width, height, cartesian_lead, cartesian_step"
+    )
+    with pytest.raises(
+        DeployError, match=r"^cannot make env 'Bioscara-Nope-v0': Environment `Bioscara-Nope`"
+    ):
+        check_env_kwargs("Bioscara-Nope-v0", {})
+
+
+def test_keyword_parameters_follow_kwargs_up_the_bases_and_stop_where_they_end() -> None:
+    from bioscara_gym.training.deploy_checks import keyword_parameters
+
+    class Base:
+        def __init__(self, a: int, *args: int, b: int = 1) -> None: ...
+
+    class Child(Base):
+        def __init__(self, c: int, a: int = 0, **kwargs: Any) -> None: ...
+
+    class Leaf(Child):  # no __init__ of its own
+        pass
+
+    class Closed(Base):
+        def __init__(self, d: int) -> None: ...
+
+    def creator(x: int, *args: int, y: int = 0, **kwargs: Any) -> None: ...
+
+    assert keyword_parameters(Leaf) == ["c", "a", "b"]
+    assert keyword_parameters(Closed) == ["d"]
+    assert keyword_parameters(creator) == ["x", "y"]
+
+
+def test_output_files_are_each_their_own_regular_file(tmp_path: Path) -> None:
+    from bioscara_gym.training.deploy_checks import check_outputs
+
+    log, state = tmp_path / "a" / "run.jsonl", tmp_path / "gripper.json"
+    check_outputs({"--log": log, "--state-file": None, "--record": state})
+    cases = [
+        (
+            {"--log": log, "--record": tmp_path / "a" / ".." / "a" / "run.jsonl"},
+            f"--log and --record name the same file {tmp_path / 'a' / '..' / 'a' / 'run.jsonl'}; "
+            "each needs its own",
+        ),
+        ({"--log": tmp_path}, f"--log {tmp_path} is not a regular file"),
+    ]
+    (tmp_path / "file").write_text("", encoding="utf-8")
+    under = tmp_path / "file" / "x" / "run.jsonl"
+    cases.append(({"--state-file": under}, f"--state-file {under}: {tmp_path / 'file'} is not a directory"))
+    for outputs, message in cases:
+        with pytest.raises(DeployError) as caught:
+            check_outputs(outputs)
+        assert str(caught.value) == message
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"backend": "sim"}, "backend 'sim' is not deployable; expected one of mock, emulated, i2c, sitl"),
+        ({"bus": -1}, "--bus must be an I2C bus number >= 0 (/dev/i2c-N), got -1"),
+        ({"firmware": Path("fw")}, "--firmware needs --backend sitl (the firmware in the loop)"),
+        (
+            {"backend": "mock", "faults": "nack=0.1"},
+            "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)",
+        ),
+        ({"backend": "sitl", "faults": "nack=lots"}, "--faults: fault 'nack': 'lots' is not a number"),
+    ],
+    ids=["backend", "bus", "firmware", "faults-on-mock", "faults-on-sitl"],
+)
+def test_bad_arguments_are_refused_in_their_words(changes: dict[str, Any], message: str) -> None:
+    from bioscara_gym.training.deploy_checks import check_args
+
+    with pytest.raises(DeployError) as caught:
+        check_args(DeployArgs(expert=True, env=REACH, **changes))
+    assert str(caught.value) == message
+
+
+def test_arguments_on_their_bounds_are_accepted() -> None:
+    from bioscara_gym.training.deploy_checks import check_args
+
+    check_args(DeployArgs(expert=True, env=REACH, episodes=1, seed=0, bus=0, rate=20.0))
+    check_args(DeployArgs(expert=True, env=REACH, backend="sitl", faults="nack=0.1", firmware=Path("fw")))
+
+
+def test_the_env_is_made_on_the_backend_with_the_bus_rate_and_options_given(tmp_path: Path) -> None:
+    from bioscara_gym.hardware.emulated_bus import FaultPlan
+    from bioscara_gym.training.deploy_checks import backend_options, make_env
+
+    args = DeployArgs(expert=True, env="Bioscara-Reach", backend="mock", bus=3, rate=40)
+    env = make_env(args, tmp_path / "g.json", None)
+    try:
+        t = env.unwrapped
+        assert t.spec.id == REACH and t.control_freq == 40.0 and t.config.bus == 3 and t.render_mode is None
+    finally:
+        env.close()
+    metadata = {"env_id": REACH, "env_kwargs": {"control_mode": "cartesian"}}
+    env = make_env(DeployArgs(model=Path("m.zip"), backend="mock"), None, metadata)
+    try:
+        assert env.unwrapped.control_mode == "cartesian" and env.unwrapped.control_freq == 25.0
+    finally:
+        env.close()
+    with pytest.raises(DeployError) as caught:
+        make_env(
+            DeployArgs(model=Path("m.zip"), backend="mock"),
+            None,
+            {**metadata, "env_kwargs": {"control_mode": "warp"}},
+        )
+    assert str(caught.value) == (
+        "cannot make env 'Bioscara-Reach-v0': "
+        "control_mode 'warp' must be one of velocity, position, cartesian"
+    )
+    with pytest.raises(DeployError, match="Bioscara-Nope"):
+        make_env(DeployArgs(expert=True, env="Bioscara-Nope", backend="mock"), None, None)
+    assert backend_options(DeployArgs(backend="mock"), None) == {}
+    options = backend_options(
+        DeployArgs(backend="sitl", faults="nack=0.5", firmware=Path("fw")), tmp_path / "g.json"
+    )
+    assert options == {
+        "state_file": tmp_path / "g.json",
+        "faults": FaultPlan.parse("nack=0.5"),
+        "firmware": Path("fw"),
+    }
+    assert backend_options(DeployArgs(backend="sitl"), None) == {"firmware": None}
+
+
+def test_the_expert_needs_its_env_named() -> None:
+    from bioscara_gym.training.deploy_checks import load_policy
+
+    with pytest.raises(DeployError) as caught:
+        load_policy(DeployArgs(expert=True))
+    assert str(caught.value) == "--expert needs --env ID: the task is never guessed"
+
+
+def test_an_onnx_policy_is_the_policy_for_any_env_with_its_own_metadata_and_shapes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from bioscara_gym.training import export
+    from bioscara_gym.training.deploy_checks import load_policy
+
+    class OnnxPolicy:
+        def __init__(self, path: Path) -> None:
+            self.path, self.metadata, self.shapes = path, {"env_id": REACH}, "its shapes"
+
+    monkeypatch.setattr(export, "OnnxPolicy", OnnxPolicy)
+    loaded = load_policy(DeployArgs(onnx=Path("p.onnx")))
+    policy = loaded.make("any env")
+    assert isinstance(policy, OnnxPolicy) and policy.path == Path("p.onnx")
+    assert (loaded.metadata, loaded.description, loaded.shapes) == (
+        {"env_id": REACH},
+        "ONNX p.onnx",
+        "its shapes",
+    )
+
+
+def test_a_model_is_loaded_with_its_own_copy_of_the_metadata_and_acts_through_predict(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from bioscara_gym.training import algos, deploy_checks
+
+    read: list[Path] = []
+    monkeypatch.setattr(deploy_checks, "read_metadata", read.append)
+    space = gym.spaces.Box(-1.0, 1.0, (4,))
+
+    class Model:
+        observation_space, action_space = space, space
+
+        def predict(self, obs: Any, deterministic: bool = False) -> tuple[np.ndarray, None]:
+            return np.full(4, 0.5 if deterministic else 0.0), None
+
+    loads: list[tuple[Path, bool]] = []
+
+    def load_model(path: Path, require_embedded: bool = False) -> tuple[Model, dict[str, Any]]:
+        loads.append((path, require_embedded))
+        return Model(), {"algo": "sac"}
+
+    monkeypatch.setattr(algos, "load_model", load_model)
+    loaded = deploy_checks.load_policy(DeployArgs(model=Path("run/model.zip")))
+    assert read == [Path("run/model.zip")] and loads == [(Path("run/model.zip"), True)]
+    assert loaded.description == "SAC run/model.zip" and loaded.metadata == {"algo": "sac"}
+    assert loaded.shapes.source == "model run/model.zip"
+    assert loaded.make("any env")(np.zeros(4)).tolist() == [0.5] * 4  # deterministic actions
+
+
+def test_a_model_without_the_train_extra_names_deploy_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+    import types
+
+    from bioscara_gym.hardware.errors import MissingExtraError
+    from bioscara_gym.training import deploy_checks
+
+    class WithoutTorch(types.ModuleType):
+        def __getattr__(self, name: str) -> Any:
+            raise MissingExtraError("bioscara train", "train")
+
+    monkeypatch.setattr(deploy_checks, "read_metadata", lambda path: None)
+    monkeypatch.setitem(
+        sys.modules, "bioscara_gym.training.algos", WithoutTorch("bioscara_gym.training.algos")
+    )
+    with pytest.raises(MissingExtraError) as caught:
+        deploy_checks.load_policy(DeployArgs(model=Path("m.zip")))
+    assert str(caught.value) == "deploy --model needs the [train] extra: pip install 'bioscara-gym[train]'"
