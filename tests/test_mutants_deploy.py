@@ -1005,3 +1005,64 @@ def test_a_model_without_the_train_extra_names_deploy_model(monkeypatch: pytest.
     with pytest.raises(MissingExtraError) as caught:
         deploy_checks.load_policy(DeployArgs(model=Path("m.zip")))
     assert str(caught.value) == "deploy --model needs the [train] extra: pip install 'bioscara-gym[train]'"
+
+
+def test_a_bus_trace_asked_for_records_the_deploy_command_and_its_arguments(tmp_path: Path) -> None:
+    # docs/traces.md: the header says which command ran, with its arguments, for bioscara replay.
+    from bioscara_gym.hardware.recording import Recording
+    from bioscara_gym.training.deploy_checks import backend_options
+
+    args = DeployArgs(expert=True, env=REACH, backend="mock", record=tmp_path / "t.jsonl")
+    options = backend_options(args, None)
+    assert options == {"record": Recording(tmp_path / "t.jsonl", "deploy", args)}
+
+
+def test_the_arm_configuration_given_is_the_one_the_env_drives(tmp_path: Path) -> None:
+    from importlib import resources
+
+    from bioscara_gym.training.deploy_checks import make_env
+
+    packaged = (resources.files("bioscara_gym.hardware") / "default_config.yaml").read_text(encoding="utf-8")
+    config = tmp_path / "arm.yaml"
+    config.write_text(packaged.replace("i2c_clock_hz: 100000 ", "i2c_clock_hz: 400000 "), encoding="utf-8")
+    env = make_env(DeployArgs(expert=True, env=REACH, backend="mock", config=config), None, None)
+    try:
+        assert env.unwrapped.config.i2c_clock_hz == 400_000.0
+    finally:
+        env.close()
+
+
+def test_an_output_after_one_left_to_the_backend_is_still_checked(tmp_path: Path) -> None:
+    from bioscara_gym.training.deploy_checks import check_outputs
+
+    with pytest.raises(DeployError, match="is not a regular file"):
+        check_outputs({"--state-file": None, "--log": tmp_path})
+
+
+def test_keyword_parameters_are_the_constructors_even_with_a_new_of_its_own() -> None:
+    from bioscara_gym.training.deploy_checks import keyword_parameters
+
+    class WithNew:
+        def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+            return super().__new__(cls)
+
+        def __init__(self, p: int, *, q: int = 0) -> None: ...
+
+    assert keyword_parameters(WithNew) == ["p", "q"]
+
+
+def test_env_kwargs_of_an_env_registered_with_a_class_are_checked_too() -> None:
+    from bioscara_gym.training.deploy_checks import check_env_kwargs
+
+    class Probe(gym.Env):
+        def __init__(self, size: int = 1) -> None: ...
+
+    gym.register(id="ProbeClass-v0", entry_point=Probe)
+    try:
+        check_env_kwargs("ProbeClass-v0", {"size": 2})
+        with pytest.raises(
+            DeployError, match=r"has 'colour', which ProbeClass-v0 does not take; it takes size$"
+        ):
+            check_env_kwargs("ProbeClass-v0", {"colour": 2})
+    finally:
+        del gym.registry["ProbeClass-v0"]
