@@ -169,6 +169,7 @@ def test_a_completed_run_returns_its_summary_claiming_only_what_happened(deploy:
         "not_confirmed_warnings": [],
         "gripper": {"width_m": 0.08, "state_file": str(run.deployment.state_file), "saved_width_m": 0.08},
         "log_error": None,
+        "trace_error": None,
         "log_records_lost": [],
         "exit_code": 0,
         "rate_hz": 25.0,
@@ -517,7 +518,8 @@ def test_bioscara_deploy_help_states_each_option_its_default_and_the_exit_codes(
             None,
             None,
             "emulated bus faults: nack, short_read, corrupt (rates per transaction), latency_ms, jitter_ms "
-            "(extra time per transaction), drift_ppm (host clock), e.g. latency_ms=2,jitter_ms=3",
+            "(extra time per transaction), drift_ppm (host clock), seed (of the faults' draws, default 0; "
+            "--seed is the episodes'), e.g. latency_ms=2,jitter_ms=3,seed=7",
         ),
         "--seed": (10_000, int, None, "seed of the first episode"),
         "--realtime": (False, None, None, "pace mock/emulated on the wall clock too"),
@@ -605,7 +607,7 @@ def test_a_summary_of_a_run_stopped_before_its_loop_claims_no_episode_and_names_
     final = {"j1": {"flags": 8}, "j2": {"flags": 0}}
     d.target = SimpleNamespace(
         arm=SimpleNamespace(
-            final_state=lambda: final, state=SimpleNamespace(value="finalized"), gripper=gripper
+            final_state=lambda: final, state=SimpleNamespace(value="finalized"), gripper=gripper, backend=None
         )
     )
     d._timing = SimpleNamespace(summary=lambda: {"overruns": 0})
@@ -639,6 +641,7 @@ def test_a_summary_of_a_run_stopped_before_its_loop_claims_no_episode_and_names_
         "not_confirmed_warnings": ["j2: no answer, still powered as far as we know: cut the power"],
         "gripper": {"width_m": None, "state_file": None, "saved_width_m": None},
         "log_error": None,
+        "trace_error": None,
         "log_records_lost": [],
         "exit_code": 3,
     }
@@ -718,7 +721,9 @@ def test_a_summary_names_the_log_error_and_the_records_lost(tmp_path: Path) -> N
     d = bare_deployment(tmp_path)
     gripper = SimpleNamespace(state_file=tmp_path / "g.json", saved_width_m=0.08)
     d.target = SimpleNamespace(
-        arm=SimpleNamespace(final_state=dict, state=SimpleNamespace(value="finalized"), gripper=gripper)
+        arm=SimpleNamespace(
+            final_state=dict, state=SimpleNamespace(value="finalized"), gripper=gripper, backend=None
+        )
     )
     d._timing = SimpleNamespace(summary=dict)
     d._bus = SimpleNamespace(summary=dict)
