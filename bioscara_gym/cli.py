@@ -260,8 +260,12 @@ EXTRA_COMMAND_MODULES = (
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``bioscara`` console script."""
-    _choose_headless_gl()
-    parser = build_parser()
+    try:  # building the parser imports every command's module: a Ctrl-C there is one line too
+        _choose_headless_gl()
+        parser = build_parser()
+    except KeyboardInterrupt:
+        print("bioscara: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     # One line per error whatever the width, and the text printed as is (no markup).
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)

@@ -246,6 +246,20 @@ def test_homing_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run
     assert enabled(table, "gripper") == "yes"
 
 
+def test_a_ctrl_c_while_the_commands_load_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): Ctrl-C in the first half second printed a 40-line traceback.
+    import bioscara_gym.cli as cli
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["status"]) == 130
+    assert capsys.readouterr().err == "bioscara: interrupted\n"
+
+
 def test_enabling_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run, state: Path) -> None:
     # Seen (a hostile test): refused in words, yet every homing was aborted and the arm disabled.
     bioscara("enable", "--state", str(state))
