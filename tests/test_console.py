@@ -246,6 +246,28 @@ def test_homing_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run
     assert enabled(table, "gripper") == "yes"
 
 
+def test_status_says_a_not_enabled_flag_does_not_mean_no_current(bioscara: Run, state: Path) -> None:
+    # Seen (a hostile test): after a deadman trip, currents 20/20, status said "enabled: no".
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j4", "--state", str(state))
+    j4 = CONFIG.joint("j4")
+    with Session(ConsoleOptions(state=state)) as s:
+        s.arm.joints["j4"].enable(j4.drive_current, j4.hold_current)
+        s.arm.joints["j4"].set_velocity(0.5)
+        s.backend.step(0.2)  # the host silent: the deadman trips, the current stays on
+        assert s.backend.device_currents("j4") == (j4.drive_current, j4.hold_current)
+    code, out, _ = bioscara("status", "--state", str(state))
+    assert code == 0
+    assert (
+        "j4: NOT_ENABLED is a flag: after a deadman trip the current stays on; `bioscara disable j4` cuts it"
+        in out
+    )
+    assert "j1: NOT_ENABLED" not in out  # not homed
+    bioscara("disable", "--state", str(state))
+    code, out, _ = bioscara("status", "--state", str(state))
+    assert "NOT_ENABLED is a flag" not in out  # the emulator shows every current cut
+
+
 def test_a_ctrl_c_while_the_commands_load_is_one_line(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

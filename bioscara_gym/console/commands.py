@@ -308,12 +308,36 @@ def ping_table(replies: list[PingReply]) -> Table:
 
 
 # ---------------------------------------------------------------- commands
+def current_notes(session: Session) -> list[str]:
+    """A line for each homed joint that reports not enabled but may still have current.
+
+    The firmware's deadman sets NOT_ENABLED and keeps the currents
+    (docs/firmware.md); a disable cuts them. Where the backend sees the
+    device's currents (simulated), only a joint with current is named;
+    on the arm the flag cannot tell, so every such joint is.
+    """
+    notes = []
+    for name, st in session.arm.joint_states.items():
+        if not (st.homed and st.flags & Flag.NOT_ENABLED):
+            continue
+        currents = session.backend.device_currents(name)
+        if currents is not None and not any(currents):
+            continue
+        notes.append(
+            f"{name}: NOT_ENABLED is a flag: after a deadman trip the current stays on; "
+            f"`bioscara disable {name}` cuts it"
+        )
+    return notes
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     """``bioscara status``."""
     con = make_console()
     with Session(ConsoleOptions.from_args(args)) as session:
         con.print(lifecycle_line(session))
         con.print(status_table(session))
+        for note in current_notes(session):
+            con.print(note, markup=False)
         budget = budget_line(session)
         if budget is not None:
             con.print(budget)
