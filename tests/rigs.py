@@ -914,3 +914,34 @@ def nan_actor_weights(run: Path) -> list[str]:
         sac.policy.actor.mu.weight.fill_(float("nan"))
     save_policy(sac, run, json.loads((run / "metadata.json").read_text()))
     return ["--model", str(run / "model.zip")]
+
+
+# ------------------------------------------------------ scripted random draws
+class ScriptedRng:
+    """Stands in for an env's ``np_random``: each draw takes the next fraction ``f`` in [0, 1) of a script.
+
+    ``uniform(low, high)`` gives ``low + f * (high - low)`` (``size`` of them as
+    an array), ``random()`` gives ``f``. Running out fails the test: a redraw
+    the script did not expect.
+    """
+
+    def __init__(self, fractions: list[float]) -> None:
+        self._fractions = list(fractions)
+
+    def _next(self) -> float:
+        if not self._fractions:
+            raise AssertionError("more draws than scripted (a redraw)")
+        return self._fractions.pop(0)
+
+    def uniform(self, low: float = 0.0, high: float = 1.0, size: int | None = None) -> float | np.ndarray:
+        if size is None:
+            return low + self._next() * (high - low)
+        return np.array([low + self._next() * (high - low) for _ in range(size)])
+
+    def random(self) -> float:
+        return self._next()
+
+    @property
+    def left(self) -> int:
+        """Draws left in the script."""
+        return len(self._fractions)

@@ -12,6 +12,7 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from rigs import ScriptedRng
 
 import bioscara_gym  # noqa: F401  (registers the ids)
 from bioscara_gym import kinematics
@@ -255,32 +256,6 @@ def test_pick_place_mock_block_is_grasped_and_lifted_by_the_arm(pick: gym.Env) -
 # ----------------------------------------------- draws: scripted and bounded
 
 
-class _ScriptedRng:
-    """Stands in for ``np_random``: each draw takes the next fraction ``f`` in [0, 1) of a script.
-
-    ``uniform(low, high)`` gives ``low + f * (high - low)``, ``random()`` gives ``f``.
-    Running out fails the test: a redraw the script did not expect.
-    """
-
-    def __init__(self, fractions: list[float]) -> None:
-        self._fractions = list(fractions)
-
-    def _next(self) -> float:
-        if not self._fractions:
-            raise AssertionError("more draws than scripted (a redraw)")
-        return self._fractions.pop(0)
-
-    def uniform(self, low: float = 0.0, high: float = 1.0) -> float:
-        return low + self._next() * (high - low)
-
-    def random(self) -> float:
-        return self._next()
-
-    @property
-    def left(self) -> int:
-        return len(self._fractions)
-
-
 class _BoundedRng:
     """``np_random`` that fails the test after ``limit`` draws (a redraw loop that never ends)."""
 
@@ -344,7 +319,7 @@ def test_table_points_lie_within_the_sector_the_command_range_and_the_annulus(
 def test_a_table_point_is_at_the_drawn_radius(
     fresh_pick: BioscaraPickPlaceEnv, fraction: float, radius: float
 ) -> None:
-    fresh_pick.np_random = _ScriptedRng([fraction, 0.5])  # radius, then j1 offset 0
+    fresh_pick.np_random = ScriptedRng([fraction, 0.5])  # radius, then j1 offset 0
     point, q1 = fresh_pick._sample_table_point(0.5, 1.0)
     assert math.hypot(point[0], point[1]) == pytest.approx(radius, abs=1e-6)
     assert q1 == 0.5
@@ -356,7 +331,7 @@ def test_a_table_point_may_lie_exactly_at_j1s_command_limit(
 ) -> None:
     u = fresh_pick
     j1 = float(u.command_low[0] if end == "low" else u.command_high[0])
-    u.np_random = rng = _ScriptedRng([0.5, 0.5])  # radius 0.4, j1 offset exactly 0
+    u.np_random = rng = ScriptedRng([0.5, 0.5])  # radius 0.4, j1 offset exactly 0
     _, q1 = u._sample_table_point(j1, 1.0)
     assert q1 == j1
     assert rng.left == 0
@@ -368,7 +343,7 @@ def _script_goal(u: BioscaraPickPlaceEnv, lift: float, yaw: float) -> None:
     fractions = [0.5, 0.5, 0.999999, 0.5, lift]
     if lift < 0.5:
         fractions.append(1.0)  # the top of the lift: 5 cm
-    u.np_random = _ScriptedRng([*fractions, yaw])
+    u.np_random = ScriptedRng([*fractions, yaw])
 
 
 def test_a_stretched_arm_draws_with_the_positive_elbow(fresh_pick: BioscaraPickPlaceEnv) -> None:

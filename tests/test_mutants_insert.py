@@ -17,6 +17,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from rigs import ScriptedRng
 
 from bioscara_gym import kinematics
 from bioscara_gym.envs.insert import BioscaraInsertEnv
@@ -27,25 +28,6 @@ GOAL_Z = 0.020
 #: mirror, which only the negative elbow reaches.
 ONLY_POSITIVE = (-0.4972, 0.2351)
 ONLY_NEGATIVE = (-0.4972, -0.2351)
-
-
-class _ScriptedRng:
-    """``np_random`` whose draws take the next fractions ``f`` of a script: ``low + f (high - low)``."""
-
-    def __init__(self, fractions: list[float]) -> None:
-        self._fractions = list(fractions)
-
-    def _next(self) -> float:
-        if not self._fractions:
-            raise AssertionError("more draws than scripted (a redraw)")
-        return self._fractions.pop(0)
-
-    def uniform(self, low: float = 0.0, high: float = 1.0, size: int | None = None) -> float:
-        assert size is None
-        return low + self._next() * (high - low)
-
-    def random(self) -> float:
-        return self._next()
 
 
 @pytest.fixture
@@ -72,7 +54,7 @@ def test_the_hole_is_drawn_around_j1_with_the_starts_elbow(
     insert: BioscaraInsertEnv, coin: float, elbow: float
 ) -> None:
     u = insert
-    u.np_random = _ScriptedRng([coin, *SCRIPT[1:]])
+    u.np_random = ScriptedRng([coin, *SCRIPT[1:]])
     pose = u._random_pose()
     assert math.hypot(*u._hole_xy) == pytest.approx(0.4, abs=1e-9)
     assert kinematics.inverse(np.array([*u._hole_xy, 0.0]), elbow)[0] == pytest.approx(0.0, abs=1e-9)
@@ -83,7 +65,7 @@ def test_the_hole_is_drawn_around_j1_with_the_starts_elbow(
 def test_the_hole_yaw_spans_a_quarter_turn(insert: BioscaraInsertEnv) -> None:
     u = insert
     for f, yaw in ((0.0, 0.0), (0.999999, math.pi / 2)):
-        u.np_random = _ScriptedRng([0.4, 0.5, f])
+        u.np_random = ScriptedRng([0.4, 0.5, f])
         _, drawn = u._draw_fixture(1.0)
         assert drawn == pytest.approx(yaw, abs=1e-5)
 
@@ -98,7 +80,7 @@ def test_the_tcp_starts_at_the_drawn_offset_and_bearing_from_the_hole(
     u = insert
     script = list(SCRIPT)
     script[5] = bearing  # bearing = -pi + f 2 pi
-    u.np_random = _ScriptedRng(script)
+    u.np_random = ScriptedRng(script)
     pose = u._random_pose()
     np.testing.assert_allclose(_tip(pose)[:2], u._hole_xy + np.array(offset), atol=1e-9)
 
@@ -108,7 +90,7 @@ def test_the_tcp_starts_within_3_cm_of_the_hole(insert: BioscaraInsertEnv, f: fl
     u = insert
     script = list(SCRIPT)
     script[4] = f
-    u.np_random = _ScriptedRng(script)
+    u.np_random = ScriptedRng(script)
     pose = u._random_pose()
     assert math.hypot(*(_tip(pose)[:2] - u._hole_xy)) == pytest.approx(distance, abs=1e-9)
 
@@ -120,7 +102,7 @@ def test_the_peg_tip_starts_3_to_8_mm_above_the_fixture(
     u = insert
     script = list(SCRIPT)
     script[6] = f
-    u.np_random = _ScriptedRng(script)
+    u.np_random = ScriptedRng(script)
     assert _tip(u._random_pose())[2] == pytest.approx(height, abs=1e-12)
 
 
@@ -131,7 +113,7 @@ def test_the_wrist_starts_anywhere_in_its_command_range(
     u = insert
     script = list(SCRIPT)
     script[7] = f
-    u.np_random = _ScriptedRng(script)
+    u.np_random = ScriptedRng(script)
     assert u._random_pose()[3] == pytest.approx(j4, abs=1e-9)
 
 
@@ -150,7 +132,7 @@ def test_a_bolted_fixture_is_reached_with_an_elbow_that_can(
 ) -> None:
     env = BioscaraInsertEnv(backend="mock", fixture_pose=(*hole, 0.3))
     try:
-        env.np_random = _ScriptedRng([coin, 0.5, 0.5, 0.0, 0.25])
+        env.np_random = ScriptedRng([coin, 0.5, 0.5, 0.0, 0.25])
         pose = env._random_pose()
         assert env._hole_xy.tolist() == list(hole) and env.hole_yaw == 0.3
         assert math.copysign(1.0, pose[2]) == elbow

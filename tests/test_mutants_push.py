@@ -17,6 +17,7 @@ from collections.abc import Iterator
 import gymnasium as gym
 import numpy as np
 import pytest
+from rigs import ScriptedRng
 
 import bioscara_gym  # noqa: F401  (registers the ids)
 from bioscara_gym import kinematics
@@ -78,24 +79,6 @@ def test_a_block_with_its_centre_inside_leaves_through_the_nearest_side(
 # ------------------------------------------------------------- goal sampling
 
 
-class _ScriptedRng:
-    """``np_random`` whose draws take the next fraction ``f`` of a script: ``low + f (high - low)``."""
-
-    def __init__(self, fractions: list[float]) -> None:
-        self._fractions = list(fractions)
-
-    def _next(self) -> float:
-        if not self._fractions:
-            raise AssertionError("more draws than scripted (a redraw)")
-        return self._fractions.pop(0)
-
-    def uniform(self, low: float = 0.0, high: float = 1.0) -> float:
-        return low + self._next() * (high - low)
-
-    def random(self) -> float:
-        return self._next()
-
-
 @pytest.fixture
 def push() -> Iterator[BioscaraPushEnv]:
     """A mock Push env, not reset (a mutant's redraw loop would hang there)."""
@@ -110,7 +93,7 @@ def test_the_block_is_drawn_around_the_arms_j1_with_its_elbow(push: BioscaraPush
     u._tcp = kinematics.forward(u._q)
     # block: radius 0.5 m, j1 offset -0.2 rad (12 cm from the TCP; the other elbow's point is 53 cm away);
     # target: radius 0.4 m, no offset (14 cm from the block); yaw 0
-    u.np_random = _ScriptedRng([5 / 6, 0.4, 0.5, 0.5, 0.5])
+    u.np_random = ScriptedRng([5 / 6, 0.4, 0.5, 0.5, 0.5])
     target = u._sample_goal()
     block = u._block.pos
     assert kinematics.inverse(block, 1.0)[0] == pytest.approx(0.8, abs=1e-9)
@@ -121,7 +104,7 @@ def test_the_block_is_drawn_around_the_arms_j1_with_its_elbow(push: BioscaraPush
 def test_a_stretched_arm_draws_with_the_positive_elbow(push: BioscaraPushEnv) -> None:
     u = push  # a new env: every joint at 0, j3 = 0 exactly
     # block: radius 0.52 m, j1 offset -0.4 rad (12 cm from the TCP; the other elbow's 51 cm)
-    u.np_random = _ScriptedRng([0.9, 0.3, 0.5, 0.5, 0.5])
+    u.np_random = ScriptedRng([0.9, 0.3, 0.5, 0.5, 0.5])
     u._sample_goal()
     assert kinematics.inverse(u._block.pos, 1.0)[0] == pytest.approx(-0.4, abs=1e-9)
 
@@ -145,7 +128,7 @@ def test_the_block_yaw_spans_a_quarter_turn_each_way(
     u = push
     u._q = np.array([1.0, 0.005, 0.5, 0.0])
     u._tcp = kinematics.forward(u._q)
-    u.np_random = _ScriptedRng([5 / 6, 0.4, 0.5, 0.5, fraction])
+    u.np_random = ScriptedRng([5 / 6, 0.4, 0.5, 0.5, fraction])
     u._sample_goal()
     assert u.block_yaw == pytest.approx(yaw, abs=1e-5)
     assert u._block.yaw == u.block_yaw

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from rigs import ScriptedRng
 
 from bioscara_gym import kinematics
 from bioscara_gym.envs.stack import BioscaraStackEnv, KinematicStack, _segment_distance
@@ -43,26 +44,6 @@ def test_a_block_dropped_exactly_3_cm_beside_the_other_lands_on_the_table() -> N
     k.update(np.array([0.03, 0.0, 0.06]), 0.04)  # lift it
     k.update(np.array([0.03, 0.0, 0.06]), 0.10)  # open: 3 cm apart is not overlapping
     assert k.upper.pos.tolist() == [0.03, 0.0, 0.015]
-
-
-class _ScriptedRng:
-    """``np_random`` whose draws take the next fractions ``f`` of a script: ``low + f (high - low)``."""
-
-    def __init__(self, fractions: list[float]) -> None:
-        self._fractions = list(fractions)
-
-    def _next(self) -> float:
-        if not self._fractions:
-            raise AssertionError("more draws than scripted (a redraw)")
-        return self._fractions.pop(0)
-
-    def uniform(self, low: float = 0.0, high: float = 1.0, size: int | None = None) -> float | np.ndarray:
-        if size is None:
-            return low + self._next() * (high - low)
-        return np.array([low + self._next() * (high - low) for _ in range(size)])
-
-    def random(self) -> float:
-        return self._next()
 
 
 @pytest.fixture
@@ -96,7 +77,7 @@ def test_the_target_and_starts_are_drawn_around_j1_with_the_arms_elbow(
 ) -> None:
     u = stack
     _pose(u, q)
-    u.np_random = _ScriptedRng(SCRIPT)
+    u.np_random = ScriptedRng(SCRIPT)
     goal = u._sample_goal()
     lower, upper = u._kinematic.lower.pos, u._kinematic.upper.pos
     np.testing.assert_array_equal(lower, goal[:3])  # the coin: the lower block at the target
@@ -109,7 +90,7 @@ def test_the_target_and_starts_are_drawn_around_j1_with_the_arms_elbow(
 def test_the_yaws_span_a_quarter_turn_each_way_one_per_block(stack: BioscaraStackEnv) -> None:
     u = stack
     _pose(u, [1.0, 0.005, 0.5, 0.0])
-    u.np_random = _ScriptedRng(SCRIPT)
+    u.np_random = ScriptedRng(SCRIPT)
     u._sample_goal()
     assert u.block_yaws == pytest.approx((-0.7853981633974483, 0.7853981633974483), abs=1e-5)
     assert u.block_yaw == u.block_yaws[0]
@@ -121,7 +102,7 @@ def test_a_lower_start_too_near_the_upper_block_is_drawn_again(stack: BioscaraSt
     _pose(u, [1.0, 0.005, 0.5, 0.0])
     # the coin at 0.5: the lower block away from the target. Its first draw (radius 0.31 m,
     # 0.1 rad on) is 3 cm from the upper block; the second (radius 0.49 m) is clear
-    u.np_random = _ScriptedRng([0.5, 0.5, 0.2, 0.5, 0.5, 0.2, 0.55, 0.8, 0.5, 0.0, 0.0])
+    u.np_random = ScriptedRng([0.5, 0.5, 0.2, 0.5, 0.5, 0.2, 0.55, 0.8, 0.5, 0.0, 0.0])
     goal = u._sample_goal()
     lower, upper = u._kinematic.lower.pos, u._kinematic.upper.pos
     assert math.hypot(*lower[:2]) == pytest.approx(0.49, abs=1e-9)
