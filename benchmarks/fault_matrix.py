@@ -37,10 +37,11 @@ from rigs import (
     J1,
     AnswersFF,
     ConstantPolicy,
-    FillingDisk,
     FlipsNextReply,
     build_emulated,
+    home_and_enable,
     nan_actor_weights,
+    run_log_disk_filling,
     train_tiny_sac,
 )
 
@@ -219,26 +220,8 @@ def nan_action(tmp: Path) -> Row:
 
 
 def full_disk(tmp: Path) -> Row:
-    holder: dict[str, Deployment] = {}
-    disk = FillingDisk(full_for=None)
     output = io.StringIO()
-
-    def fill(cycle: int, env: Any) -> None:
-        if cycle == 0:
-            disk.fd = holder["run"]._log._fd
-        if cycle == 5:
-            disk.full = True
-
-    init = Deployment.__init__
-
-    def keep(self: Deployment, *args: Any, **kwargs: Any) -> None:
-        init(self, *args, **kwargs)
-        holder["run"] = self
-
-    with (
-        mock.patch.object(Deployment, "__init__", keep),
-        mock.patch("bioscara_gym.training.deploy_log._os_write", disk),
-    ):
+    with run_log_disk_filling(5, full_for=None) as fill:
         code, run = deploy_api(tmp, "disk", fill, output=output)
     lines = run.args.log.read_text().splitlines()
     parsed = sum(1 for line in lines if json.loads(line))
@@ -317,13 +300,8 @@ def corrupt_seeds(tmp: Path, seeds: int = 40) -> Row:
 
 def host_pause(tmp: Path) -> Row:
     """The bare driver: j1 turning in velocity mode, the host silent 80 ms, then ``set_velocity``."""
-    emu = build_emulated(J1, 3.0)
+    emu = home_and_enable(build_emulated(J1, 3.0))
     j = emu.joint
-    j.init()
-    j.enable(J1.drive_current, J1.hold_current)
-    j.home(J1.homing.speed, J1.homing.threshold, J1.homing.current, timeout_s=60.0)
-    j.set_max_velocity(J1.max_velocity)
-    j.set_max_acceleration(J1.max_acceleration)
     j.set_velocity(-0.5)
     emu.advance(0.3)
     emu.advance(0.08)

@@ -16,6 +16,7 @@ file), as :class:`~bioscara_gym.hardware.config.JointConfig` values.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import json
@@ -24,7 +25,7 @@ import os
 import subprocess
 import sys
 import textwrap
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -217,6 +218,17 @@ def build_emulated(
     p = params
     joint = Joint(p.name, p.address, p.reduction, p.min, p.max, bus, retries=retries, clock=clock)
     return EmulatedJoint(params, clock, motor, firmware, bus, joint)
+
+
+def home_and_enable(emu: EmulatedJoint, timeout_s: float = 60.0) -> EmulatedJoint:
+    """Connect ``emu``'s joint, enable it, home it (configured parameters) and set its limits."""
+    p, j = emu.params, emu.joint
+    j.init()
+    j.enable(p.drive_current, p.hold_current)
+    j.home(p.homing.speed, p.homing.threshold, p.homing.current, timeout_s=timeout_s)
+    j.set_max_velocity(p.max_velocity)
+    j.set_max_acceleration(p.max_acceleration)
+    return emu
 
 
 def _emulated_rig(name: str, params: JointConfig, start_q: float) -> JointRig:
@@ -899,6 +911,38 @@ class FillingDisk:
             self.full = self.full_for > 0
         os.write(fd, bytes(data)[: len(data) // 2])  # what a full disk takes before it refuses
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@contextlib.contextmanager
+def run_log_disk_filling(at_cycle: int, full_for: int | None) -> Iterator[Callable[[int, Any], None]]:
+    """The disk under a deploy's run log fills at ``at_cycle`` (:class:`FillingDisk`); yields the hook.
+
+    While it is active, every :class:`~bioscara_gym.training.deploy.Deployment`
+    made is watched, so the hook finds the run log's file descriptor at cycle 0.
+    """
+    from unittest import mock
+
+    from bioscara_gym.training.deploy import Deployment
+
+    made: list[Any] = []
+    disk = FillingDisk(full_for)
+    original_init = Deployment.__init__
+
+    def init(self: Any, *args: Any, **kwargs: Any) -> None:
+        original_init(self, *args, **kwargs)
+        made.append(self)
+
+    def hook(cycle: int, env: Any) -> None:
+        if cycle == 0:
+            disk.fd = made[-1]._log._fd
+        if cycle == at_cycle:
+            disk.full = True
+
+    with (
+        mock.patch.object(Deployment, "__init__", init),
+        mock.patch("bioscara_gym.training.deploy_log._os_write", disk),
+    ):
+        yield hook
 
 
 def nan_actor_weights(run: Path) -> list[str]:

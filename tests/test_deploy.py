@@ -25,7 +25,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from rich.console import Console
-from rigs import AnswersFF, ConstantPolicy, FillingDisk, FlipsNextReply, place_obstacle, train_tiny_sac
+from rigs import (
+    AnswersFF,
+    ConstantPolicy,
+    FlipsNextReply,
+    place_obstacle,
+    run_log_disk_filling,
+    train_tiny_sac,
+)
 
 from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.arm import Arm
@@ -371,24 +378,7 @@ def test_recovered_bus_errors_appear_in_the_cycles_and_the_summary(deploy: Calla
 def test_a_full_disk_stops_the_run_safely_and_leaves_no_torn_line(
     deploy: Callable[..., Run], full_for: int | None
 ) -> None:
-    holder: dict[str, Deployment] = {}
-    disk = FillingDisk(full_for)
-
-    def fill(cycle: int, env: gym.Env) -> None:
-        if cycle == 0:
-            disk.fd = holder["deployment"]._log._fd
-        if cycle == 5:
-            disk.full = True
-
-    original_init = Deployment.__init__
-
-    def init(self: Deployment, *args: Any, **kwargs: Any) -> None:
-        original_init(self, *args, **kwargs)
-        holder["deployment"] = self
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Deployment, "__init__", init)
-        mp.setattr("bioscara_gym.training.deploy_log._os_write", disk)
+    with run_log_disk_filling(5, full_for) as fill:
         run = deploy(on_cycle=fill)
     assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
     assert "cannot write the run log" in str(run.error) and "No space left on device" in str(run.error)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from rigs import J1, J2, build_emulated
+from rigs import J1, J2, build_emulated, home_and_enable
 
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.config import JointConfig, load_config
@@ -670,13 +670,8 @@ def wrong_positions_believed(params: JointConfig, start_q: float, target: float,
 
     Wrong: off from the emulated encoder by more than 0.1 degree (0.1 mm for the lift).
     """
-    emu = build_emulated(params, start_q)
+    emu = home_and_enable(build_emulated(params, start_q), timeout_s=120.0)
     j = emu.joint
-    j.init()
-    j.enable(params.drive_current, params.hold_current)
-    j.home(params.homing.speed, params.homing.threshold, params.homing.current, timeout_s=120.0)
-    j.set_max_velocity(params.max_velocity)
-    j.set_max_acceleration(params.max_acceleration)
     j.set_position(target)
     for _ in range(400):
         emu.advance(0.04)

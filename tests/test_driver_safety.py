@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from rigs import J1, J2, EmulatedJoint, build_emulated
+from rigs import J1, J2, EmulatedJoint, build_emulated, home_and_enable
 
 from bioscara_gym.hardware.base_joint import ABORT_SETTLE_S
 from bioscara_gym.hardware.clock import ManualClock
@@ -354,14 +354,7 @@ def test_waits_never_sleep_backwards(scripted_bus: Any) -> None:
 
 def homed_and_enabled(params: Any, start_q: float) -> EmulatedJoint:
     """An emulated joint homed (against ``max``) and enabled with its configured limits."""
-    emu = traced(params, start_q)
-    j = emu.joint
-    j.init()
-    j.enable(params.drive_current, params.hold_current)
-    j.home(params.homing.speed, params.homing.threshold, params.homing.current, timeout_s=60.0)
-    j.set_max_velocity(params.max_velocity)
-    j.set_max_acceleration(params.max_acceleration)
-    return emu
+    return home_and_enable(traced(params, start_q))
 
 
 @pytest.mark.parametrize(
