@@ -35,11 +35,11 @@ import numpy as np
 from rich.console import Console
 from rigs import (
     J1,
-    AnswersFF,
     ConstantPolicy,
     FlipsNextReply,
     build_emulated,
     home_and_enable,
+    lose_joint_at,
     nan_actor_weights,
     run_log_disk_filling,
     train_tiny_sac,
@@ -180,17 +180,7 @@ def bus_faults(tmp: Path) -> list[Row]:
 def lost_joints(tmp: Path) -> list[Row]:
     rows = []
     for what, name, address in (("NACKs", "j2", 0x12), ("answers 0xFF", "j3", 0x13)):
-
-        def lose(cycle: int, env: Any, name: str = name, address: int = address, what: str = what) -> None:
-            if cycle == 5:
-                backend = env.unwrapped.backend
-                devices = backend.bus.devices
-                if what == "NACKs":
-                    del devices[address]
-                else:
-                    devices[address] = AnswersFF(devices[address])
-                backend.sim.cores[name].last_rx -= 0.06  # its replies lost that long: its deadman trips
-
+        lose = lose_joint_at(5, name, address, nacks=what == "NACKs")
         code, run = deploy_api(tmp, f"lost-{name}", lose, policy=ConstantPolicy(MOVING))
         rows.append(from_log(f"{name} {what} from cycle 5, its deadman tripped", run.args.log, code))
     return rows

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import io
 import json
 import math
 import os
@@ -869,6 +870,26 @@ class AnswersFF:
         self.firmware.update()
 
 
+def lose_joint_at(cycle: int, name: str, address: int, nacks: bool) -> Callable[[int, Any], None]:
+    """An ``on_cycle`` hook: from ``cycle`` on the joint NACKs (``nacks``) or answers 0xFF.
+
+    Its last delivered exchange is made 60 ms old (its replies were lost that
+    long), so its deadman trips at the next pass, as seen on the arm.
+    """
+
+    def lose(at: int, env: Any) -> None:
+        if at == cycle:
+            backend = env.unwrapped.backend
+            devices = backend.bus.devices
+            if nacks:
+                del devices[address]
+            else:
+                devices[address] = AnswersFF(devices[address])
+            backend.sim.cores[name].last_rx -= 0.06
+
+    return lose
+
+
 class FlipsNextReply:
     """A joint whose next reply to ``reg`` (a read or a command) comes back with bit ``bit`` flipped.
 
@@ -989,3 +1010,65 @@ class ScriptedRng:
     def left(self) -> int:
         """Draws left in the script."""
         return len(self._fractions)
+
+
+# ---------------------------------------------------- in-process deployments
+def read_log(path: Path) -> list[dict[str, Any]]:
+    """Every line of a run log, parsed (fails on a torn line)."""
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+
+
+class DeployRun:
+    """A finished in-process deployment: its object, what it printed, what it raised, its log."""
+
+    def __init__(self, deployment: Any, output: str, error: BaseException | None, log: Path) -> None:
+        self.deployment, self.output, self.error, self.log = deployment, output, error, log
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        return self.deployment.summary
+
+    @property
+    def backend(self) -> Any:
+        return self.deployment.env.unwrapped.backend
+
+    @property
+    def lines(self) -> list[str]:
+        return self.output.splitlines()
+
+    @property
+    def records(self) -> list[dict[str, Any]]:
+        return read_log(self.log)
+
+
+def run_deployment(
+    fields: dict[str, Any],
+    policy: Any = None,
+    metadata: dict[str, Any] | None = None,
+    on_cycle: Callable[[int, Any], None] | None = None,
+    catch: tuple[type[BaseException], ...] = (),
+) -> DeployRun:
+    """Run a :class:`~bioscara_gym.training.deploy.Deployment` of ``DeployArgs(**fields)`` in-process.
+
+    A :class:`~bioscara_gym.errors.DeployError`, or one of ``catch``, is kept
+    in the result instead of raised.
+    """
+    from rich.console import Console
+
+    from bioscara_gym.errors import DeployError
+    from bioscara_gym.training.deploy import DeployArgs, Deployment
+
+    out = io.StringIO()
+    deployment = Deployment(
+        DeployArgs(**fields),
+        policy=policy,
+        metadata=metadata,
+        console=Console(file=out, width=200),
+        on_cycle=on_cycle,
+    )
+    error = None
+    try:
+        deployment.run()
+    except (DeployError, *catch) as e:
+        error = e
+    return DeployRun(deployment, out.getvalue(), error, Path(fields["log"]))

@@ -8,7 +8,6 @@ subprocess whose emulator state is read back from the run log's summary.
 from __future__ import annotations
 
 import errno
-import io
 import itertools
 import json
 import os
@@ -24,22 +23,23 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
-from rich.console import Console
 from rigs import (
-    AnswersFF,
     ConstantPolicy,
+    DeployRun,
     FlipsNextReply,
+    lose_joint_at,
     place_obstacle,
+    read_log,
+    run_deployment,
     run_log_disk_filling,
     train_tiny_sac,
 )
 
-from bioscara_gym.errors import DeployError
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.registers import Flag
-from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP, DeployArgs, Deployment
+from bioscara_gym.training.deploy import EXIT_REFUSED, EXIT_SAFETY_STOP
 from bioscara_gym.training.metadata import read_metadata
 from bioscara_gym.training.signals import Interrupted, SignalGuard
 
@@ -47,11 +47,6 @@ REACH = "Bioscara-Reach-v0"
 
 
 # ------------------------------------------------------------------ helpers
-def read_log(path: Path) -> list[dict[str, Any]]:
-    """Every line of a run log, parsed (fails on a torn line)."""
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
-
-
 def assert_every_joint_disabled(summary: dict[str, Any]) -> None:
     """Checked on the device side: the firmware emulator (or the mock device), not the host's view."""
     for name, state in summary["final_state"].items():
@@ -63,22 +58,7 @@ def assert_every_joint_disabled(summary: dict[str, Any]) -> None:
     assert summary["arm_state"] == "finalized"
 
 
-class Run:
-    """A finished in-process deployment: its object, output, error and log."""
-
-    def __init__(self, deployment: Deployment, output: str, error: DeployError | None, log: Path) -> None:
-        self.deployment = deployment
-        self.output = output
-        self.error = error
-        self.log = log
-
-    @property
-    def summary(self) -> dict[str, Any]:
-        return self.deployment.summary
-
-    @property
-    def backend(self) -> Any:
-        return self.deployment.env.unwrapped.backend
+Run = DeployRun
 
 
 @pytest.fixture
@@ -98,20 +78,7 @@ def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., Run]:
             fields.setdefault("expert", policy is None)
             if metadata is None:
                 fields.setdefault("env", REACH)
-        out = io.StringIO()
-        deployment = Deployment(
-            DeployArgs(**fields),
-            policy=policy,
-            metadata=metadata,
-            console=Console(file=out, width=200),
-            on_cycle=on_cycle,
-        )
-        error = None
-        try:
-            deployment.run()
-        except DeployError as e:
-            error = e
-        return Run(deployment, out.getvalue(), error, Path(fields["log"]))
+        return run_deployment(fields, policy, metadata, on_cycle)
 
     return run
 
@@ -273,18 +240,7 @@ def test_a_joint_lost_mid_run_is_named_and_never_counted_as_disabled(
     # the currents).
     name, address = ("j2", 0x12) if fault == "nack" else ("j3", 0x13)
 
-    def lose_joint(cycle: int, env: gym.Env) -> None:
-        if cycle == 5:
-            backend = env.unwrapped.backend
-            devices = backend.bus.devices
-            if fault == "nack":
-                del devices[address]
-            else:
-                devices[address] = AnswersFF(devices[address])
-            # The joint's last delivered exchange was 60 ms ago (its replies were
-            # lost that long): its deadman trips at the next pass, as seen.
-            backend.sim.cores[name].last_rx -= 0.06
-
+    lose_joint = lose_joint_at(5, name, address, nacks=fault == "nack")
     run = deploy(policy=ConstantPolicy([0.0, -0.5, 0.5, 0.0]), env=REACH, on_cycle=lose_joint)
     assert run.error is not None and run.error.code == EXIT_SAFETY_STOP
     summary = run.summary

@@ -10,7 +10,6 @@ summary's own words (``disabled_line``) and the CLI's documented defaults.
 from __future__ import annotations
 
 import io
-import json
 import re
 import signal
 from collections.abc import Callable
@@ -22,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from rich.console import Console
+from rigs import DeployRun, run_deployment
 
 from bioscara_gym.cli import main
 from bioscara_gym.errors import DeployError
@@ -35,23 +35,7 @@ ISO_8601 = r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}[+-]\d{4}"
 DISABLED = "arm disabled: j1, j2, j3, j4 acknowledged their disable (currents 0); arm shut down, bus closed"
 
 
-def read_log(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
-
-
-class Run:
-    """A finished in-process deployment: the object, what it printed, what it raised, its log."""
-
-    def __init__(self, deployment: Deployment, output: str, error: BaseException | None, log: Path) -> None:
-        self.deployment, self.output, self.error, self.log = deployment, output, error, log
-
-    @property
-    def lines(self) -> list[str]:
-        return self.output.splitlines()
-
-    @property
-    def records(self) -> list[dict[str, Any]]:
-        return read_log(self.log)
+Run = DeployRun
 
 
 @pytest.fixture
@@ -70,20 +54,7 @@ def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., Run]:
         fields.setdefault("expert", policy is None)
         if metadata is None:
             fields.setdefault("env", REACH)
-        out = io.StringIO()
-        deployment = Deployment(
-            DeployArgs(**fields),
-            policy=policy,
-            metadata=metadata,
-            console=Console(file=out, width=200),
-            on_cycle=on_cycle,
-        )
-        error = None
-        try:
-            deployment.run()
-        except (DeployError, Interrupted, SystemExit) as e:
-            error = e
-        return Run(deployment, out.getvalue(), error, Path(fields["log"]))
+        return run_deployment(fields, policy, metadata, on_cycle, catch=(Interrupted, SystemExit))
 
     return run
 
