@@ -114,6 +114,26 @@ def test_release_velocity_stops_the_joint(homed_arm: Arm) -> None:
     assert homed_arm.state is Lifecycle.ACTIVE
 
 
+def test_deactivate_brakes_a_turning_joint_before_its_current_is_cut(homed_arm: Arm) -> None:
+    # Seen (a hostile test, through the safe stop): STOP then currents 0 a millisecond
+    # later; the firmware's STOP ramps the speed down, which takes current, so the
+    # unbraked arm coasted on. Deactivate brakes first, as the safe stop does.
+    sim = getattr(homed_arm.backend, "sim", None)
+    if sim is None:
+        pytest.skip("the mock has no rotor to coast")
+    for name in ("j1", "j2", "j4"):  # powered, holding where they are (an unclaimed joint freewheels)
+        homed_arm.claim(name, "position")
+    homed_arm.claim("j3", "velocity")
+    homed_arm.set_command("j3", -4.0)  # away from the max end stop it homed to
+    for _ in range(15):
+        homed_arm.cycle(DT)
+    assert homed_arm.joint_states["j3"].velocity < -2.0
+    homed_arm.deactivate()
+    before = sim.joint_positions().copy()
+    homed_arm.backend.step(2.0)
+    assert abs(sim.joint_positions() - before).max() < 1e-3
+
+
 @pytest.mark.parametrize(
     "call",
     [

@@ -430,19 +430,21 @@ class Arm:
     def _disable_devices(self, joints: Iterable[str], gripper: bool) -> None:
         """Best effort: try every named device even if one fails, then raise the first error.
 
-        Joints that were moving at the last read are stopped and braked to
-        rest first (:func:`~bioscara_gym.hardware.safety.wait_for_rest`):
-        with its current cut, a moving joint coasts.
+        If a joint moved at the last read, the joints are stopped and braked
+        to rest first (:func:`~bioscara_gym.hardware.safety.wait_for_rest`):
+        with its current cut, a moving joint coasts, and one joint's braking
+        can push another.
         """
         first: BaseException | None = None
         joints = tuple(joints)
-        moving = {n: self.joints[n] for n in joints if self.joints[n].initialized and self._moving(n)}
-        for joint in moving.values():
-            try:
-                joint.stop()
-            except JointError as e:
-                first = first or e
-        wait_for_rest(moving)
+        live = {n: self.joints[n] for n in joints if self.joints[n].initialized}
+        if any(self._moving(n) for n in live):
+            for joint in live.values():
+                try:
+                    joint.stop()
+                except JointError as e:
+                    first = first or e
+            wait_for_rest(live)
         for name in joints:
             joint = self.joints[name]
             try:

@@ -168,28 +168,32 @@ REST_POLL_S = 0.02
 
 
 def wait_for_rest(joints: Mapping[str, BaseJoint]) -> list[str]:
-    """Read the stopped joints' speeds until each is at rest, at most :data:`REST_TIMEOUT_S`.
+    """Read the stopped joints' speeds until all are at rest together, at most :data:`REST_TIMEOUT_S`.
 
     The joints were sent STOP; cutting their current before they have
     braked lets a moving arm coast on, unbraked (a j3 at 4.5 rad/s turned
-    0.9 rad further, and swung j1 up to 2 rad/s). A joint whose speed cannot
-    be read is not waited for. Returns the joints still moving at the end.
+    0.9 rad further, and swung j1 up to 2 rad/s). Every joint is read each
+    round, and all must read at rest in the same round: one joint's braking
+    pushes on the others. A joint whose speed cannot be read is not waited
+    for. Returns the joints still moving at the end.
     """
-    moving = dict(joints)
-    if not moving:
+    watched = dict(joints)
+    if not watched:
         return []
-    clock = next(iter(moving.values())).clock
+    clock = next(iter(watched.values())).clock
     end = clock.now() + REST_TIMEOUT_S
     while True:
-        for name, joint in list(moving.items()):
+        moving = []
+        for name, joint in list(watched.items()):
             try:
                 rpm = velocity_to_rpm(joint.get_velocity(), joint.reduction)
             except JointError:
-                rpm = 0.0  # cannot be watched; its disable follows
-            if abs(rpm) < REST_RPM:
-                del moving[name]
+                del watched[name]  # cannot be watched; its disable follows
+                continue
+            if abs(rpm) >= REST_RPM:
+                moving.append(name)
         if not moving or clock.now() >= end:
-            return list(moving)
+            return moving
         clock.sleep(REST_POLL_S)
 
 
