@@ -6,6 +6,7 @@ import abc
 import contextlib
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.codec import pack_bytes
@@ -28,6 +29,7 @@ from bioscara_gym.hardware.registers import (
     FLAG_NOT_ENABLED,
     FLAG_NOT_HOMED,
     FLAG_STALL,
+    FLAGS_CLEARED_BY,
     HOMING_RPM_MAX,
     HOMING_RPM_MIN,
     HOMING_SETTLE_S,
@@ -57,6 +59,27 @@ BUSY_POLL_S = 0.01
 #: stop with its motor stopped: the joint hangs until the next STOP
 #: (firmware source; docs/firmware.md). The 500 ms plus one pick-up window.
 ABORT_SETTLE_S = HOMING_SETTLE_S + BLOCKING_PICKUP_S
+
+
+class Doubts(NamedTuple):
+    """The flags of one reply that the driver reads again before it believes them.
+
+    Each is a mask; a further reading (PING) must show the same, or the
+    reply's flags byte was corrupted (``Joint._confirm_sticky_flags``).
+    """
+
+    #: A sticky flag (:data:`~.registers.STICKY_FLAGS`) newly set that the
+    #: command does not set, or BUSY in a reading while no blocking command of
+    #: this host runs: the PINGs must show it set.
+    appeared: int
+    #: BUSY gone while HOME or CHECKORIENTATION runs (the firmware clears it
+    #: once: at the command's end or on STOP): the PINGs must show it clear.
+    ended: int
+    #: NOT_ENABLED still set in SETUP's reply (SETUP clears it): the PINGs must show it set.
+    kept: int
+    #: A sticky flag the joint showed last, gone although neither the command
+    #: (:data:`~.registers.FLAGS_CLEARED_BY`) nor a homing clears it: the PINGs must show it clear.
+    cleared: int
 
 
 class BaseJoint(abc.ABC):
@@ -104,11 +127,15 @@ class BaseJoint(abc.ABC):
         self.offset = 0.0
         self._offset_known = False
         self._flags = int(POWER_UP_FLAGS)
+        # The flags of the joint's last reply as it sent them (None: none read
+        # in this session yet, so a flag cleared since the last session is believed).
+        self._device_flags: int | None = None
         # A reply said NOT_ENABLED and no enable() has succeeded since: motion
         # is refused even if a later reply's flags claim otherwise (only SETUP
         # clears the firmware's NOT_ENABLED, so such a reply is corrupted).
         self._enable_needed = False
         self._current_b_cmd = Reg.NONE
+        self._homing_ended = False  # post_homing's reading (_flags_cleared_by)
         self._homing_offset = 0.0
         self._initialized = False
         # The joint says homed but its HOMEOFFSET is NaN: a homing ended and
@@ -244,14 +271,9 @@ class BaseJoint(abc.ABC):
             must_set |= FLAG_NOT_ENABLED
         return must_set
 
-    def _doubtful_flags(self, reg: Reg, sent: float | int, flags: int, read: bool) -> tuple[int, int, int]:
-        """What in a reply's ``flags`` is read again before it is believed: ``(appeared, ended, kept)``.
+    def _doubtful_flags(self, reg: Reg, sent: float | int, flags: int, read: bool) -> Doubts:
+        """What in a reply's ``flags`` is read again before it is believed (:class:`Doubts`).
 
-        ``appeared``: a sticky flag (:data:`STICKY_FLAGS`) newly set that the
-        command does not set, or BUSY in a reading while no blocking command
-        of this host runs; ``ended``: BUSY gone while HOME or CHECKORIENTATION
-        runs (the firmware clears it once: at the command's end or on STOP);
-        ``kept``: NOT_ENABLED still set in SETUP's reply (SETUP clears it).
         :class:`~bioscara_gym.hardware.joint.Joint` reads them again
         (``_confirm_sticky_flags``); the simulated joint takes the same
         readings' time, so both backends keep one clock.
@@ -269,9 +291,29 @@ class BaseJoint(abc.ABC):
         # handles some commands, and sending one again shows it again.
         if read and self._current_b_cmd is Reg.NONE:
             appeared |= flags & ~self._flags & FLAG_BUSY
-        return appeared, ended, kept
+        # A sticky flag the joint last showed, gone although nothing that clears it
+        # ran: a flipped NOT_ENABLED bit after a disable made the arm skip a joint's
+        # enable (1 of 40 bring-ups at corrupt=0.05). Compared with the joint's own
+        # last flags, not the driver's view (which adds NOT_HOMED for a lost offset).
+        cleared = 0
+        if self._device_flags is not None:
+            cleared = self._device_flags & ~flags & STICKY_FLAGS & ~self._flags_cleared_by(reg)
+        return Doubts(appeared, ended, kept, cleared)
+
+    def _flags_cleared_by(self, reg: Reg) -> int:
+        """The sticky flags a reply to ``reg`` may show cleared (firmware ``joint.ino``).
+
+        SETUP clears STALL and NOT_ENABLED, ENABLESTALLGUARD clears STALL, and
+        the end of a homing clears NOT_HOMED and STALL: any reply while a
+        homing of this host runs, or :meth:`post_homing`'s, may show it.
+        """
+        cleared = FLAGS_CLEARED_BY.get(reg, 0)
+        if self._current_b_cmd is Reg.HOME or self._homing_ended:
+            cleared |= FLAG_NOT_HOMED | FLAG_STALL
+        return cleared
 
     def _accept_flags(self, flags: int) -> int:
+        self._device_flags = flags
         self._flags = flags | FLAG_NOT_HOMED if self._offset_lost else flags
         if flags & FLAG_NOT_ENABLED:
             self._enable_needed = True
@@ -415,6 +457,7 @@ class BaseJoint(abc.ABC):
         self._open()
         self._initialized = True
         self._enable_needed = False  # a new session: the joint's own flags decide
+        self._device_flags = None
         self.forget_position()
         try:
             ack = self._get(Reg.PING)
@@ -649,7 +692,11 @@ class BaseJoint(abc.ABC):
             NotHomedError: The joint did not home (aborted or failed).
         """
         self._current_b_cmd = Reg.NONE
-        self.get_flags()
+        self._homing_ended = True  # this reading may be the first to show NOT_HOMED and STALL cleared
+        try:
+            self.get_flags()
+        finally:
+            self._homing_ended = False
         if self._flags & FLAG_NOT_HOMED:
             raise NotHomedError("homing did not complete (aborted or failed)", joint=self.name)
         self.offset = self._homing_offset

@@ -205,22 +205,23 @@ class Joint(BaseJoint):
     def _confirm_sticky_flags(self, reg: Reg, sent: float | int, flags: int, read: bool) -> None:
         """Read the flags again when the reply shows a change the driver must not take on one reading.
 
-        A sticky flag (:data:`STICKY_FLAGS`) newly set, BUSY gone while HOME
-        or CHECKORIENTATION runs (the firmware clears it once, at the
-        command's end or on STOP), or NOT_ENABLED still set in SETUP's reply
-        (SETUP clears it), counts as real only when
-        :data:`STICKY_CONFIRMATIONS` further readings (PINGs) all show it: one
-        flipped bit in the reply and another in a single confirming PING would
-        otherwise stop a run on a stall or deadman trip that never happened,
-        and one flipped BUSY bit ended a homing half-way (``corrupt=0.05``:
-        the arm took the homing for aborted and stopped j3 on its way).
+        A sticky flag (:data:`STICKY_FLAGS`) newly set or gone, BUSY gone
+        while HOME or CHECKORIENTATION runs, or NOT_ENABLED still set in
+        SETUP's reply (:class:`~bioscara_gym.hardware.base_joint.Doubts`)
+        counts as real only when :data:`STICKY_CONFIRMATIONS` further readings
+        (PINGs) all show it: one flipped bit in the reply and another in a
+        single confirming PING would otherwise stop a run on a stall or
+        deadman trip that never happened, one flipped BUSY bit ended a homing
+        half-way (``corrupt=0.05``: the arm took the homing for aborted and
+        stopped j3 on its way), and one flipped NOT_ENABLED bit made the arm
+        skip a disabled joint's enable.
 
         Raises:
             _BadReply: ``implausible``: a later reading does not show it, so
                 the first reply's flags byte was corrupted.
         """
-        appeared, ended, kept = self._doubtful_flags(reg, sent, flags, read)
-        if not appeared and not ended and not kept:
+        doubts = self._doubtful_flags(reg, sent, flags, read)
+        if not any(doubts):
             return
         if reg in BLOCKING_COMMANDS:
             # The firmware cancels a blocking command its main loop has not picked up
@@ -228,23 +229,29 @@ class Joint(BaseJoint):
             self._sleep_until(self.clock.now() + BLOCKING_PICKUP_S)
         for _ in range(STICKY_CONFIRMATIONS):
             _, confirmed = self._transfer(Reg.PING, bytes((Reg.PING,)), read_payload=True, confirm=False)
-            if appeared & ~confirmed:
+            if doubts.appeared & ~confirmed:
                 raise _BadReply(
                     "implausible",
-                    f"flags {Flag(flags)!r} show {Flag(appeared & ~confirmed)!r}, which the flags read "
-                    f"right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
+                    f"flags {Flag(flags)!r} show {Flag(doubts.appeared & ~confirmed)!r}, which the flags "
+                    f"read right after ({Flag(confirmed)!r}) do not, and it cannot clear by itself",
                 )
-            if kept & ~confirmed:
+            if doubts.kept & ~confirmed:
                 raise _BadReply(
                     "implausible",
                     f"flags {Flag(flags)!r} after SETUP still show NOT_ENABLED, which SETUP clears and the "
                     f"flags read right after ({Flag(confirmed)!r}) do not",
                 )
-            if ended & confirmed:
+            if doubts.ended & confirmed:
                 raise _BadReply(
                     "implausible",
                     f"flags {Flag(flags)!r} lack BUSY while {self._current_b_cmd.name} runs, but the "
                     f"flags read right after ({Flag(confirmed)!r}) show it, and it cannot come back",
+                )
+            if doubts.cleared & confirmed:
+                raise _BadReply(
+                    "implausible",
+                    f"flags {Flag(flags)!r} lack {Flag(doubts.cleared & confirmed)!r}, which the flags read "
+                    f"right after ({Flag(confirmed)!r}) show, and {reg.name} does not clear it",
                 )
 
     # ------------------------------------------------------------ transfer

@@ -317,8 +317,17 @@ REPLY_FLAGS_SET: dict[Reg, int] = {
 #: does not set, is confirmed by reading the flags again (a PING): if the
 #: second reading lacks it, the first was corrupted (docs/protocol.md).
 STICKY_FLAGS = int(Flag.STALL | Flag.NOT_ENABLED | Flag.NOT_HOMED)
+#: The sticky flags a command's handler clears (firmware ``joint.ino``: SETUP
+#: sets ``notEnabled = 0`` and ``isStalled = 0``, ENABLESTALLGUARD
+#: ``isStalled = 0``); the end of a homing clears NOTHOMED and STALL. A reply
+#: showing one gone that its command (or a homing running) does not clear is
+#: confirmed by reading the flags again, as a newly set one is.
+FLAGS_CLEARED_BY: dict[Reg, int] = {
+    Reg.SETUP: int(Flag.STALL | Flag.NOT_ENABLED),
+    Reg.ENABLESTALLGUARD: int(Flag.STALL),
+}
 #: Readings of the flags (PINGs) that must all show a newly set sticky flag
-#: (or BUSY gone while HOME or CHECKORIENTATION runs) before the driver
+#: (or one gone, or BUSY gone while HOME or CHECKORIENTATION runs) before the driver
 #: believes it. With one, a flipped bit in the reply and the same bit
 #: flipped in its confirming PING ended a deploy on a false NOT_ENABLED at
 #: ``corrupt=0.05`` (issue #24); with two, a false flag needs
