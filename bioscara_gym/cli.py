@@ -278,12 +278,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         err.print(f"bioscara {args.command}: interrupted")
         return EXIT_INTERRUPTED
-    except (ValueError, OSError, MissingExtraError, JointError, SitlError) as e:
+    except OSError as e:
+        err.print(f"bioscara {args.command}: error: {_os_error(e)}")
+        return EXIT_ERROR
+    except (ValueError, MissingExtraError, JointError, SitlError) as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file
         err.print(f"bioscara {args.command}: error: an input file is nested too deeply to be read")
         return EXIT_ERROR
+
+
+def _os_error(e: OSError) -> str:
+    """An ``OSError`` as a user reads it: the message and the file, without ``[Errno N]``."""
+    if e.strerror is None:
+        return str(e)
+    return f"{e.strerror}: {e.filename}" if e.filename is not None else e.strerror
 
 
 def _choose_headless_gl() -> None:

@@ -506,6 +506,17 @@ def test_record_onto_the_state_file_is_refused_before_anything_is_written(biosca
     assert state.read_text() == saved
 
 
+def test_a_trace_that_cannot_be_opened_is_one_line_without_errno(tmp_path: Path, bioscara: Run) -> None:
+    trace = tmp_path / "missing" / "t.jsonl"
+    code, out, err = bioscara("ping", "--backend", "emulated", "--record", str(trace))
+    assert code == 2
+    assert (
+        err
+        == f"bioscara ping: error: cannot write the bus trace {trace} (--record): No such file or directory"
+    )
+    assert out == ""
+
+
 @pytest.mark.parametrize("device", ["/dev/zero", "/dev/full"])
 def test_a_state_file_that_is_a_device_is_refused_not_read_forever(bioscara: Run, device: str) -> None:
     code, _, err = bioscara("status", "--state", device)

@@ -150,6 +150,32 @@ def test_a_trace_that_cannot_be_opened_keeps_the_errno_and_names_the_file(tmp_pa
     assert caught.value.strerror == f"cannot write the bus trace {path} (--record): No such file or directory"
 
 
+@pytest.mark.parametrize("existing", [False, True])
+def test_a_trace_whose_header_cannot_be_written_is_refused_before_any_transaction(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, existing: bool
+) -> None:
+    # Seen: `--record /proc/version` opened, lost every line, and ping said nothing of it.
+    path = tmp_path / "t.jsonl"
+    if existing:
+        path.write_text("an earlier session's lines\n", encoding="utf-8")
+
+    def refuse(fd: int, data: bytes) -> int:
+        raise OSError(errno.EINVAL, "Invalid argument")
+
+    monkeypatch.setattr("bioscara_gym.hardware.recording._os_write", refuse)
+    clock = ManualClock()
+    inner = SlowBus(clock)
+    with pytest.raises(OSError) as caught:
+        RecordingBus(inner, Recording(path, "ping"), clock, "emulated", load_config())
+    assert caught.value.errno == errno.EINVAL
+    assert caught.value.strerror == f"cannot write the bus trace {path} (--record): Invalid argument"
+    assert clock.now() == 0.0  # nothing sent
+    if existing:
+        assert path.read_text(encoding="utf-8") == "an earlier session's lines\n"
+    else:
+        assert not path.exists()
+
+
 def test_a_closed_recording_refuses_to_write_and_closes_once(tmp_path: Path) -> None:
     bus, path = record(tmp_path)
     bus.close()

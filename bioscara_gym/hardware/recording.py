@@ -176,6 +176,7 @@ class RecordingBus:
         self.error: OSError | None = None
         #: The first transaction not recorded (``None``: every one was).
         self.unrecorded_from: int | None = None
+        created = not self.path.exists()
         try:
             self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
             self._size = os.fstat(self._fd).st_size  # bytes of whole lines in the file
@@ -196,6 +197,14 @@ class RecordingBus:
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             }
         )
+        if self.error is not None:  # not even the header: refused before any transaction
+            os.close(self._fd)
+            self._fd = None
+            if created:  # no empty trace left behind
+                with contextlib.suppress(OSError):
+                    self.path.unlink()
+            reason = os.strerror(self.error.errno) if self.error.errno is not None else self.error.strerror
+            raise OSError(self.error.errno, f"cannot write the bus trace {self.path} (--record): {reason}")
 
     def _write(self, record: Mapping[str, Any]) -> None:
         if self._fd is None:
