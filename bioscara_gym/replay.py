@@ -74,7 +74,8 @@ class SessionResult:
         mismatch: The first difference, or ``None``.
         stopped_early: The driver stopped with recorded transactions left.
         error: What the replayed command raised, if anything (a recorded
-            safety stop raises as it did; only the bytes are judged).
+            safety stop raises as it did, a recorded signal interrupts it
+            again; only the bytes are judged).
     """
 
     command: str
@@ -83,7 +84,7 @@ class SessionResult:
     errors_replayed: int
     mismatch: TraceMismatch | None = None
     stopped_early: bool = False
-    error: Exception | None = None
+    error: BaseException | None = None
 
     @property
     def ok(self) -> bool:
@@ -233,6 +234,10 @@ def replay_session(session: TraceSession) -> SessionResult:
             try:
                 runner(args, options, tmp)
             except Exception as e:  # what the command made of the replies is not the question
+                error = e
+            except KeyboardInterrupt as e:
+                if not bus.signals_delivered:
+                    raise  # a Ctrl-C of this replay, not a recorded one
                 error = e
     return SessionResult(
         command=session.command,

@@ -24,6 +24,7 @@ from bioscara_gym.hardware.recording import (
     Recording,
     RecordingBus,
     ReplayBus,
+    SignalNote,
     TraceError,
     TraceMismatch,
     TraceSession,
@@ -268,7 +269,8 @@ BAD_TX = [
     ("write", 15, "'write' must be a hex string"),
     ("write", "zz", "'write' 'zz' is not hex"),
     ("read", "zz", "'read' 'zz' is not hex"),
-    ("error", {"errno": 121, "message": "NACK"}, "a transaction has either 'read' or 'error'"),
+    ("error", {"errno": 121, "message": "NACK"}, "a transaction has one of 'read', 'error' or 'interrupted'"),
+    ("interrupted", "SIGINT", "a transaction has one of 'read', 'error' or 'interrupted'"),
 ]
 
 
@@ -309,7 +311,7 @@ def test_a_bad_header_is_named_with_file_line_and_key(
     ("text", "message"),
     [
         ("[1]\n", "hand.jsonl line 1: not a JSON object"),
-        ('{"type": "note"}\n', "hand.jsonl line 1: 'type' must be 'header' or 'tx', got 'note'"),
+        ('{"type": "note"}\n', "hand.jsonl line 1: 'type' must be 'header', 'tx' or 'signal', got 'note'"),
         ("\n\n", "hand.jsonl: empty; a trace starts with a header line"),
         ("[" * 100_000 + "]" * 100_000 + "\n", "hand.jsonl line 1: nested too deeply to be a trace line"),
     ],
@@ -319,6 +321,40 @@ def test_a_line_that_is_no_trace_line_is_named(tmp_path: Path, text: str, messag
     with pytest.raises(TraceError) as caught:
         read_trace(trace_of(tmp_path, text=text), check_digests=False)
     assert str(caught.value) == message
+
+
+def test_a_transaction_cut_short_and_a_signal_line_are_read(tmp_path: Path) -> None:
+    tx = {k: v for k, v in TX.items() if k != "read"}
+    note = {"type": "signal", "i": 1, "t": 0.5, "signal": "SIGTERM", "at": "cycle"}
+    (session,) = read_trace(
+        trace_of(tmp_path, HEADER, {**tx, "interrupted": "SIGINT"}, note), check_digests=False
+    )
+    assert session.transactions[0].interrupted == "SIGINT" and session.transactions[0].read is None
+    assert session.signals == (SignalNote(line=3, before=1, signal="SIGTERM", at="cycle"),)
+
+
+BAD_SIGNAL = [
+    ("i", 0, "a signal line's 'i' must be the index of the transaction after it (1), got 0"),
+    ("i", True, "a signal line's 'i' must be the index of the transaction after it (1), got True"),
+    ("signal", "SIGKILL", "'signal' must be \"SIGINT\" or \"SIGTERM\", got 'SIGKILL'"),
+    ("at", "later", "'at' must be one of cycle, once, got 'later'"),
+]
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"), BAD_SIGNAL, ids=[f"{k}-{v!r}" for k, v, _ in BAD_SIGNAL]
+)
+def test_a_bad_signal_line_is_named_with_file_line_and_key(
+    tmp_path: Path, key: str, value: object, message: str
+) -> None:
+    note = {"type": "signal", "i": 1, "t": 0.5, "signal": "SIGINT", "at": "once", key: value}
+    assert refusal(tmp_path, HEADER, TX, note) == f"hand.jsonl line 3: {message}"
+
+
+def test_a_signal_line_before_the_first_header_is_named(tmp_path: Path) -> None:
+    note = {"type": "signal", "i": 0, "t": 0.5, "signal": "SIGINT", "at": "once"}
+    with pytest.raises(TraceError, match=r"^hand.jsonl line 1: a signal before the first header$"):
+        read_trace(trace_of(tmp_path, note), check_digests=False)
 
 
 def test_a_trace_that_is_not_utf_8_cannot_be_read_naming_the_file(tmp_path: Path) -> None:

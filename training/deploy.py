@@ -304,6 +304,8 @@ class Deployment:
                     self._loop.run(env, policy)
                     self._shut_down()
                 except BaseException as e:
+                    if isinstance(e, KeyboardInterrupt):
+                        self._record_signal(e)
                     outcome = self._stop_safely(e)
                     if not isinstance(e, Exception | KeyboardInterrupt):
                         raise
@@ -355,6 +357,14 @@ class Deployment:
         """The env's orderly end (deactivate, gripper width saved, clean up), signals held off."""
         with self._signals.shielded():
             self._gripper_width = self.target.shut_down(self)
+
+    def _record_signal(self, e: KeyboardInterrupt) -> None:
+        """Note in the bus trace (``--record``) where the signal stopped the run, for its replay."""
+        from bioscara_gym.hardware.recording import recording_bus
+
+        bus = recording_bus(self.target.arm.backend)
+        if bus is not None:
+            bus.record_signal(e)
 
     def _stop_safely(self, e: BaseException) -> Outcome:
         """Have the env make the arm safe after ``e``, then say why it stopped."""

@@ -59,10 +59,10 @@ _os_write = os.write
 
 def trace_error(backend: Any) -> str | None:
     """Why the backend's bus trace (``--record``) stops short, if it does."""
-    from bioscara_gym.hardware.recording import RecordingBus
+    from bioscara_gym.hardware.recording import recording_bus
 
-    bus = getattr(backend, "bus", None)
-    if not isinstance(bus, RecordingBus) or bus.error is None:
+    bus = recording_bus(backend)
+    if bus is None or bus.error is None:
         return None
     return f"{bus.error.strerror}; transactions from {bus.unrecorded_from} on were not recorded"
 

@@ -18,11 +18,17 @@ from typing import Any
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived; ``exit_code`` is 128 + the signal number."""
+    """SIGINT or SIGTERM arrived; ``exit_code`` is 128 + the signal number.
 
-    def __init__(self, signum: int) -> None:
+    ``deferred``: raised at a cycle boundary (:meth:`SignalGuard.check`) for a
+    signal that arrived during the cycle, not where it landed (a bus trace
+    records which, so a replay raises it at the same place).
+    """
+
+    def __init__(self, signum: int, deferred: bool = False) -> None:
         """Remember the signal."""
         self.signum = int(signum)
+        self.deferred = deferred
         super().__init__(signal.Signals(self.signum).name)
 
     @property
@@ -88,4 +94,4 @@ class SignalGuard:
     def check(self) -> None:
         """Raise :class:`Interrupted` if a signal has arrived."""
         if self.pending is not None:
-            raise Interrupted(self.pending)
+            raise Interrupted(self.pending, deferred=True)

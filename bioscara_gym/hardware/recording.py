@@ -12,6 +12,14 @@ changed byte, or a line removed, is found and named when the trace is read::
     {"type": "tx", "i": 0, "t": 0.0, "dur": 0.0, "addr": "0x11", "write": "0f", "read_len": 2,
      "read": "4f0c"}
     {"type": "tx", "i": 1, ..., "error": {"errno": 121, "message": "Remote I/O error (address 0x11)"}}
+    {"type": "tx", "i": 2, ..., "interrupted": "SIGINT"}
+    {"type": "signal", "i": 3, "t": 0.012, "signal": "SIGINT", "at": "cycle"}
+
+A ``signal`` line says where a SIGINT or SIGTERM stopped the command, so a
+replay delivers it at the same place (``at``: ``"cycle"``, it arrived
+during the transactions before ``i`` and was raised at the next cycle
+boundary; ``"once"``, raised before transaction ``i``); a transaction that
+one cut short has ``interrupted`` in place of its reply.
 
 :class:`RecordingBus` writes a session around any :class:`~.bus.I2CBus`;
 :func:`read_trace` reads a file back; :class:`ReplayBus` serves a session's
@@ -27,6 +35,7 @@ import hashlib
 import json
 import math
 import os
+import signal
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -40,8 +49,11 @@ from bioscara_gym.hardware.registry import backend_names
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
 #: Version 2 added the per-line ``digest``; version 1 traces have none.
+#: Version 3 added ``signal`` lines and a transaction's ``interrupted``.
 TRACE_FORMAT = "bioscara-bus-trace"
-TRACE_VERSION = 2
+TRACE_VERSION = 3
+#: Where a signal line's signal is raised again (:class:`SignalNote`).
+SIGNAL_AT = ("cycle", "once")
 #: Hex digits of a line's digest kept (64 bits of SHA-256: a changed line is
 #: found, not a forgery resisted: anyone can recompute a digest).
 DIGEST_HEX = 16
@@ -176,6 +188,7 @@ class RecordingBus:
         self.error: OSError | None = None
         #: The first transaction not recorded (``None``: every one was).
         self.unrecorded_from: int | None = None
+        self._cut_by_signal = False  # the last transaction was cut short by a signal
         created = not self.path.exists()
         try:
             self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
@@ -247,10 +260,37 @@ class RecordingBus:
             record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
             self._write(record)
             raise
+        except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
+            record["dur"] = self.clock.now() - t
+            record["interrupted"] = signal_name(e)
+            self._write(record)
+            self._cut_by_signal = True
+            raise
         record["dur"] = self.clock.now() - t
         record["read"] = reply.hex()
         self._write(record)
         return reply
+
+    def record_signal(self, interrupted: KeyboardInterrupt) -> None:
+        """Write where a signal stopped the command (a ``signal`` line), for its replay.
+
+        Nothing when the signal cut a transaction short: that line says it.
+        A signal the command raised at a cycle boundary (``deferred``, see
+        :class:`~bioscara_gym.training.signals.Interrupted`) is ``at`` that
+        ``"cycle"``; any other was raised where it landed (``"once"``).
+        """
+        if self._cut_by_signal:
+            return
+        at = "cycle" if getattr(interrupted, "deferred", False) else "once"
+        self._write(
+            {
+                "type": "signal",
+                "i": self.transactions,
+                "t": self.clock.now(),
+                "signal": signal_name(interrupted),
+                "at": at,
+            }
+        )
 
     def close(self) -> None:
         """Close the inner bus and the trace file."""
@@ -266,6 +306,18 @@ class RecordingBus:
         if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
+
+
+def signal_name(interrupted: KeyboardInterrupt) -> str:
+    """``SIGINT`` or ``SIGTERM``: the signal behind a ``KeyboardInterrupt`` (plain Ctrl-C: ``SIGINT``)."""
+    signum = getattr(interrupted, "signum", signal.SIGINT)
+    return signal.Signals(signum).name
+
+
+def recording_bus(backend: object) -> RecordingBus | None:
+    """The backend's bus if it is being recorded (``--record``), else ``None``."""
+    bus = getattr(backend, "bus", None)
+    return bus if isinstance(bus, RecordingBus) else None
 
 
 def recorder(recording: Recording, backend: str, config: ArmConfig) -> BusWrapper:
@@ -292,6 +344,7 @@ class Transaction:
         read: Bytes read, ``None`` when the transfer raised.
         errno: The ``OSError``'s errno when the transfer raised.
         message: The ``OSError``'s message when the transfer raised.
+        interrupted: The signal that cut the transfer short (``SIGINT``), if one did.
     """
 
     line: int
@@ -303,6 +356,7 @@ class Transaction:
     read: bytes | None
     errno: int | None = None
     message: str = ""
+    interrupted: str | None = None
 
     @property
     def request(self) -> tuple[int, bytes, int]:
@@ -311,16 +365,37 @@ class Transaction:
 
 
 @dataclass(frozen=True)
+class SignalNote:
+    """Where a signal stopped the recorded command (a ``signal`` line).
+
+    Attributes:
+        line: Its line in the trace file, from 1.
+        before: The transaction it came before (its index in the session).
+        signal: ``SIGINT`` or ``SIGTERM``.
+        at: ``"cycle"``: it arrived during the transactions before
+            ``before`` and was raised at the next cycle boundary; ``"once"``:
+            raised where it landed, before transaction ``before``.
+    """
+
+    line: int
+    before: int
+    signal: str
+    at: str
+
+
+@dataclass(frozen=True)
 class TraceSession:
-    """One session of a trace: its header and its transactions.
+    """One session of a trace: its header, its transactions and the signals that stopped it.
 
     Attributes:
         header: The header line as read.
         transactions: The transactions, in order.
+        signals: Where signals stopped the command.
     """
 
     header: Mapping[str, Any]
     transactions: Sequence[Transaction]
+    signals: Sequence[SignalNote] = ()
 
     @property
     def command(self) -> str:
@@ -368,8 +443,11 @@ def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
         "read_len": read_len,
     }
     error = doc.get("error")
-    if ("read" in doc) == (error is not None):
-        raise TraceError(f"{where}: a transaction has either 'read' or 'error'")
+    interrupted = doc.get("interrupted")
+    if ("read" in doc) + (error is not None) + (interrupted is not None) != 1:
+        raise TraceError(f"{where}: a transaction has one of 'read', 'error' or 'interrupted'")
+    if interrupted is not None:
+        return Transaction(**common, read=None, interrupted=_signal(interrupted, where, "interrupted"))
     if error is None:
         return Transaction(**common, read=_hex(doc["read"], where, "read"))
     if not isinstance(error, Mapping) or isinstance(error.get("errno"), bool):
@@ -378,6 +456,25 @@ def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
     if errno_value is not None and not isinstance(errno_value, int):
         raise TraceError(f"{where}: 'error' must be {{'errno': int, 'message': str}}")
     return Transaction(**common, read=None, errno=errno_value, message=str(error.get("message", "")))
+
+
+def _signal(value: object, where: str, key: str) -> str:
+    if value not in ("SIGINT", "SIGTERM"):
+        raise TraceError(f'{where}: \'{key}\' must be "SIGINT" or "SIGTERM", got {value!r}')
+    return str(value)
+
+
+def _signal_note(doc: Mapping[str, Any], line: int, where: str, transactions: int) -> SignalNote:
+    before = doc.get("i")
+    if isinstance(before, bool) or not isinstance(before, int) or before != transactions:
+        raise TraceError(
+            f"{where}: a signal line's 'i' must be the index of the transaction after it ({transactions}), "
+            f"got {before!r}"
+        )
+    at = doc.get("at")
+    if at not in SIGNAL_AT:
+        raise TraceError(f"{where}: 'at' must be one of {', '.join(SIGNAL_AT)}, got {at!r}")
+    return SignalNote(line, before, _signal(doc.get("signal"), where, "signal"), str(at))
 
 
 def _check_header(doc: Mapping[str, Any], where: str) -> None:
@@ -444,7 +541,7 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
         raise TraceError(f"{path}: no such trace file") from e
     except (OSError, UnicodeDecodeError) as e:
         raise TraceError(f"{path}: cannot be read ({e})") from e
-    sessions: list[tuple[Mapping[str, Any], list[Transaction]]] = []
+    sessions: list[tuple[Mapping[str, Any], list[Transaction], list[SignalNote]]] = []
     previous = ""
     for number, raw in enumerate(text.splitlines(), start=1):
         if not raw.strip():
@@ -461,19 +558,25 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
         kind = doc.get("type")
         if kind == "header":
             _check_header(doc, where)
-            sessions.append((doc, []))
+            sessions.append((doc, [], []))
             previous = ""
-        elif kind == "tx":
+        elif kind in ("tx", "signal"):
             if not sessions:
-                raise TraceError(f"{where}: a transaction before the first header")
-            sessions[-1][1].append(_transaction(doc, number, where))
+                raise TraceError(
+                    f"{where}: a {'transaction' if kind == 'tx' else 'signal'} before the first header"
+                )
+            _, txs, signals = sessions[-1]
+            if kind == "tx":
+                txs.append(_transaction(doc, number, where))
+            else:
+                signals.append(_signal_note(doc, number, where, len(txs)))
         else:
-            raise TraceError(f"{where}: 'type' must be 'header' or 'tx', got {kind!r}")
+            raise TraceError(f"{where}: 'type' must be 'header', 'tx' or 'signal', got {kind!r}")
         if check_digests:
             previous = _check_digest(doc, previous, where)
     if not sessions:
         raise TraceError(f"{name}: empty; a trace starts with a header line")
-    return [TraceSession(header, tuple(txs)) for header, txs in sessions]
+    return [TraceSession(header, tuple(txs), tuple(signals)) for header, txs, signals in sessions]
 
 
 # -------------------------------------------------------------------- replay
@@ -494,7 +597,10 @@ class ReplayBus:
     Each transfer must ask for exactly the recorded address, bytes and read
     length; the recorded reply is returned, or the recorded error raised as
     the same ``OSError``. Before each transaction the clock is moved to its
-    recorded time (if behind), after it by its recorded duration. The first
+    recorded time (if behind), after it by its recorded duration. A recorded
+    signal is delivered to the signal's handler where it was recorded
+    (:class:`SignalNote`; a transaction it cut short raises it after its
+    bytes are checked), so an interrupted command stops as it did. The first
     difference raises :class:`TraceMismatch` (kept in :attr:`mismatch`, and
     raised again by every later transfer, so a driver that catches it cannot
     go on as if nothing happened).
@@ -512,6 +618,9 @@ class ReplayBus:
         self.errors_served = 0
         self.mismatch: TraceMismatch | None = None
         self.closed = False
+        self._signals = {note.before: note for note in session.signals}
+        #: Recorded signals handed to their handlers so far.
+        self.signals_delivered = 0
 
     def bind(self, bus: I2CBus, clock: Clock) -> ReplayBus:
         """Take the backend's clock in place of its bus (a :data:`BusWrapper`)."""
@@ -528,6 +637,7 @@ class ReplayBus:
         if self.mismatch is not None:
             raise self.mismatch
         sent = (address, bytes(data), read_len)
+        self._deliver("once")  # raised where it landed, before this transaction
         txs = self.session.transactions
         if self.served >= len(txs):
             self.mismatch = TraceMismatch(self.served, None, None, sent)
@@ -540,11 +650,39 @@ class ReplayBus:
         if self.clock is not None:
             self.clock.sleep(tx.t - self.clock.now())
             self.clock.sleep(tx.dur)
+        if tx.interrupted is not None:
+            self.signals_delivered += 1
+            _raise_signal(tx.interrupted)
+            raise KeyboardInterrupt(tx.interrupted)  # its handler let it pass; the recording did not
+        self._deliver("cycle")  # arrived during this transaction: pending until the next cycle
         if tx.read is None:
             self.errors_served += 1
             raise OSError(tx.errno, tx.message)
         return tx.read
 
+    def _deliver(self, at: str) -> None:
+        """Hand the signal recorded before the next transaction to its handler, if it is ``at`` here."""
+        note = self._signals.get(self.served)
+        if note is None or note.at != at:
+            return
+        del self._signals[self.served]
+        self.signals_delivered += 1
+        _raise_signal(note.signal)
+
     def close(self) -> None:
         """Mark the bus closed (the trace stays readable)."""
         self.closed = True
+
+
+def _raise_signal(name: str) -> None:
+    """Call the handler of signal ``name`` as the signal would, in this thread.
+
+    The command's own handler (a deploy's :class:`~bioscara_gym.training.signals.SignalGuard`)
+    raises or records it; with none installed, as Python does by default: ``KeyboardInterrupt``.
+    """
+    signum = signal.Signals[name]
+    handler = signal.getsignal(signum)
+    if callable(handler):
+        handler(signum, None)
+    elif handler != signal.SIG_IGN:
+        raise KeyboardInterrupt(name)

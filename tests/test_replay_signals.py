@@ -1,0 +1,119 @@
+"""A deploy stopped by SIGINT or SIGTERM replays byte for byte (issue #24).
+
+Seen: 8 of 8 deploys stopped with Ctrl-C under ``--record`` failed
+``bioscara replay``: the trace did not say where the signal came, so the
+replay ran on where the recording had stopped. The trace now has a
+``signal`` line (or the transaction the signal cut short says so), and
+the replay delivers the signal to the command's handler at that place.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rigs import run_deployment
+
+from bioscara_gym.hardware.arm import Arm
+from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
+from bioscara_gym.replay import replay
+from bioscara_gym.training.signals import Interrupted
+
+REACH = "Bioscara-Reach-v0"
+
+
+def deploy_recorded(tmp_path: Path, on_cycle: Any = None) -> tuple[Path, BaseException | None]:
+    trace = tmp_path / "trace.jsonl"
+    fields = {
+        "backend": "emulated",
+        "expert": True,
+        "env": REACH,
+        "episodes": 50,
+        "log": tmp_path / "run.jsonl",
+        "state_file": tmp_path / "gripper.json",
+        "record": trace,
+    }
+    run = run_deployment(fields, on_cycle=on_cycle, catch=(Interrupted,))
+    return trace, run.error
+
+
+def lines_of(trace: Path, kind: str) -> list[dict[str, Any]]:
+    docs = [json.loads(line) for line in trace.read_text(encoding="utf-8").splitlines()]
+    return [d for d in docs if d["type"] == kind]
+
+
+def assert_replays_whole(trace: Path) -> None:
+    result = replay(trace)
+    assert result.ok, result.sessions[-1]
+    assert result.matched == len(lines_of(trace, "tx"))
+    assert isinstance(result.sessions[0].error, KeyboardInterrupt)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
+def test_a_signal_during_a_cycle_is_raised_again_at_the_same_cycle_boundary(
+    tmp_path: Path, signum: int
+) -> None:
+    def interrupt(cycle: int, env: Any) -> None:
+        if cycle == 30:
+            signal.raise_signal(signum)  # inside the cycle: held until its end
+
+    trace, error = deploy_recorded(tmp_path, interrupt)
+    assert isinstance(error, Interrupted) and error.signum == signum
+    (note,) = lines_of(trace, "signal")
+    assert (note["signal"], note["at"]) == (signal.Signals(signum).name, "cycle")
+    assert note["i"] < len(lines_of(trace, "tx"))  # the safe stop's transactions follow it
+    assert_replays_whole(trace)
+
+
+def test_without_its_signal_line_the_interrupted_deploy_does_not_replay(tmp_path: Path) -> None:
+    def interrupt(cycle: int, env: Any) -> None:
+        if cycle == 30:
+            signal.raise_signal(signal.SIGINT)
+
+    trace, _ = deploy_recorded(tmp_path, interrupt)
+    text = trace.read_text(encoding="utf-8").splitlines(keepends=True)
+    trace.write_text("".join(line for line in text if '"type": "signal"' not in line), encoding="utf-8")
+    assert not replay(trace, check_digests=False).ok
+
+
+def test_a_signal_before_homing_is_raised_again_before_the_same_transaction(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    home = Arm.home
+
+    def interrupted_home(self: Arm, *args: Any, **kwargs: Any) -> None:
+        signal.raise_signal(signal.SIGINT)  # outside the control loop: raised where it lands
+        home(self, *args, **kwargs)
+
+    monkeypatch.setattr(Arm, "home", interrupted_home)
+    trace, error = deploy_recorded(tmp_path)
+    assert isinstance(error, Interrupted)
+    (note,) = lines_of(trace, "signal")
+    assert note["at"] == "once"
+    assert_replays_whole(trace)
+
+
+def test_a_transaction_cut_short_by_a_signal_is_recorded_so_and_replayed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    transfer = EmulatedI2CBus.transfer
+    count = {"n": 0}
+
+    def cut(self: EmulatedI2CBus, address: int, data: bytes, read_len: int) -> bytes:
+        count["n"] += 1
+        if count["n"] == 40:  # during bring-up: the handler raises inside the transfer
+            signal.raise_signal(signal.SIGINT)
+        return transfer(self, address, data, read_len)
+
+    monkeypatch.setattr(EmulatedI2CBus, "transfer", cut)
+    trace, error = deploy_recorded(tmp_path)
+    assert isinstance(error, Interrupted)
+    txs = lines_of(trace, "tx")
+    cut_short = [tx for tx in txs if "interrupted" in tx]
+    assert [tx["i"] for tx in cut_short] == [39] and cut_short[0]["interrupted"] == "SIGINT"
+    assert "read" not in cut_short[0]
+    assert lines_of(trace, "signal") == []  # the transaction says it
+    assert_replays_whole(trace)
