@@ -17,6 +17,7 @@ import errno
 import io
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -380,6 +381,34 @@ def tampered_trace(tmp: Path) -> Row:
     )
 
 
+def ctrl_c_replayed(tmp: Path) -> Row:
+    """Ctrl-C to a recorded deploy after 20 cycles, then ``bioscara replay`` of its trace."""
+    log, trace = tmp / "ctrl-c.jsonl", tmp / "ctrl-c-trace.jsonl"
+    cmd = [sys.executable, "-m", "bioscara_gym", "deploy", "--expert", "--env", REACH,
+           "--episodes", "1000", "--log", str(log), "--state-file", str(tmp / "ctrl-c-gripper.json"),
+           "--record", str(trace)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while not (log.exists() and log.read_text(encoding="utf-8").count('"type":"cycle"') >= 20):
+        if proc.poll() is not None:
+            raise RuntimeError(f"the deploy ended before its 20th cycle (exit {proc.returncode})")
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    code = proc.wait(timeout=60)
+    notes = [json.loads(x) for x in trace.read_text().splitlines() if '"type": "signal"' in x]
+    replayed = subprocess.run(
+        [sys.executable, "-m", "bioscara_gym", "replay", str(trace)], capture_output=True, text=True
+    )
+    said = (replayed.stdout + replayed.stderr).strip().splitlines()
+    _, detected_as, ended, arm = from_log("", log, code)
+    at = ", ".join(f"`{n['signal']}` at transaction {n['i']} ({n['at']})" for n in notes) or "no signal line"
+    return (
+        "Ctrl-C (SIGINT) to a deploy under `--record` after 20 cycles, then `bioscara replay`",
+        f"{detected_as}; trace: {at}",
+        f"{ended}; replay exit {replayed.returncode}: {said[-1] if said else ''}",
+        arm,
+    )
+
+
 def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as d:
@@ -395,6 +424,7 @@ def main() -> None:
             trace_disk_full(tmp),
             *refusals(tmp),
             tampered_trace(tmp),
+            ctrl_c_replayed(tmp),
             corrupt_seeds(tmp),
         ]
         print("| fault injected | detected as | recovered | arm after |")
