@@ -23,14 +23,13 @@ model's spaces, the ONNX graph's input and output widths) must fit the env
 the metadata builds. A refusal is one line and nothing is sent to the arm.
 
 Any stop (NaN action, stall, bus error, deadman, a run log that cannot be
-written, Ctrl-C/SIGTERM) ends in
-:func:`~bioscara_gym.hardware.safety.safe_stop`. Exit codes: 0 done, 2 refused (nothing
-sent to the arm), 3 safety stop, 130/143 SIGINT/SIGTERM, 1 unexpected error;
-in every case each joint is sent its disable (currents 0) whatever its flags
-say, and one it could not reach or whose disable was not acknowledged is
-named (``j2: no answer, still powered as far as we know: cut the power``):
-the flags are no proof, since the firmware's deadman sets NOT_ENABLED and
-keeps the currents. The run log is JSON Lines, one line
+written, Ctrl-C/SIGTERM) ends in :func:`~bioscara_gym.hardware.safety.safe_stop`.
+Exit codes: 0 done, 2 refused (nothing sent to the arm), 3 safety stop,
+130/143 SIGINT/SIGTERM (a ``--record`` trace says where), 1 unexpected error;
+each joint is sent its disable (currents 0) whatever its flags say, and one
+not reached or whose disable was not acknowledged is named (``j2: no answer,
+still powered as far as we know: cut the power``): the firmware's deadman
+sets NOT_ENABLED and keeps the currents. The run log is JSON Lines, one line
 written and flushed per record, so it is complete after Ctrl-C:
 
 =============  ======================================================================
@@ -58,7 +57,7 @@ written and flushed per record, so it is complete after Ctrl-C:
                bus (per joint: transactions, retries, errors by kind ``bus`` / ``malformed``
                / ``implausible``, as ``bioscara status`` counts them), gripper (width_m,
                state_file, saved_width_m: what was written, ``null`` if nothing), log_error,
-               log_records_lost, exit_code
+               log_records_lost, trace_error, exit_code
 =============  ======================================================================
 
 A record that cannot be written (disk full) stops the run like any safety
@@ -106,6 +105,7 @@ from bioscara_gym.training.deploy_log import (
     CycleTiming,
     RunLog,
     disabled_line,
+    note_signal,
     print_summary,
     trace_error,
 )
@@ -304,8 +304,6 @@ class Deployment:
                     self._loop.run(env, policy)
                     self._shut_down()
                 except BaseException as e:
-                    if isinstance(e, KeyboardInterrupt):
-                        self._record_signal(e)
                     outcome = self._stop_safely(e)
                     if not isinstance(e, Exception | KeyboardInterrupt):
                         raise
@@ -358,17 +356,10 @@ class Deployment:
         with self._signals.shielded():
             self._gripper_width = self.target.shut_down(self)
 
-    def _record_signal(self, e: KeyboardInterrupt) -> None:
-        """Note in the bus trace (``--record``) where the signal stopped the run, for its replay."""
-        from bioscara_gym.hardware.recording import recording_bus
-
-        bus = recording_bus(self.target.arm.backend)
-        if bus is not None:
-            bus.record_signal(e)
-
     def _stop_safely(self, e: BaseException) -> Outcome:
         """Have the env make the arm safe after ``e``, then say why it stopped."""
         with self._signals.shielded():
+            note_signal(self.target.arm.backend, e)  # in the bus trace, before the safe stop's bytes
             outcome = outcome_for(e)
             outcome.stop_report = self.target.safe_stop()  # the arm first, then the words
             self.log_bus("safe stop")

@@ -67,6 +67,15 @@ def trace_error(backend: Any) -> str | None:
     return f"{bus.error.strerror}; transactions from {bus.unrecorded_from} on were not recorded"
 
 
+def note_signal(backend: Any, stopped_by: BaseException) -> None:
+    """If a signal stopped the run, note where in the backend's bus trace (``--record``), for its replay."""
+    from bioscara_gym.hardware.recording import recording_bus
+
+    bus = recording_bus(backend)
+    if bus is not None and isinstance(stopped_by, KeyboardInterrupt):
+        bus.record_signal(stopped_by)
+
+
 def describe_record(record: dict[str, Any]) -> str:
     """A record in a few words, for the list of records lost: ``cycle 57``, ``episode 3``, ``summary``."""
     kind = str(record.get("type", "record"))
