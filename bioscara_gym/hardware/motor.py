@@ -344,6 +344,24 @@ class KinematicStepper:
         self._slip_deg = 0.0
         self._pid_error = 0.0
 
+    def turn_to(self, position_deg: float, dt: float) -> None:
+        """Unpowered, the load turned the rotor to ``position_deg`` over ``dt`` s (momentum, a hand).
+
+        No field holds it, so it goes where the link takes it, and the
+        encoder's speed estimate sees it pass by pass (the closed loop's 1 ms
+        period): a coasting joint reads its speed, as the real encoder does.
+        """
+        target = self._clamp(float(position_deg))
+        start = self._position + self._swing_deg
+        n = max(1, round(dt / CLOSED_LOOP_PERIOD_S)) if dt > 0.0 else 0
+        for k in range(1, n + 1):
+            self._estimator.update((start + (target - start) * k / n) * _COUNTS_PER_DEG)
+        self._rotor_dps = (target - start) / dt if n else 0.0
+        self._position = self._field = self._loop.xactual_deg = target
+        self._swing_deg = self._swing_dps = 0.0
+        self._synced = True
+        self._pid_error = 0.0
+
     def place(self, position_deg: float) -> None:
         """Put the rotor at ``position_deg`` by hand, at rest (the operator moves a disabled joint)."""
         self._swing_deg = self._swing_dps = 0.0

@@ -96,6 +96,7 @@ class MujocoMotor:
         self._tick_s = 0.0
         self._range = tuple(float(x) for x in model.jnt_range[jid])  # the end stops, joint units
         self._hold_push = 0.0  # fraction of the drive's force a held rotor presses with
+        self._physics_t = float(data.time)  # MuJoCo's time at the last end_physics
         self.set_torque_fraction(0.0)
 
     @property
@@ -150,11 +151,17 @@ class MujocoMotor:
         m.actuator_forcerange[i, 1] = self._force100 * fraction
 
     def command(self, velocity_dps: float, torque_fraction: float) -> None:
-        """Step rate for the next tick and the torque the current allows."""
+        """Step rate for the next tick and the torque the current allows.
+
+        Without current the actuator lets go: the joint coasts or is pushed,
+        and the rotor with its encoder goes along (:meth:`end_physics`).
+        """
         self.set_torque_fraction(torque_fraction)
         self.stepper.command(velocity_dps, torque_fraction)
         if torque_fraction <= 0.0:
-            self.hold_here()
+            self._data.act[self._actadr] = self._data.qpos[self._qadr]
+            self._data.ctrl[self._act_id] = 0.0
+            self._tick_s = 0.0
 
     def hold_here(self) -> None:
         """Stop hard where the joint is: the drive's rotor, field and counter onto it (a swing ends)."""
@@ -163,9 +170,15 @@ class MujocoMotor:
         self._data.ctrl[self._act_id] = 0.0
         self._tick_start = self._rotor_mean_deg()
         self._tick_s = 0.0
+        self._physics_t = float(self._data.time)
 
     def advance(self, dt: float) -> None:
-        """Run the drive for ``dt`` s; MuJoCo follows its rotor over the next physics steps."""
+        """Run the drive for ``dt`` s; MuJoCo follows its rotor over the next physics steps.
+
+        Without current there is no field to run: the link moves the rotor (:meth:`end_physics`).
+        """
+        if self._fraction <= 0.0:
+            return
         if self._tick_s == 0.0:
             self._tick_start = self._rotor_mean_deg()
         self.stepper.advance(dt)
@@ -205,9 +218,12 @@ class MujocoMotor:
         obstacle gave way.
         """
         stepper = self.stepper
+        elapsed, self._physics_t = self._data.time - self._physics_t, float(self._data.time)
         if self._fraction <= 0.0:
             if stepper.held:
                 stepper.release_rotor()
+            stepper.turn_to(self._joint_deg(), elapsed)  # the unpowered rotor goes with its link
+            self._tick_start = self._rotor_mean_deg()
             return
         drive = self._data.actuator_force[self._act_id]
         held = self._data.qfrc_constraint[self._dadr]
@@ -233,6 +249,7 @@ class MujocoMotor:
         self.stepper.restore(state)
         self._tick_start = self._rotor_mean_deg()
         self._tick_s = 0.0
+        self._physics_t = float(self._data.time)
 
 
 #: An end stop pressing back on the drive with more than this fraction of the
