@@ -521,7 +521,7 @@ def test_the_safe_stops_bus_errors_are_a_record_of_their_own_before_the_stop(tmp
     report = SafeStopReport(
         problems=["j2: no answer"], not_confirmed=["j2"], gripper_width_m=0.05, gripper_saved=False
     )
-    d.target = SimpleNamespace(safe_stop=lambda: report, spec=None)
+    d.target = SimpleNamespace(safe_stop=lambda: report, spec=None, arm=SimpleNamespace(backend=None))
     d._log = Log()
     d._bus = SimpleNamespace(cycle=lambda: {"j2": {"retries": 0, "bus": 3}})
     outcome = d._stop_safely(RuntimeError("boom"))
