@@ -7,6 +7,7 @@ recording console and driven key by key without a terminal.
 
 from __future__ import annotations
 
+import argparse
 import ast
 import json
 import os
@@ -20,6 +21,7 @@ import pytest
 from rich.console import Console
 
 from bioscara_gym.cli import main
+from bioscara_gym.console import commands
 from bioscara_gym.console.commands import ping_devices
 from bioscara_gym.console.dashboard import (
     BusView,
@@ -280,6 +282,32 @@ def test_a_ctrl_c_while_the_commands_load_is_one_line(
     monkeypatch.setattr(cli, "build_parser", interrupted)
     assert cli.main(["status"]) == 130
     assert capsys.readouterr().err == "bioscara: interrupted\n"
+
+
+@pytest.mark.parametrize(
+    ("error", "line"),
+    [
+        (OSError(2, "No such file or directory", "/nowhere/x"), "No such file or directory: /nowhere/x"),
+        (
+            OSError(28, "cannot write the bus trace t.jsonl: No space left"),
+            "cannot write the bus trace t.jsonl: No space left",
+        ),
+        (OSError("the adapter went away"), "the adapter went away"),
+    ],
+    ids=["file", "errno", "message"],
+)
+def test_an_os_error_is_one_line_with_its_file_and_without_its_errno(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], error: OSError, line: str
+) -> None:
+    # Seen: "bioscara ping: error: [Errno 2] cannot write the bus trace ...".
+    import bioscara_gym.cli as cli
+
+    def fails(args: argparse.Namespace) -> int:
+        raise error
+
+    monkeypatch.setattr(commands, "cmd_status", fails)
+    assert cli.main(["status"]) == 2
+    assert capsys.readouterr().err == f"bioscara status: error: {line}\n"
 
 
 def test_enabling_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run, state: Path) -> None:

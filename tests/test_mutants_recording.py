@@ -13,6 +13,8 @@ import dataclasses
 import errno
 import json
 import re
+import signal
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -421,6 +423,75 @@ def test_a_replay_bus_is_open_until_closed() -> None:
     assert bus.closed is False
     bus.close()
     assert bus.closed is True
+
+
+@pytest.fixture
+def sigterm_calls() -> Iterator[list[int]]:
+    """SIGTERM's handler records each call and lets it pass; the previous handler is restored."""
+    calls: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: calls.append(signum))
+    try:
+        yield calls
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_a_recorded_signal_is_handed_to_its_handler_once(sigterm_calls: list[int]) -> None:
+    note = SignalNote(line=3, before=1, signal="SIGTERM", at="once")
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING, PING), (note,)))
+    bus.transfer(0x11, b"\x0f", 2)
+    assert sigterm_calls == []
+    for _ in range(2):  # its handler only records it: the command goes on (as while a deploy stops)
+        bus.transfer(0x11, b"\x0f", 2)
+    assert sigterm_calls == [signal.SIGTERM] and bus.signals_delivered == 1
+
+
+def test_a_signal_raised_before_a_transaction_is_not_raised_again_by_the_next_one() -> None:
+    # Raised where it landed, the signal stops the command before transaction 1;
+    # the safe stop's first transaction then asks for transaction 1 again.
+    note = SignalNote(line=3, before=1, signal="SIGTERM", at="once")
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING), (note,)))
+
+    def raise_it(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, raise_it)
+    try:
+        bus.transfer(0x11, b"\x0f", 2)
+        with pytest.raises(KeyboardInterrupt):
+            bus.transfer(0x11, b"\x0f", 2)
+        assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert bus.signals_delivered == 1 and bus.remaining == 0
+
+
+def test_a_transaction_cut_short_raises_even_when_the_handler_lets_the_signal_pass(
+    sigterm_calls: list[int],
+) -> None:
+    cut = dataclasses.replace(PING, read=None, interrupted="SIGTERM")
+    bus = ReplayBus(session_of(cut))
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        bus.transfer(0x11, b"\x0f", 2)
+    assert sigterm_calls == [signal.SIGTERM]
+
+
+@pytest.mark.parametrize(("handler", "raises"), [(signal.SIG_DFL, True), (signal.SIG_IGN, False)])
+def test_a_signal_without_a_python_handler_is_a_keyboard_interrupt_unless_ignored(
+    handler: Any, raises: bool
+) -> None:
+    # A replayed SIGTERM must never reach the default action: that would end the replay's process.
+    note = SignalNote(line=2, before=0, signal="SIGTERM", at="once")
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING,), (note,)))
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        if raises:
+            with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+                bus.transfer(0x11, b"\x0f", 2)
+        else:
+            assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def test_a_mismatch_past_the_end_and_one_on_a_line_carry_index_and_line() -> None:

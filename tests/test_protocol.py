@@ -728,6 +728,36 @@ def test_post_homing_pings_then_writes_limit_as_home_offset(
     assert joint.current_blocking_command is Reg.NONE
 
 
+def test_the_end_of_a_homing_clears_stall_and_not_homed_without_a_second_reading(
+    scripted_bus: Any, make_joint: Callable[..., Joint]
+) -> None:
+    # joint.ino, HOME: at the end stop, notHomed = 0 and isStalled = 0 while
+    # isBusy stays set until the handler has stopped the motor and restored its
+    # current: a reading then shows BUSY alone, and both flags are gone for real.
+    joint = make_joint("j1")
+    scripted_bus.queue(*[ack(STALL | NOT_HOMED)] * 3)  # init's PING; STALL is confirmed by two more
+    joint.init()
+    scripted_bus.queue(flags(STALL | NOT_HOMED), flags(BUSY | NOT_HOMED | STALL))
+    joint.start_homing(0.03, 30, 15)
+    scripted_bus.clear_log()
+    scripted_bus.queue(ack(BUSY))
+    assert joint.get_flags() == Flag.BUSY
+    assert scripted_bus.log == [(0x11, PING, 2)]
+
+
+def test_a_new_session_believes_the_flags_of_its_first_reading(
+    scripted_bus: Any, make_ready: Callable[..., Joint]
+) -> None:
+    # Between two sessions another host may have enabled the joint: the first
+    # reading after init() is not compared with the last session's flags.
+    joint = make_ready("j1", state=NOT_HOMED | NOT_ENABLED)
+    joint.deinit()
+    scripted_bus.queue(ack(NOT_HOMED))
+    joint.init()
+    assert scripted_bus.log == [(0x11, PING, 2)]
+    assert joint.flags == Flag.NOT_HOMED
+
+
 def test_post_homing_fails_when_joint_still_not_homed(
     scripted_bus: Any, make_ready: Callable[..., Joint]
 ) -> None:

@@ -117,3 +117,31 @@ def test_a_transaction_cut_short_by_a_signal_is_recorded_so_and_replayed(
     assert "read" not in cut_short[0]
     assert lines_of(trace, "signal") == []  # the transaction says it
     assert_replays_whole(trace)
+
+
+def test_a_stop_that_no_signal_caused_writes_no_signal_line(tmp_path: Path) -> None:
+    class NanAt3:
+        """The policy returns NaN at cycle 3: a safety stop, no signal."""
+
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def __call__(self, obs: Any) -> Any:
+            import numpy as np
+
+            self.calls += 1
+            return np.full(4, np.nan if self.calls > 3 else 0.0, dtype=np.float32)
+
+    trace = tmp_path / "trace.jsonl"
+    fields = {
+        "backend": "emulated",
+        "expert": False,
+        "env": REACH,
+        "episodes": 1,
+        "log": tmp_path / "run.jsonl",
+        "state_file": tmp_path / "gripper.json",
+        "record": trace,
+    }
+    run = run_deployment(fields, policy=NanAt3(), metadata=None)
+    assert run.summary["stop_reason"] == "nan_action"
+    assert lines_of(trace, "signal") == []  # (a policy passed in-process is not replayable itself)
