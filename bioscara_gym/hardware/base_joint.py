@@ -135,7 +135,6 @@ class BaseJoint(abc.ABC):
         # clears the firmware's NOT_ENABLED, so such a reply is corrupted).
         self._enable_needed = False
         self._current_b_cmd = Reg.NONE
-        self._homing_ended = False  # post_homing's reading (_flags_cleared_by)
         self._homing_offset = 0.0
         self._initialized = False
         # The joint says homed but its HOMEOFFSET is NaN: a homing ended and
@@ -305,10 +304,10 @@ class BaseJoint(abc.ABC):
 
         SETUP clears STALL and NOT_ENABLED, ENABLESTALLGUARD clears STALL, and
         the end of a homing clears NOT_HOMED and STALL: any reply while a
-        homing of this host runs, or :meth:`post_homing`'s, may show it.
+        homing of this host runs may show it.
         """
         cleared = FLAGS_CLEARED_BY.get(reg, 0)
-        if self._current_b_cmd is Reg.HOME or self._homing_ended:
+        if self._current_b_cmd is Reg.HOME:
             cleared |= FLAG_NOT_HOMED | FLAG_STALL
         return cleared
 
@@ -691,12 +690,11 @@ class BaseJoint(abc.ABC):
         Raises:
             NotHomedError: The joint did not home (aborted or failed).
         """
+        # Not counted as the homing's own reading: one that first shows NOT_HOMED gone
+        # (no poll saw the homing end) is read again, since after an aborted homing a
+        # flipped bit would make the joint homed at the end stop's offset.
         self._current_b_cmd = Reg.NONE
-        self._homing_ended = True  # this reading may be the first to show NOT_HOMED and STALL cleared
-        try:
-            self.get_flags()
-        finally:
-            self._homing_ended = False
+        self.get_flags()
         if self._flags & FLAG_NOT_HOMED:
             raise NotHomedError("homing did not complete (aborted or failed)", joint=self.name)
         self.offset = self._homing_offset
