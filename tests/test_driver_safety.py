@@ -480,3 +480,109 @@ def test_motion_refused_by_a_stall_reply_is_stopped_too(
     with pytest.raises(StalledError, match="sent STOP"):
         joint.move_steps(100)
     assert [data[0] for _, data, _ in scripted_bus.log] == [Reg.MOVESTEPS, Reg.PING, Reg.PING, Reg.STOP]
+
+
+# ------------------------------------------ what a contradicted reading says
+# Each kind of reading the driver reads again, contradicted by the PING right
+# after it, with no retry left: the CommError says what was seen, and the
+# failed attempt counts as "implausible" in the joint's stats.
+def test_a_sticky_flag_that_the_next_reading_lacks_is_named(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(retries=0)
+    scripted_bus.queue(ack(STALL), ack(READY))
+    with pytest.raises(CommError) as caught:
+        joint.get_flags()
+    assert (
+        "PING failed after 1 attempt: flags <Flag.STALL: 1> show <Flag.STALL: 1>, which the flags read "
+        "right after (<Flag: 0>) do not, and it cannot clear by itself (reply 4f 01)"
+    ) in str(caught.value)
+    assert joint.stats.errors_by_kind["implausible"] == 1
+
+
+def test_not_enabled_after_setup_that_the_next_reading_lacks_is_named(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(state=NOT_ENABLED, retries=0)
+    scripted_bus.queue(flags(NOT_ENABLED), ack(READY))
+    with pytest.raises(CommError) as caught:
+        joint.enable(30, 30)
+    assert (
+        "SETUP failed after 1 attempt: flags <Flag.NOT_ENABLED: 8> after SETUP still show NOT_ENABLED, "
+        "which SETUP clears and the flags read right after (<Flag: 0>) do not (reply 08)"
+    ) in str(caught.value)
+    assert joint.stats.errors_by_kind["implausible"] == 1
+
+
+def test_busy_gone_during_a_homing_that_the_next_reading_shows_is_named(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(state=NOT_HOMED, retries=0)
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
+    joint.start_homing(0.03, 30, 15)
+    scripted_bus.queue(ack(NOT_HOMED), ack(BUSY | NOT_HOMED))
+    with pytest.raises(CommError) as caught:
+        joint.get_flags()
+    assert (
+        "PING failed after 1 attempt: flags <Flag.NOT_HOMED: 4> lack BUSY while HOME runs, but the flags "
+        "read right after (<Flag.BUSY|NOT_HOMED: 6>) show it, and it cannot come back (reply 4f 04)"
+    ) in str(caught.value)
+    assert joint.stats.errors_by_kind["implausible"] == 1
+
+
+def test_a_sticky_flag_gone_that_the_next_reading_shows_is_named(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(state=NOT_HOMED | NOT_ENABLED, retries=0)
+    scripted_bus.queue(ack(NOT_HOMED), ack(NOT_HOMED | NOT_ENABLED))
+    with pytest.raises(CommError) as caught:
+        joint.get_flags()
+    assert (
+        "PING failed after 1 attempt: flags <Flag.NOT_HOMED: 4> lack <Flag.NOT_ENABLED: 8>, which the flags "
+        "read right after (<Flag.NOT_HOMED|NOT_ENABLED: 12>) show, and PING does not clear it (reply 4f 04)"
+    ) in str(caught.value)
+    assert joint.stats.errors_by_kind["implausible"] == 1
+
+
+def test_a_stall_gone_in_a_reading_is_read_again(scripted_bus: Any, make_j1: Callable[..., Joint]) -> None:
+    # Only SETUP, ENABLESTALLGUARD and a homing's end clear STALL (joint.ino).
+    joint = make_j1()
+    scripted_bus.queue(ack(STALL), ack(STALL), ack(STALL))
+    assert joint.get_flags() == Flag.STALL
+    scripted_bus.clear_log()
+    scripted_bus.queue(ack(READY), ack(STALL), ack(STALL))
+    assert joint.get_flags() == Flag.STALL
+    assert len(scripted_bus.log) == 3
+
+
+def test_the_readings_that_confirm_a_homings_reply_wait_out_the_pickup_window(
+    scripted_bus: Any, make_j1: Callable[..., Joint], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A PING before the main loop has picked HOME up cancels it (joint.ino: the
+    # ISR's non_blocking_handler runs first); a STALL newly shown in HOME's reply
+    # is confirmed only after BLOCKING_PICKUP_S.
+    joint = make_j1(state=NOT_HOMED)
+    times: list[tuple[bytes, float]] = []
+    transfer = scripted_bus.transfer
+
+    def timed(address: int, data: bytes, read_len: int) -> bytes:
+        times.append((bytes(data[:1]), joint.clock.now()))
+        return transfer(address, data, read_len)
+
+    monkeypatch.setattr(scripted_bus, "transfer", timed)
+    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED | STALL), ack(BUSY | NOT_HOMED | STALL))
+    scripted_bus.queue(ack(BUSY | NOT_HOMED | STALL))
+    joint.start_homing(0.03, 30, 15)
+    (home, t_home), (ping, t_ping) = times[1], times[2]
+    assert (home, ping) == (b"\x2d", b"\x0f")
+    assert t_ping - t_home >= BLOCKING_PICKUP_S
+
+
+def test_disable_closed_loop_sets_not_enabled_without_a_second_reading(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    # DISABLECLOSEDLOOP's handler sets notEnabled = 1 (joint.ino).
+    joint = make_j1()
+    scripted_bus.queue(flags(NOT_ENABLED))
+    joint.disable_closed_loop()
+    assert len(scripted_bus.log) == 1 and not joint.is_enabled()

@@ -104,7 +104,7 @@ def test_failed_init_leaves_the_joint_uninitialized(make_emulated_j1: MakeJ1) ->
 
 def test_zero_retries_fail_on_the_first_nack(make_emulated_j1: MakeJ1) -> None:
     emu = make_emulated_j1(faults=nacks(0), retries=0)
-    with pytest.raises(CommError, match="after 1 attempts"):
+    with pytest.raises(CommError, match="after 1 attempt: "):
         emu.joint.init()
 
 

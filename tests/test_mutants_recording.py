@@ -9,6 +9,7 @@ the file, the line and the key).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import json
@@ -425,6 +426,38 @@ def test_a_replay_bus_is_open_until_closed() -> None:
     assert bus.closed is True
 
 
+@contextlib.contextmanager
+def no_interrupt() -> Iterator[None]:
+    """A KeyboardInterrupt here fails the test (left alone, pytest would stop the whole run)."""
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        pytest.fail(f"unexpected KeyboardInterrupt: {e}")
+
+
+def test_a_plain_ctrl_c_is_recorded_as_sigint_raised_where_it_landed(tmp_path: Path) -> None:
+    bus, path = record(tmp_path)
+    bus.transfer(0x11, b"\x0f", 2)
+    bus.clock.sleep(0.5)  # type: ignore[attr-defined]
+    bus.record_signal(KeyboardInterrupt())
+    bus.close()
+    note = raw_lines(path)[2]
+    del note["digest"]
+    assert note == {"type": "signal", "i": 1, "t": 1.75, "signal": "SIGINT", "at": "once"}
+
+
+def test_every_recorded_signal_is_counted(sigterm_calls: list[int]) -> None:
+    notes = (
+        SignalNote(line=3, before=1, signal="SIGTERM", at="cycle"),
+        SignalNote(line=5, before=2, signal="SIGTERM", at="once"),
+    )
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING, PING), notes))
+    with no_interrupt():
+        for _ in range(3):
+            bus.transfer(0x11, b"\x0f", 2)
+    assert sigterm_calls == [signal.SIGTERM] * 2 and bus.signals_delivered == 2
+
+
 @pytest.fixture
 def sigterm_calls() -> Iterator[list[int]]:
     """SIGTERM's handler records each call and lets it pass; the previous handler is restored."""
@@ -439,10 +472,11 @@ def sigterm_calls() -> Iterator[list[int]]:
 def test_a_recorded_signal_is_handed_to_its_handler_once(sigterm_calls: list[int]) -> None:
     note = SignalNote(line=3, before=1, signal="SIGTERM", at="once")
     bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING, PING), (note,)))
-    bus.transfer(0x11, b"\x0f", 2)
-    assert sigterm_calls == []
-    for _ in range(2):  # its handler only records it: the command goes on (as while a deploy stops)
+    with no_interrupt():
         bus.transfer(0x11, b"\x0f", 2)
+        assert sigterm_calls == []
+        for _ in range(2):  # its handler only records it: the command goes on (as while a deploy stops)
+            bus.transfer(0x11, b"\x0f", 2)
     assert sigterm_calls == [signal.SIGTERM] and bus.signals_delivered == 1
 
 
@@ -457,10 +491,12 @@ def test_a_signal_raised_before_a_transaction_is_not_raised_again_by_the_next_on
 
     previous = signal.signal(signal.SIGTERM, raise_it)
     try:
-        bus.transfer(0x11, b"\x0f", 2)
+        with no_interrupt():
+            bus.transfer(0x11, b"\x0f", 2)
         with pytest.raises(KeyboardInterrupt):
             bus.transfer(0x11, b"\x0f", 2)
-        assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
+        with no_interrupt():
+            assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert bus.signals_delivered == 1 and bus.remaining == 0
@@ -489,7 +525,8 @@ def test_a_signal_without_a_python_handler_is_a_keyboard_interrupt_unless_ignore
             with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
                 bus.transfer(0x11, b"\x0f", 2)
         else:
-            assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
+            with no_interrupt():
+                assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x0c"
     finally:
         signal.signal(signal.SIGTERM, previous)
 

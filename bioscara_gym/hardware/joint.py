@@ -314,7 +314,8 @@ class Joint(BaseJoint):
         for reading in pending:
             self.stats.record(ok=False, kind="implausible", retry=reading.retry)
         what = (
-            f"{reg.name} failed after {tries} attempts: {last}. Check wiring, power and the address"
+            f"{reg.name} failed after {tries} attempt{'s' if tries != 1 else ''}: {last}. "
+            "Check wiring, power and the address"
             if resend
             else f"{reg.name} failed: {last}. Not sent again: the joint may have run it"
         )
