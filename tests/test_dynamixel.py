@@ -604,6 +604,53 @@ def test_cli_emulate_serves_until_sigterm_and_removes_the_link(tmp_path: Path) -
     assert not os.path.lexists(link)
 
 
+# The emulator's main thread, once serving, with SIGTERM landing at the worst
+# moment a lock-based wait has: right after the wait re-took its lock. A
+# handler that sets a threading.Event there waits for that lock forever (seen
+# in a loaded CI run: SIGTERM ignored for 30 s). A timer sends SIGTERM too,
+# for a loop that takes no lock at all.
+SIGTERM_INSIDE_A_WAIT = """
+import builtins, os, signal, sys, threading
+armed, sent = [], []
+def send():
+    if not sent:
+        sent.append(True)
+        signal.raise_signal(signal.SIGTERM)
+def send_from_elsewhere():
+    if not sent:
+        sent.append(True)
+        os.kill(os.getpid(), signal.SIGTERM)
+def trap(frame, event, arg):
+    if event == "call":
+        return trap if frame.f_code.co_name == "_acquire_restore" else None
+    if event == "return" and armed and threading.current_thread() is threading.main_thread():
+        send()  # handled here: this thread holds the lock it re-took
+    return None
+printed = builtins.print
+def arm(*args, **kwargs):
+    printed(*args, **kwargs)
+    if not armed:
+        timer = threading.Timer(1.0, send_from_elsewhere)
+        timer.daemon = True
+        timer.start()  # (its own start waits on a lock: armed only after it)
+        armed.append(True)
+builtins.print = arm
+sys.settrace(trap)
+from bioscara_gym.cli import main
+sys.exit(main(["emulate", "dynamixel", "--ids", "1", "--link", sys.argv[1]]))
+"""
+
+
+def test_sigterm_stops_the_emulator_whatever_its_main_thread_holds(tmp_path: Path) -> None:
+    link = tmp_path / "dxl"
+    proc = subprocess.run(
+        [sys.executable, "-c", SIGTERM_INSIDE_A_WAIT, str(link)], capture_output=True, text=True, timeout=30
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "stopped; link removed"
+    assert not os.path.lexists(link)
+
+
 def test_math_of_the_example_limits() -> None:
     assert ct.position_to_raw(3.067961575772) == 2047 + 2000
     assert math.isclose(0.2 * 2.3980823922402, 20 * ct.VELOCITY_RADS_PER_UNIT)

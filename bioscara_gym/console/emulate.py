@@ -13,10 +13,15 @@ from __future__ import annotations
 
 import argparse
 import signal
-import threading
+import time
 from pathlib import Path
 
 from bioscara_gym.errors import CliError
+
+#: The signals that stop the emulator.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: How often the serving loop looks for one, s.
+STOP_POLL_S = 0.2
 
 
 def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
@@ -32,16 +37,19 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
     link = Path(args.link)
     if link.exists() and not link.is_symlink():
         raise CliError(f"--link {link}: exists and is not a symlink; not replacing it")
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # The handler only records the signal: one that set a threading.Event deadlocked
+    # when the signal landed while this thread held the Event's lock inside wait()
+    # (seen under load: SIGTERM ignored for 30 s; python/cpython#126434 is the same trap).
+    received: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, _: received.append(signum)) for sig in STOP_SIGNALS}
     try:
         with PtyServer(make_bus(ids, faults), link) as server:
             ids_text = ", ".join(str(i) for i in ids)
             print(
                 f"XL430 servos {ids_text} on {server.path} -> {server.slave_path}; Ctrl-C stops", flush=True
             )
-            while not stop.wait(0.2):
-                pass
+            while not received:
+                time.sleep(STOP_POLL_S)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
