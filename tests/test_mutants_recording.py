@@ -449,7 +449,7 @@ def test_a_plain_ctrl_c_is_recorded_as_sigint_raised_where_it_landed(tmp_path: P
 def test_every_recorded_signal_is_counted(sigterm_calls: list[int]) -> None:
     notes = (
         SignalNote(line=3, before=1, signal="SIGTERM", at="cycle"),
-        SignalNote(line=5, before=2, signal="SIGTERM", at="once"),
+        SignalNote(line=5, before=2, signal="SIGTERM", at="cycle"),
     )
     bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING, PING), notes))
     with no_interrupt():
@@ -469,15 +469,29 @@ def sigterm_calls() -> Iterator[list[int]]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def test_a_recorded_signal_is_handed_to_its_handler_once(sigterm_calls: list[int]) -> None:
-    note = SignalNote(line=3, before=1, signal="SIGTERM", at="once")
+def test_a_signal_raised_at_a_cycle_boundary_is_handed_to_its_handler_once(sigterm_calls: list[int]) -> None:
+    # "cycle": it arrived during transaction 0 and waited for the cycle's end.
+    note = SignalNote(line=3, before=1, signal="SIGTERM", at="cycle")
     bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING, PING), (note,)))
     with no_interrupt():
         bus.transfer(0x11, b"\x0f", 2)
-        assert sigterm_calls == []
-        for _ in range(2):  # its handler only records it: the command goes on (as while a deploy stops)
+        assert sigterm_calls == [signal.SIGTERM]
+        for _ in range(2):  # the handler held it back: the command goes on to its boundary
             bus.transfer(0x11, b"\x0f", 2)
     assert sigterm_calls == [signal.SIGTERM] and bus.signals_delivered == 1
+
+
+def test_a_signal_raised_where_it_landed_stops_the_command_there(sigterm_calls: list[int]) -> None:
+    # "once": the recorded command stopped before transaction 1, so the replay
+    # must too. A handler that holds the first back (a deploy's cycle) is called
+    # again, as the second signal that raised it then was.
+    note = SignalNote(line=3, before=1, signal="SIGTERM", at="once")
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING), (note,)))
+    with no_interrupt():
+        bus.transfer(0x11, b"\x0f", 2)
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        bus.transfer(0x11, b"\x0f", 2)
+    assert sigterm_calls == [signal.SIGTERM] * 2 and bus.signals_delivered == 1
 
 
 def test_a_signal_raised_before_a_transaction_is_not_raised_again_by_the_next_one() -> None:
@@ -509,7 +523,7 @@ def test_a_transaction_cut_short_raises_even_when_the_handler_lets_the_signal_pa
     bus = ReplayBus(session_of(cut))
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
         bus.transfer(0x11, b"\x0f", 2)
-    assert sigterm_calls == [signal.SIGTERM]
+    assert sigterm_calls == [signal.SIGTERM] * 2
 
 
 @pytest.mark.parametrize(("handler", "raises"), [(signal.SIG_DFL, True), (signal.SIG_IGN, False)])
@@ -517,8 +531,8 @@ def test_a_signal_without_a_python_handler_is_a_keyboard_interrupt_unless_ignore
     handler: Any, raises: bool
 ) -> None:
     # A replayed SIGTERM must never reach the default action: that would end the replay's process.
-    note = SignalNote(line=2, before=0, signal="SIGTERM", at="once")
-    bus = ReplayBus(TraceSession(dict(HEADER), (PING,), (note,)))
+    note = SignalNote(line=3, before=1, signal="SIGTERM", at="cycle")
+    bus = ReplayBus(TraceSession(dict(HEADER), (PING, PING), (note,)))
     previous = signal.signal(signal.SIGTERM, handler)
     try:
         if raises:

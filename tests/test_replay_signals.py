@@ -90,6 +90,7 @@ def test_a_signal_before_homing_is_raised_again_before_the_same_transaction(
 
     monkeypatch.setattr(Arm, "home", interrupted_home)
     trace, error = deploy_recorded(tmp_path)
+    monkeypatch.undo()  # the replay's signal must come from the trace alone
     assert isinstance(error, Interrupted)
     (note,) = lines_of(trace, "signal")
     assert note["at"] == "once"
@@ -110,6 +111,7 @@ def test_a_transaction_cut_short_by_a_signal_is_recorded_so_and_replayed(
 
     monkeypatch.setattr(EmulatedI2CBus, "transfer", cut)
     trace, error = deploy_recorded(tmp_path)
+    monkeypatch.undo()
     assert isinstance(error, Interrupted)
     txs = lines_of(trace, "tx")
     cut_short = [tx for tx in txs if "interrupted" in tx]
@@ -145,3 +147,17 @@ def test_a_stop_that_no_signal_caused_writes_no_signal_line(tmp_path: Path) -> N
     run = run_deployment(fields, policy=NanAt3(), metadata=None)
     assert run.summary["stop_reason"] == "nan_action"
     assert lines_of(trace, "signal") == []  # (a policy passed in-process is not replayable itself)
+
+
+def test_a_second_ctrl_c_within_a_cycle_is_raised_again_at_once(tmp_path: Path) -> None:
+    # The first SIGINT of a cycle waits for its end; a second raises where it lands.
+    def interrupt_twice(cycle: int, env: Any) -> None:
+        if cycle == 30:
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)
+
+    trace, error = deploy_recorded(tmp_path, interrupt_twice)
+    assert isinstance(error, Interrupted)
+    (note,) = lines_of(trace, "signal")
+    assert note["at"] == "once"
+    assert_replays_whole(trace)

@@ -652,8 +652,7 @@ class ReplayBus:
             self.clock.sleep(tx.dur)
         if tx.interrupted is not None:
             self.signals_delivered += 1
-            _raise_signal(tx.interrupted)
-            raise KeyboardInterrupt(tx.interrupted)  # its handler let it pass; the recording did not
+            _raise_signal(tx.interrupted, at_once=True)
         self._deliver("cycle")  # arrived during this transaction: pending until the next cycle
         if tx.read is None:
             self.errors_served += 1
@@ -667,22 +666,30 @@ class ReplayBus:
             return
         del self._signals[self.served]
         self.signals_delivered += 1
-        _raise_signal(note.signal)
+        _raise_signal(note.signal, at_once=at == "once")
 
     def close(self) -> None:
         """Mark the bus closed (the trace stays readable)."""
         self.closed = True
 
 
-def _raise_signal(name: str) -> None:
+def _raise_signal(name: str, at_once: bool) -> None:
     """Call the handler of signal ``name`` as the signal would, in this thread.
 
     The command's own handler (a deploy's :class:`~bioscara_gym.training.signals.SignalGuard`)
     raises or records it; with none installed, as Python does by default: ``KeyboardInterrupt``.
+    A signal recorded as raised where it landed (``at_once``) must raise: a handler
+    that held it back (a deploy's cycle defers the first) is called once more, as
+    the second Ctrl-C that raised it then was, and ``KeyboardInterrupt`` is raised
+    if it still lets it pass.
     """
     signum = signal.Signals[name]
     handler = signal.getsignal(signum)
     if callable(handler):
         handler(signum, None)
+        if at_once:
+            handler(signum, None)
     elif handler != signal.SIG_IGN:
+        raise KeyboardInterrupt(name)
+    if at_once:
         raise KeyboardInterrupt(name)
