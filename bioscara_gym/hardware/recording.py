@@ -36,8 +36,9 @@ import json
 import math
 import os
 import signal
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -240,36 +241,49 @@ class RecordingBus:
         self._previous = digest
 
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
-        """One transaction of the inner bus, recorded with its reply or its error."""
-        data = bytes(data)
-        t = self.clock.now()
-        record: dict[str, Any] = {
-            "type": "tx",
-            "i": self.transactions,
-            "t": t,
-            "dur": 0.0,
-            "addr": f"{address:#04x}",
-            "write": data.hex(),
-            "read_len": read_len,
-        }
-        self.transactions += 1
-        try:
-            reply = bytes(self.inner.transfer(address, data, read_len))
-        except OSError as e:
-            record["dur"] = self.clock.now() - t
-            record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
-            self._write(record)
-            raise
-        except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
-            record["dur"] = self.clock.now() - t
-            record["interrupted"] = signal_name(e)
-            self._write(record)
-            self._cut_by_signal = True
-            raise
+        """One transaction of the inner bus, recorded with its reply or its error.
+
+        SIGINT and SIGTERM are held back while the transaction's line is made,
+        counted and written, and let through only during the exchange itself:
+        a Ctrl-C that landed in the bookkeeping left a transaction counted and
+        never written (2 of 8 deploys stopped early in bring-up), so the
+        signal line named a transaction the trace did not have. One that
+        lands in the exchange cuts it (``interrupted``); one held back is
+        raised once its line is written, between two transactions.
+        """
+        with _signals_held() as let_through:
+            data = bytes(data)
+            t = self.clock.now()
+            record: dict[str, Any] = {
+                "type": "tx",
+                "i": self.transactions,
+                "t": t,
+                "dur": 0.0,
+                "addr": f"{address:#04x}",
+                "write": data.hex(),
+                "read_len": read_len,
+            }
+            try:
+                with let_through():
+                    reply = bytes(self.inner.transfer(address, data, read_len))
+            except OSError as e:
+                record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
+                self._close_line(record, t)
+                raise
+            except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
+                record["interrupted"] = signal_name(e)
+                self._close_line(record, t)
+                self._cut_by_signal = True
+                raise
+            record["read"] = reply.hex()
+            self._close_line(record, t)
+            return reply
+
+    def _close_line(self, record: dict[str, Any], t: float) -> None:
+        """Count a transaction and write its line, its duration measured to now."""
         record["dur"] = self.clock.now() - t
-        record["read"] = reply.hex()
+        self.transactions += 1
         self._write(record)
-        return reply
 
     def record_signal(self, interrupted: KeyboardInterrupt) -> None:
         """Write where a signal stopped the command (a ``signal`` line), for its replay.
@@ -306,6 +320,39 @@ class RecordingBus:
         if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
+
+
+#: The signals a command stops on: held back while a trace line is being written.
+STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[Callable[[], contextlib.AbstractContextManager[None]]]:
+    """Hold SIGINT and SIGTERM back in this thread; yields a way to let them through for a while.
+
+    A signal that arrives while held waits (blocked, ``pthread_sigmask``)
+    and is delivered when the hold ends or is lifted. Python runs its handler
+    in the main thread only, so outside it, or where the platform has no
+    signal masks, nothing is held. (A signal the kernel gives another thread
+    of this process still reaches the main thread's handler at once.)
+    """
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield contextlib.nullcontext
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+
+    @contextlib.contextmanager
+    def let_through() -> Iterator[None]:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        try:
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+
+    try:
+        yield let_through
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def signal_name(interrupted: KeyboardInterrupt) -> str:
