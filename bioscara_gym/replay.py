@@ -232,6 +232,7 @@ def replay_session(session: TraceSession) -> SessionResult:
         error = None
         with _quiet():
             try:
+                bus.start()
                 runner(args, options, tmp)
             except Exception as e:  # what the command made of the replies is not the question
                 error = e

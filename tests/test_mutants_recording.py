@@ -472,6 +472,18 @@ def test_a_plain_ctrl_c_is_recorded_as_sigint_raised_where_it_landed(tmp_path: P
     assert note == {"type": "signal", "i": 1, "t": 1.75, "signal": "SIGINT", "at": "once"}
 
 
+def test_one_signal_line_a_session_and_none_once_the_trace_is_closed(tmp_path: Path) -> None:
+    bus, path = record(tmp_path)
+    bus.transfer(0x11, b"\x0f", 2)
+    first = KeyboardInterrupt()
+    bus.record_signal(first)
+    bus.transfer(0x11, b"\x0f", 2)  # the safe stop's
+    bus.record_signal(KeyboardInterrupt())  # the same interruption, raised again on its way out
+    bus.close()
+    bus.record_signal(KeyboardInterrupt())  # after the arm was shut down: nothing, no error
+    assert [d["type"] for d in raw_lines(path)] == ["header", "tx", "signal", "tx"]
+
+
 def test_every_recorded_signal_is_counted(sigterm_calls: list[int]) -> None:
     notes = (
         SignalNote(line=3, before=1, signal="SIGTERM", at="cycle"),

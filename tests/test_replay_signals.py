@@ -36,7 +36,7 @@ def deploy_recorded(tmp_path: Path, on_cycle: Any = None) -> tuple[Path, BaseExc
         "state_file": tmp_path / "gripper.json",
         "record": trace,
     }
-    run = run_deployment(fields, on_cycle=on_cycle, catch=(Interrupted,))
+    run = run_deployment(fields, on_cycle=on_cycle, catch=(KeyboardInterrupt,))
     return trace, run.error
 
 
@@ -161,3 +161,28 @@ def test_a_second_ctrl_c_within_a_cycle_is_raised_again_at_once(tmp_path: Path) 
     (note,) = lines_of(trace, "signal")
     assert note["at"] == "once"
     assert_replays_whole(trace)
+
+
+def test_a_ctrl_c_before_the_arm_is_touched_replays_as_nothing_sent(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen (a Ctrl-C 0.38 s into a recorded deploy): the trace held its header
+    # alone, and the replay ran the whole deploy against it.
+    from bioscara_gym.training.deploy import Deployment
+
+    check = Deployment._check
+
+    def interrupted_check(self: Deployment, *args: Any) -> None:
+        check(self, *args)
+        raise KeyboardInterrupt  # Ctrl-C after the env was made, before the run
+
+    monkeypatch.setattr(Deployment, "_check", interrupted_check)
+    trace, error = deploy_recorded(tmp_path)
+    monkeypatch.undo()
+    assert type(error) is KeyboardInterrupt
+    assert lines_of(trace, "tx") == []
+    (note,) = lines_of(trace, "signal")
+    assert (note["i"], note["at"]) == (0, "once")
+    result = replay(trace)
+    assert result.ok and result.matched == 0
+    assert isinstance(result.sessions[0].error, KeyboardInterrupt)

@@ -244,6 +244,9 @@ class Deployment:
                 self.console.print(f"[bold]deploy[/bold]     {escape(loaded.description)} -> {where}")
                 self._check(env, loaded)
                 return self._run(env, loaded.make(env), loaded.description)
+            except KeyboardInterrupt as e:  # also before the run's guard: the trace says where
+                note_signal(self.target.arm.backend, e)
+                raise
             finally:
                 env.close()  # the env shuts the arm down if it is still up (it is not, by now)
 
@@ -442,17 +445,14 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
     ``bioscara_gym.cli``), and the exit code must not depend on how deploy
     was started.
     """
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
         Deployment(_args_from_namespace(ns)).run()
     except DeployError as e:
-        Console(stderr=True, highlight=False, soft_wrap=True).print(
-            f"bioscara deploy: error: {e}", markup=False
-        )
+        err.print(f"bioscara deploy: error: {e}", markup=False)
         return e.code
     except Interrupted as e:
-        Console(stderr=True, highlight=False, soft_wrap=True).print(
-            f"bioscara deploy: interrupted by {e}", markup=False
-        )
+        err.print(f"bioscara deploy: interrupted by {e}", markup=False)
         return e.exit_code
     return 0
 

@@ -190,6 +190,7 @@ class RecordingBus:
         #: The first transaction not recorded (``None``: every one was).
         self.unrecorded_from: int | None = None
         self._cut_by_signal = False  # the last transaction was cut short by a signal
+        self._signal_noted = False  # a signal line was written
         created = not self.path.exists()
         try:
             self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
@@ -288,13 +289,17 @@ class RecordingBus:
     def record_signal(self, interrupted: KeyboardInterrupt) -> None:
         """Write where a signal stopped the command (a ``signal`` line), for its replay.
 
-        Nothing when the signal cut a transaction short: that line says it.
+        Nothing when the signal cut a transaction short (that line says it),
+        or when a signal line was written already: the first interruption
+        ends a session (a deploy shields its safe stop from a second one), and
+        the same one may be noted again on its way out of the command.
         A signal the command raised at a cycle boundary (``deferred``, see
         :class:`~bioscara_gym.training.signals.Interrupted`) is ``at`` that
         ``"cycle"``; any other was raised where it landed (``"once"``).
         """
-        if self._cut_by_signal:
-            return
+        if self._cut_by_signal or self._signal_noted or self._fd is None:
+            return  # (a closed trace: the session is over)
+        self._signal_noted = True
         at = "cycle" if getattr(interrupted, "deferred", False) else "once"
         self._write(
             {
@@ -705,6 +710,16 @@ class ReplayBus:
             self.errors_served += 1
             raise OSError(tx.errno, tx.message)
         return tx.read
+
+    def start(self) -> None:
+        """Before the command runs: a signal that stopped it before it sent anything is raised now.
+
+        A session with no transaction and a signal before the first was
+        interrupted before the bus was used (a deploy's checks): the replay
+        stops it before it starts, which sends the same nothing.
+        """
+        if not self.session.transactions:
+            self._deliver("once")
 
     def _deliver(self, at: str) -> None:
         """Hand the signal recorded before the next transaction to its handler, if it is ``at`` here."""
