@@ -483,64 +483,63 @@ def test_motion_refused_by_a_stall_reply_is_stopped_too(
 
 
 # ------------------------------------------ what a contradicted reading says
+def _enable(joint: Joint) -> None:
+    joint.enable(30, 30)
+
+
+def _read_flags(joint: Joint) -> None:
+    joint.get_flags()
+
+
 # Each kind of reading the driver reads again, contradicted by the PING right
-# after it, with no retry left: the CommError says what was seen, and the
-# failed attempt counts as "implausible" in the joint's stats.
-def test_a_sticky_flag_that_the_next_reading_lacks_is_named(
-    scripted_bus: Any, make_j1: Callable[..., Joint]
-) -> None:
-    joint = make_j1(retries=0)
-    scripted_bus.queue(ack(STALL), ack(READY))
-    with pytest.raises(CommError) as caught:
-        joint.get_flags()
-    assert (
+# after it, with no retry left: (state at init, a homing started first, the
+# reply and the PING, what is asked, what the CommError says).
+CONTRADICTED = [
+    pytest.param(
+        READY, False, (ack(STALL), ack(READY)), _read_flags,
         "PING failed after 1 attempt: flags <Flag.STALL: 1> show <Flag.STALL: 1>, which the flags read "
-        "right after (<Flag: 0>) do not, and it cannot clear by itself (reply 4f 01)"
-    ) in str(caught.value)
-    assert joint.stats.errors_by_kind["implausible"] == 1
-
-
-def test_not_enabled_after_setup_that_the_next_reading_lacks_is_named(
-    scripted_bus: Any, make_j1: Callable[..., Joint]
-) -> None:
-    joint = make_j1(state=NOT_ENABLED, retries=0)
-    scripted_bus.queue(flags(NOT_ENABLED), ack(READY))
-    with pytest.raises(CommError) as caught:
-        joint.enable(30, 30)
-    assert (
+        "right after (<Flag: 0>) do not, and it cannot clear by itself (reply 4f 01)",
+        id="appeared",
+    ),
+    pytest.param(
+        NOT_ENABLED, False, (flags(NOT_ENABLED), ack(READY)), _enable,
         "SETUP failed after 1 attempt: flags <Flag.NOT_ENABLED: 8> after SETUP still show NOT_ENABLED, "
-        "which SETUP clears and the flags read right after (<Flag: 0>) do not (reply 08)"
-    ) in str(caught.value)
-    assert joint.stats.errors_by_kind["implausible"] == 1
-
-
-def test_busy_gone_during_a_homing_that_the_next_reading_shows_is_named(
-    scripted_bus: Any, make_j1: Callable[..., Joint]
-) -> None:
-    joint = make_j1(state=NOT_HOMED, retries=0)
-    scripted_bus.queue(flags(NOT_HOMED), flags(BUSY | NOT_HOMED))
-    joint.start_homing(0.03, 30, 15)
-    scripted_bus.queue(ack(NOT_HOMED), ack(BUSY | NOT_HOMED))
-    with pytest.raises(CommError) as caught:
-        joint.get_flags()
-    assert (
+        "which SETUP clears and the flags read right after (<Flag: 0>) do not (reply 08)",
+        id="kept",
+    ),
+    pytest.param(
+        NOT_HOMED, True, (ack(NOT_HOMED), ack(BUSY | NOT_HOMED)), _read_flags,
         "PING failed after 1 attempt: flags <Flag.NOT_HOMED: 4> lack BUSY while HOME runs, but the flags "
-        "read right after (<Flag.BUSY|NOT_HOMED: 6>) show it, and it cannot come back (reply 4f 04)"
-    ) in str(caught.value)
-    assert joint.stats.errors_by_kind["implausible"] == 1
-
-
-def test_a_sticky_flag_gone_that_the_next_reading_shows_is_named(
-    scripted_bus: Any, make_j1: Callable[..., Joint]
-) -> None:
-    joint = make_j1(state=NOT_HOMED | NOT_ENABLED, retries=0)
-    scripted_bus.queue(ack(NOT_HOMED), ack(NOT_HOMED | NOT_ENABLED))
-    with pytest.raises(CommError) as caught:
-        joint.get_flags()
-    assert (
+        "read right after (<Flag.BUSY|NOT_HOMED: 6>) show it, and it cannot come back (reply 4f 04)",
+        id="ended",
+    ),
+    pytest.param(
+        NOT_HOMED | NOT_ENABLED, False, (ack(NOT_HOMED), ack(NOT_HOMED | NOT_ENABLED)), _read_flags,
         "PING failed after 1 attempt: flags <Flag.NOT_HOMED: 4> lack <Flag.NOT_ENABLED: 8>, which the flags "
-        "read right after (<Flag.NOT_HOMED|NOT_ENABLED: 12>) show, and PING does not clear it (reply 4f 04)"
-    ) in str(caught.value)
+        "read right after (<Flag.NOT_HOMED|NOT_ENABLED: 12>) show, and PING does not clear it (reply 4f 04)",
+        id="cleared",
+    ),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("state", "homing", "replies", "ask", "message"), CONTRADICTED)
+def test_a_reading_the_next_one_contradicts_is_named_and_counted_implausible(
+    scripted_bus: Any,
+    make_j1: Callable[..., Joint],
+    state: int,
+    homing: bool,
+    replies: tuple[bytes, bytes],
+    ask: Callable[[Joint], None],
+    message: str,
+) -> None:
+    joint = make_j1(state=state, retries=0)
+    if homing:
+        scripted_bus.queue(flags(state), flags(BUSY | state))
+        joint.start_homing(0.03, 30, 15)
+    scripted_bus.queue(*replies)
+    with pytest.raises(CommError) as caught:
+        ask(joint)
+    assert message in str(caught.value)
     assert joint.stats.errors_by_kind["implausible"] == 1
 
 
