@@ -235,6 +235,31 @@ def test_a_closed_run_log_refuses_every_record_as_a_stop(tmp_path: Path) -> None
     assert (log.dropped, log.lost, log.lines) == (1, ["summary"], 0)
 
 
+def test_a_first_record_the_disk_cannot_take_stops_the_run_even_if_it_cannot_be_cut_off(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # RunLog.write: "the first record that cannot be written" stops the run. Found through
+    # _cut_back's mutants, which no test told apart: when ftruncate failed too, its error
+    # became the log's error first, and the write returned as for a later record, so the
+    # run went on, unrecorded.
+    disk = FillingDisk(full_for=None)
+    monkeypatch.setattr(deploy_log, "_os_write", disk)
+    log = RunLog(tmp_path / "run.jsonl")
+    disk.fd = log._fd
+
+    def refuse(fd: int, length: int) -> None:
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+    monkeypatch.setattr(os, "ftruncate", refuse)
+    disk.full = True
+    with pytest.raises(SafetyStop) as caught:
+        log.write({"type": "cycle", "cycle": 0})
+    assert caught.value.reason is StopReason.LOG_ERROR
+    assert str(caught.value) == f"cannot write the run log {tmp_path / 'run.jsonl'}: {ENOSPC}"
+    assert log.error.errno == errno.ENOSPC and (log.dropped, log.lost) == (1, ["cycle 0"])
+    log.close()
+
+
 def test_a_failed_fsync_on_close_is_the_logs_error_and_the_file_is_closed(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
