@@ -70,7 +70,17 @@ def deploy(tmp_path: Path, gripper_state_file: Path) -> Callable[..., DeployRun]
         fields.setdefault("state_file", gripper_state_file)
         fields.setdefault("env", REACH)
         fields.setdefault("expert", policy is None)
-        return run_deployment(fields, policy, None, on_cycle, catch=(Interrupted,))
+        most = 50 * fields.get("episodes", 1)  # Reach's episodes last 50 steps at most
+
+        def hook(cycle: int, env: gym.Env) -> None:
+            if cycle >= most:  # an episode that does not end fails here, not at a timeout
+                raise AssertionError(
+                    f"cycle {cycle}: more than {most} in {fields.get('episodes', 1)} episode(s)"
+                )
+            if on_cycle is not None:
+                on_cycle(cycle, env)
+
+        return run_deployment(fields, policy, None, hook, catch=(Interrupted,))
 
     return run
 
@@ -280,13 +290,13 @@ def test_an_episode_ends_in_a_record_and_a_line(deploy: Callable[..., DeployRun]
 def make_loop(out: io.StringIO | None = None, **args: Any) -> tuple[ControlLoop, list[dict[str, Any]]]:
     """A loop whose log is a list and whose console writes to ``out``; no arm."""
     written: list[dict[str, Any]] = []
-    fields = {"episodes": 4, "realtime": False, "backend": "mock", **args}
+    fields = {"episodes": 4, "realtime": False, "backend": "mock", "dt": 0.04, **args}
     loop = ControlLoop(
-        target=SimpleNamespace(dt=0.04),
+        target=SimpleNamespace(dt=fields["dt"]),
         args=SimpleNamespace(**fields),
         log=SimpleNamespace(write=written.append),
         bus=SimpleNamespace(cycle=dict),
-        timing=CycleTiming(nominal_s=0.04),
+        timing=CycleTiming(nominal_s=fields["dt"]),
         signals=None,
         console=Console(file=out or io.StringIO(), width=200),
         tell=None,
@@ -409,6 +419,9 @@ def test_on_the_arm_the_wall_clock_paces_the_loop_and_its_period_is_warned_about
     assert loop._account_cycle(0.0625, 0.03, 0.001, check)["overrun"] is True
     assert out.getvalue() == "warning: overrun at cycle 0: period 62.5 ms > 40 ms\n"
     assert loop.timing.silences == [0.0125] and loop.timing.work == [0.001]
+    loop, _ = make_loop(out := io.StringIO(), dt=0.6)  # 1.67 Hz: the nominal period in whole ms
+    assert loop._account_cycle(0.7, 0.7, 0.001, check)["overrun"] is True
+    assert out.getvalue() == "warning: overrun at cycle 0: period 700.0 ms > 600 ms\n"
 
 
 # ------------------------------------------------------------------ realtime
