@@ -122,11 +122,7 @@ def test_the_run_log_replaces_a_file_with_one_compact_line_per_record(tmp_path: 
     path = tmp_path / "new" / "folder" / "run.jsonl"  # parents made
     path.parent.mkdir(parents=True)
     path.write_text("an older run's log, much longer than the new one\n" * 10)
-    old_umask = os.umask(0o022)
-    try:
-        log = RunLog(path)
-    finally:
-        os.umask(old_umask)
+    log = RunLog(path)
     log.write({"type": "cycle", "cycle": 0, "q": {"j1": 0.5}})
     log.write({"type": "episode", "success": True})
     assert path.read_bytes() == (
@@ -134,14 +130,19 @@ def test_the_run_log_replaces_a_file_with_one_compact_line_per_record(tmp_path: 
     )
     assert log.lines == 2 and log.error is None and log.dropped == 0 and log.lost == []
     log.close()
-    assert stat.S_IMODE(path.stat().st_mode) == 0o644
 
 
-def test_the_run_log_makes_its_folders(tmp_path: Path) -> None:
-    log = RunLog(tmp_path / "a" / "b" / "run.jsonl")
+def test_the_run_log_makes_its_folders_and_a_file_others_may_read(tmp_path: Path) -> None:
+    path = tmp_path / "a" / "b" / "run.jsonl"
+    old_umask = os.umask(0o022)
+    try:
+        log = RunLog(path)
+    finally:
+        os.umask(old_umask)
     log.write({"type": "header"})
     log.close()
-    assert read_log(tmp_path / "a" / "b" / "run.jsonl") == [{"type": "header"}]
+    assert read_log(path) == [{"type": "header"}]
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644  # rw-r--r--
 
 
 def test_the_run_log_is_fsynced_once_a_second_has_passed_since_the_last(
