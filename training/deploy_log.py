@@ -12,6 +12,7 @@ summary, :class:`BusStats` each joint's transactions, retries and errors, and
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import math
@@ -133,10 +134,11 @@ class RunLog:
                 os.fsync(self._fd)
                 self._synced = now
         except OSError as e:
+            first = self.error is None  # before the cut, which may fail too
             self._cut_back()
             self.dropped += 1
             self.lost.append(describe_record(record))
-            if self.error is not None:
+            if not first:
                 return
             self.error = e
             raise SafetyStop(
@@ -149,11 +151,10 @@ class RunLog:
         """Remove the part of a record that reached the file before the write failed."""
         if self._fd is None:
             return
-        try:
+        # If this fails too the record may stay torn; the write's error says the log is incomplete.
+        with contextlib.suppress(OSError):
             os.ftruncate(self._fd, self._size)
             os.lseek(self._fd, self._size, os.SEEK_SET)
-        except OSError as e:  # the record may stay torn; the summary says the log is incomplete
-            self.error = self.error or e
 
     def close(self) -> None:
         """Fsync and close (after a failed write, as far as the file system lets it)."""
