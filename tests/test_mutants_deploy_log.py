@@ -258,6 +258,7 @@ def test_a_first_record_the_disk_cannot_take_stops_the_run_even_if_it_cannot_be_
     assert caught.value.reason is StopReason.LOG_ERROR
     assert str(caught.value) == f"cannot write the run log {tmp_path / 'run.jsonl'}: {ENOSPC}"
     assert log.error.errno == errno.ENOSPC and (log.dropped, log.lost) == (1, ["cycle 0"])
+    assert log.torn
     log.close()
 
 
@@ -500,7 +501,9 @@ def test_the_summary_of_a_run_stopped_before_its_loop_shows_dashes(tmp_path: Pat
         stop_reason="stall",
         message="j2 stalled [at 0.5 rad]",
     )
-    lines, rows = printed(s, SimpleNamespace(path=tmp_path / "r.jsonl", error=None, lost=[], dropped=0))
+    lines, rows = printed(
+        s, SimpleNamespace(path=tmp_path / "r.jsonl", error=None, lost=[], dropped=0, torn=False)
+    )
     assert lines[0].strip() == "deploy summary (stall)"
     assert rows == {
         "episodes (successes)": "0/0",
@@ -520,7 +523,7 @@ def test_the_summary_of_a_run_stopped_before_its_loop_shows_dashes(tmp_path: Pat
 def test_an_incomplete_log_and_trace_are_named_after_the_table(tmp_path: Path) -> None:
     path = tmp_path / "[run].jsonl"
     log = SimpleNamespace(
-        path=path, error=OSError(errno.ENOSPC, ENOSPC), lost=["cycle 5", "summary"], dropped=2
+        path=path, error=OSError(errno.ENOSPC, ENOSPC), lost=["cycle 5", "summary"], dropped=2, torn=False
     )
     lines, _ = printed(summary_record(trace_error="cannot write the bus trace [t]: full"), log)
     assert lines[-3:] == [
@@ -529,11 +532,18 @@ def test_an_incomplete_log_and_trace_are_named_after_the_table(tmp_path: Path) -
         "every line in it is a whole record",
         "trace      incomplete: cannot write the bus trace [t]: full",
     ]
-    log = SimpleNamespace(path=path, error=OSError("closed [early]"), lost=[], dropped=0)
+    log = SimpleNamespace(path=path, error=OSError("closed [early]"), lost=[], dropped=0, torn=False)
     lines, _ = printed(summary_record(), log)
     assert (
         lines[-1]
         == "log incomplete: 0 record(s) not written (closed [early]); every line in it is a whole record"
+    )
+    # The failed record's part could not be cut off again: the summary does not claim whole lines.
+    log.torn = True
+    lines, _ = printed(summary_record(), log)
+    assert lines[-1] == (
+        "log incomplete: 0 record(s) not written (closed [early]); "
+        "its last line may be torn (cutting the failed record off failed too)"
     )
 
 

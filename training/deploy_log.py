@@ -12,7 +12,6 @@ summary, :class:`BusStats` each joint's transactions, retries and errors, and
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import json
 import math
@@ -99,6 +98,7 @@ class RunLog:
         error: The first write that failed, if one did.
         dropped: Records not written because of it.
         lost: Those records, each in a few words (:func:`describe_record`).
+        torn: A part of a failed record could not be cut off again (its last line may be torn).
     """
 
     def __init__(self, path: Path) -> None:
@@ -112,6 +112,7 @@ class RunLog:
         self.error: OSError | None = None
         self.dropped = 0
         self.lost: list[str] = []
+        self.torn = False
 
     def write(self, record: dict[str, Any]) -> None:
         """Append one record as a line.
@@ -151,10 +152,11 @@ class RunLog:
         """Remove the part of a record that reached the file before the write failed."""
         if self._fd is None:
             return
-        # If this fails too the record may stay torn; the write's error says the log is incomplete.
-        with contextlib.suppress(OSError):
+        try:
             os.ftruncate(self._fd, self._size)
             os.lseek(self._fd, self._size, os.SEEK_SET)
+        except OSError:
+            self.torn = True  # the summary says so instead of "every line is whole"
 
     def close(self) -> None:
         """Fsync and close (after a failed write, as far as the file system lets it)."""
@@ -314,9 +316,14 @@ def print_summary(console: Console, s: dict[str, Any], log: RunLog) -> None:
     console.print(f"log        {log.path}", markup=False)
     if log.error is not None:
         lost = f": {', '.join(log.lost)}" if log.lost else ""
+        lines = (
+            "its last line may be torn (cutting the failed record off failed too)"
+            if log.torn
+            else "every line in it is a whole record"
+        )
         console.print(
             f"log incomplete: {log.dropped} record(s) not written{lost} "
-            f"({log.error.strerror or log.error}); every line in it is a whole record",
+            f"({log.error.strerror or log.error}); {lines}",
             markup=False,
         )
     if s.get("trace_error"):
