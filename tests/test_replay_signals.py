@@ -186,3 +186,32 @@ def test_a_ctrl_c_before_the_arm_is_touched_replays_as_nothing_sent(
     result = replay(trace)
     assert result.ok and result.matched == 0
     assert isinstance(result.sessions[0].error, KeyboardInterrupt)
+
+
+def test_a_console_command_ctrl_ced_between_transactions_replays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # `bioscara home` Ctrl-C'd while it waits on a homing: the console disables
+    # the arm (its on-error transition); the trace says where the signal came.
+    from bioscara_gym.cli import main
+
+    reads = {"n": 0}
+    read = Arm.read
+
+    def interrupted_read(self: Arm, *args: Any, **kwargs: Any) -> Any:
+        reads["n"] += 1
+        if reads["n"] == 20:
+            raise KeyboardInterrupt  # landed between two transactions
+        return read(self, *args, **kwargs)
+
+    trace, state = tmp_path / "home.jsonl", tmp_path / "state.json"
+    assert main(["enable", "--backend", "emulated", "--state", str(state)]) == 0
+    monkeypatch.setattr(Arm, "read", interrupted_read)
+    assert main(["home", "--backend", "emulated", "--state", str(state), "--record", str(trace)]) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    (note,) = lines_of(trace, "signal")
+    assert note["at"] == "once" and 0 < note["i"] < len(lines_of(trace, "tx"))
+    result = replay(trace)
+    assert result.ok, result.sessions[-1]
+    assert result.matched == len(lines_of(trace, "tx"))

@@ -68,12 +68,10 @@ def trace_error(backend: Any) -> str | None:
 
 
 def note_signal(backend: Any, stopped_by: BaseException) -> None:
-    """If a signal stopped the run, note where in the backend's bus trace (``--record``), for its replay."""
-    from bioscara_gym.hardware.recording import recording_bus
+    """:func:`~bioscara_gym.hardware.recording.note_signal`, imported when a run stops."""
+    from bioscara_gym.hardware.recording import note_signal as note
 
-    bus = recording_bus(backend)
-    if bus is not None and isinstance(stopped_by, KeyboardInterrupt):
-        bus.record_signal(stopped_by)
+    note(backend, stopped_by)
 
 
 def describe_record(record: dict[str, Any]) -> str:

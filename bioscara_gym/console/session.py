@@ -43,6 +43,7 @@ from bioscara_gym.hardware.errors import (
     NotHomedError,
 )
 from bioscara_gym.hardware.gripper import Gripper, read_saved_width
+from bioscara_gym.hardware.recording import note_signal
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S
 
 #: Period of the arm's read/write cycle while a command waits, s (25 Hz).
@@ -192,6 +193,7 @@ class Session:
         failed = exc is not None and not isinstance(exc, InvalidArgumentError) and not _refused(exc)
         try:
             if failed:
+                note_signal(self.backend, exc)  # a Ctrl-C: where, in the bus trace, for its replay
                 self._on_error()
             else:
                 self._let_blocking_commands_start()

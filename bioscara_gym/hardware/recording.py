@@ -372,6 +372,17 @@ def recording_bus(backend: object) -> RecordingBus | None:
     return bus if isinstance(bus, RecordingBus) else None
 
 
+def note_signal(backend: object, stopped_by: BaseException | None) -> None:
+    """If a signal stopped the command, note where in the backend's bus trace (``--record``).
+
+    Called where the command catches it, before it makes the arm safe, so
+    the replay raises it before the same transactions (:meth:`RecordingBus.record_signal`).
+    """
+    bus = recording_bus(backend)
+    if bus is not None and isinstance(stopped_by, KeyboardInterrupt):
+        bus.record_signal(stopped_by)
+
+
 def recorder(recording: Recording, backend: str, config: ArmConfig) -> BusWrapper:
     """A :data:`BusWrapper` that records the backend's bus into ``recording``."""
 
