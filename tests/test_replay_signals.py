@@ -215,3 +215,31 @@ def test_a_console_command_ctrl_ced_between_transactions_replays(
     result = replay(trace)
     assert result.ok, result.sessions[-1]
     assert result.matched == len(lines_of(trace, "tx"))
+
+
+def test_an_evaluation_ctrl_ced_mid_episode_replays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # `bioscara eval --expert --backend emulated --record`: the env's shutdown
+    # after the Ctrl-C sends the arm's disable; the trace says where it came.
+    from bioscara_gym.cli import main
+
+    reads = {"n": 0}
+    read = Arm.read
+
+    def interrupted_read(self: Arm, *args: Any, **kwargs: Any) -> Any:
+        reads["n"] += 1
+        if reads["n"] == 40:
+            raise KeyboardInterrupt
+        return read(self, *args, **kwargs)
+
+    trace = tmp_path / "eval.jsonl"
+    monkeypatch.setattr(Arm, "read", interrupted_read)
+    argv = ["eval", "--expert", "--env", REACH, "--backend", "emulated", "--episodes", "2"]
+    assert main([*argv, "--record", str(trace)]) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    (note,) = lines_of(trace, "signal")
+    assert note["at"] == "once" and 0 < note["i"] < len(lines_of(trace, "tx"))
+    result = replay(trace)
+    assert result.ok, result.sessions[-1]

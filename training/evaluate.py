@@ -136,7 +136,7 @@ def evaluate_model(
     metadata = read_metadata(Path(model_path))
     overrides = {} if backend_options is None else {"backend_options": backend_options}
     env = make_eval_env(metadata, backend, render=video is not None, **overrides)
-    try:
+    with closed_at_the_end(env):
         check_metadata(metadata, env, metadata["env_id"])
         model, _ = load_model(Path(model_path))
         shapes = PolicyShapes.of_spaces(model.observation_space, model.action_space, f"model {model_path}")
@@ -145,6 +145,22 @@ def evaluate_model(
             return run_episodes(
                 env, sb3_policy(model), episodes, seed, on_frame=on_frame, video_episodes=video_episodes
             )
+
+
+@contextlib.contextmanager
+def closed_at_the_end(env: gym.Env) -> Iterator[gym.Env]:
+    """Close ``env`` (the arm shut down) however the block ends.
+
+    A Ctrl-C is first noted in the bus trace, if one is recorded, so the
+    replay stops where this evaluation stopped (docs/traces.md).
+    """
+    try:
+        yield env
+    except KeyboardInterrupt as e:
+        from bioscara_gym.hardware.recording import note_signal
+
+        note_signal(getattr(env.unwrapped, "backend", None), e)
+        raise
     finally:
         env.close()
 
@@ -177,14 +193,12 @@ def evaluate_expert(
     ``env_kwargs`` go to ``gym.make`` (``backend_options={"record": ...}`` records the bus).
     """
     env = gym.make(env_id, backend=backend, render_mode="rgb_array" if video else None, **env_kwargs)
-    try:
+    with closed_at_the_end(env):
         expert = task_of(env).make_expert(env.unwrapped)
         with video_writer(video, fps=int(env.metadata.get("render_fps", 25))) as on_frame:
             return run_episodes(
                 env, expert, episodes, seed, expert.reset, on_frame=on_frame, video_episodes=video_episodes
             )
-    finally:
-        env.close()
 
 
 @contextlib.contextmanager
