@@ -188,6 +188,28 @@ def test_a_ctrl_c_before_the_arm_is_touched_replays_as_nothing_sent(
     assert isinstance(result.sessions[0].error, KeyboardInterrupt)
 
 
+def interrupt_the_nth_read(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
+    """``Arm.read`` raises KeyboardInterrupt on its ``n``-th call: a Ctrl-C between two transactions."""
+    calls = {"n": 0}
+    read = Arm.read
+
+    def interrupted_read(self: Arm, *args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise KeyboardInterrupt
+        return read(self, *args, **kwargs)
+
+    monkeypatch.setattr(Arm, "read", interrupted_read)
+
+
+def assert_stopped_midway_and_replays(trace: Path) -> None:
+    (note,) = lines_of(trace, "signal")
+    assert note["at"] == "once" and 0 < note["i"] < len(lines_of(trace, "tx"))
+    result = replay(trace)
+    assert result.ok, result.sessions[-1]
+    assert result.matched == len(lines_of(trace, "tx"))
+
+
 def test_a_console_command_ctrl_ced_between_transactions_replays(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -195,26 +217,13 @@ def test_a_console_command_ctrl_ced_between_transactions_replays(
     # the arm (its on-error transition); the trace says where the signal came.
     from bioscara_gym.cli import main
 
-    reads = {"n": 0}
-    read = Arm.read
-
-    def interrupted_read(self: Arm, *args: Any, **kwargs: Any) -> Any:
-        reads["n"] += 1
-        if reads["n"] == 20:
-            raise KeyboardInterrupt  # landed between two transactions
-        return read(self, *args, **kwargs)
-
     trace, state = tmp_path / "home.jsonl", tmp_path / "state.json"
     assert main(["enable", "--backend", "emulated", "--state", str(state)]) == 0
-    monkeypatch.setattr(Arm, "read", interrupted_read)
+    interrupt_the_nth_read(monkeypatch, 20)
     assert main(["home", "--backend", "emulated", "--state", str(state), "--record", str(trace)]) == 130
     monkeypatch.undo()
     capsys.readouterr()
-    (note,) = lines_of(trace, "signal")
-    assert note["at"] == "once" and 0 < note["i"] < len(lines_of(trace, "tx"))
-    result = replay(trace)
-    assert result.ok, result.sessions[-1]
-    assert result.matched == len(lines_of(trace, "tx"))
+    assert_stopped_midway_and_replays(trace)
 
 
 def test_an_evaluation_ctrl_ced_mid_episode_replays(
@@ -224,22 +233,10 @@ def test_an_evaluation_ctrl_ced_mid_episode_replays(
     # after the Ctrl-C sends the arm's disable; the trace says where it came.
     from bioscara_gym.cli import main
 
-    reads = {"n": 0}
-    read = Arm.read
-
-    def interrupted_read(self: Arm, *args: Any, **kwargs: Any) -> Any:
-        reads["n"] += 1
-        if reads["n"] == 40:
-            raise KeyboardInterrupt
-        return read(self, *args, **kwargs)
-
     trace = tmp_path / "eval.jsonl"
-    monkeypatch.setattr(Arm, "read", interrupted_read)
+    interrupt_the_nth_read(monkeypatch, 40)
     argv = ["eval", "--expert", "--env", REACH, "--backend", "emulated", "--episodes", "2"]
     assert main([*argv, "--record", str(trace)]) == 130
     monkeypatch.undo()
     capsys.readouterr()
-    (note,) = lines_of(trace, "signal")
-    assert note["at"] == "once" and 0 < note["i"] < len(lines_of(trace, "tx"))
-    result = replay(trace)
-    assert result.ok, result.sessions[-1]
+    assert_stopped_midway_and_replays(trace)
