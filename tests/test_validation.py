@@ -333,21 +333,65 @@ def test_calibrate_fits_joints_in_worker_processes_with_the_same_result(
 
     from bioscara_gym.validation import calibrate as cal
 
-    def fake_fit(config, joint, runs, limits=(), *, seed, maxiter, progress=None):
+    def fake_fit(config, joint, runs, limits=(), *, held, seed, maxiter, progress=None):
         (tmp_path / f"{joint}.{os.getpid()}").touch()
-        return config.joint(joint).drive.with_values(pullout_accel=1000.0 * int(joint[1]) + seed + maxiter)
+        pullout = 1000.0 * int(joint[1]) + seed + maxiter
+        return config.joint(joint).drive.with_values(**{"pullout_accel": pullout, "slip_fraction": 0.25, **held})
+
+    def fake_cost(config, runs, limits):
+        # j1 and j3 fit better with the slipping rotor's push held at 0, j2 and j4 with it free.
+        (joint,) = {r.joint for r in runs}
+        slip = config.joint(joint).drive.slip_fraction
+        return abs(slip - (0.0 if joint in ("j1", "j3") else 0.25)) + int(joint[1])
 
     monkeypatch.setattr(cal, "fit_drive", fake_fit)
+    monkeypatch.setattr(cal, "drive_cost", fake_cost)
     monkeypatch.setattr(cal, "block_events", lambda signals: [])  # no swing fit
     rec = find_recordings(None)
     serial = cal.calibrate(CONFIG, rec, seed=3, maxiter=5, workers=1)
     forked = cal.calibrate(CONFIG, rec, seed=3, maxiter=5, workers=2)
     assert forked.config == serial.config
-    assert [forked.config.joint(j).drive.pullout_accel for j in ("j1", "j2", "j3", "j4")] == [
-        1008.0,
-        2008.0,
-        3008.0,
-        4008.0,
-    ]
+    assert forked.drive_cost_by_hypothesis == serial.drive_cost_by_hypothesis
+    drives = [forked.config.joint(j).drive for j in ("j1", "j2", "j3", "j4")]
+    assert [d.pullout_accel for d in drives] == [1008.0, 2008.0, 3008.0, 4008.0]
+    assert [d.slip_fraction for d in drives] == [0.0, 0.25, 0.0, 0.25]
+    assert forked.drive_cost_by_hypothesis == {
+        "j1": (1.25, 1.0),
+        "j2": (2.0, 2.25),
+        "j3": (3.25, 3.0),
+        "j4": (4.0, 4.25),
+    }
+    assert forked.drive_cost_after == {"j1": 1.0, "j2": 2.0, "j3": 3.0, "j4": 4.0}
     pids = {p.suffix for p in tmp_path.iterdir()}
     assert f".{os.getpid()}" in pids and len(pids) >= 2  # the serial fit here, the forked ones elsewhere
+
+
+def test_the_drive_fit_holds_what_a_hypothesis_holds_and_searches_the_rest(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The replays are slow; a bowl in the drive's fields stands in for them.
+    # Its floor: pull-out 3000 rad/s², the slipping rotor pushed at 0.3 of it.
+    from bioscara_gym.validation import calibrate as cal
+
+    def bowl(config, runs, limits):
+        d = config.joint("j1").drive
+        return math.log10(d.pullout_accel / 3000.0) ** 2 + (d.slip_fraction - 0.3) ** 2
+
+    monkeypatch.setattr(cal, "drive_cost", bowl)
+    runs = [r for r in find_recordings(None).max_accel if r.joint == "j1"]
+    free = cal.fit_drive(CONFIG, "j1", runs, maxiter=30, popsize=6)
+    held = cal.fit_drive(CONFIG, "j1", runs, held={"slip_fraction": 0.0}, maxiter=30, popsize=6)
+    assert free.pullout_accel == pytest.approx(3000.0, rel=0.02)
+    assert free.slip_fraction == pytest.approx(0.3, abs=0.01)
+    assert held.slip_fraction == 0.0
+    assert held.pullout_accel == pytest.approx(3000.0, rel=0.02)
+    with pytest.raises(ValueError, match=r"^j1: cannot hold noise: not a field the drive fit searches$"):
+        cal.fit_drive(CONFIG, "j1", runs, held={"noise": 0.0})
+
+
+def test_calibrate_names_each_hypothesis_cost_and_the_one_kept() -> None:
+    from bioscara_gym.validation.calibrate import DRIVE_HYPOTHESES, hypotheses_line
+
+    assert DRIVE_HYPOTHESES == ({}, {"slip_fraction": 0.0})
+    assert hypotheses_line((0.0131, 0.0021)) == "all searched 0.0131, slip_fraction held at 0 0.0021 (kept)"
+    assert hypotheses_line((0.0021, 0.0021)) == "all searched 0.0021 (kept), slip_fraction held at 0 0.0021"

@@ -70,7 +70,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from bioscara_gym.hardware.config import config_to_dict
     from bioscara_gym.hardware.errors import require_extra
     from bioscara_gym.validation import validate
-    from bioscara_gym.validation.calibrate import calibrate
+    from bioscara_gym.validation.calibrate import calibrate, hypotheses_line
     from bioscara_gym.validation.recordings import find_recordings
     from bioscara_gym.validation.report import summary
 
@@ -101,7 +101,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     for name, (b, a, n) in by_experiment.items():
         con.print(f"{name:<60} {b}/{n} -> {a}/{n}")
     for joint, cost in result.drive_cost_after.items():
-        con.print(f"{joint}: drive fit cost {result.drive_cost_before[joint]:.4f} -> {cost:.4f}")
+        tried = hypotheses_line(result.drive_cost_by_hypothesis[joint])
+        con.print(f"{joint}: drive fit cost {result.drive_cost_before[joint]:.4f} -> {cost:.4f} ({tried})")
     pb, total = summary(before.rows)
     pa, _ = summary(after.rows)
     con.print(f"all: {pb} -> {pa} of {total} comparisons pass")
