@@ -97,6 +97,19 @@ def test_j1_at_2_rad_per_s_loses_steps_as_the_real_one_did() -> None:
     assert max(abs(sim.qd)) < 1.0  # it never got near the 2 rad/s asked
 
 
+def test_j1_after_losing_its_field_stops_where_the_real_one_stopped() -> None:
+    # maxAccel/j1_3.csv: the real j1 slowed at a nearly constant rate and was
+    # at rest 0.392 rad from its start from 0.81 s on (|qd| < 0.005 rad/s),
+    # its field running on. A slipped rotor pushed on by that field crept at
+    # 0.089 rad/s for ever (the drive fit's local optimum, docs/validation.md).
+    run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
+    sim = max_accel.replay(run, CONFIG)
+    rest = run.t > 1.0
+    assert float(np.max(np.abs(run.qd[rest]))) < 0.005  # the recording, as read
+    assert float(np.max(np.abs(sim.qd[rest]))) < 0.01
+    assert sim.q[-1] - sim.q[0] == pytest.approx(-4.33145 - -4.72375, abs=0.02)  # first and last rows
+
+
 def test_the_largest_share_of_the_pull_out_torque_asked_for_is_kept() -> None:
     # Pull-out 1000 rad/s^2 at full current, no fall with speed, no friction: 500 at 50 %.
     # 0 -> 1 rad/s within one 10 ms tick asks 100 rad/s^2, a fifth of it.
@@ -395,3 +408,45 @@ def test_calibrate_names_each_hypothesis_cost_and_the_one_kept() -> None:
     assert DRIVE_HYPOTHESES == ({}, {"slip_fraction": 0.0})
     assert hypotheses_line((0.0131, 0.0021)) == "all searched 0.0131, slip_fraction held at 0 0.0021 (kept)"
     assert hypotheses_line((0.0021, 0.0021)) == "all searched 0.0021 (kept), slip_fraction held at 0 0.0021"
+
+
+def test_a_run_near_the_edge_of_its_pull_out_costs_the_fit_by_its_side() -> None:
+    # The real verdicts bracket the edge: a held run should ask at most 0.9 of
+    # the pull-out, a lost one at least 1.1; inside, the cost grows with the
+    # square of the way in, one margin's width costing as much as a wrong verdict.
+    from bioscara_gym.validation.calibrate import DEMAND_MARGIN, _margin_cost
+
+    assert DEMAND_MARGIN == 0.1
+    assert _margin_cost(0.9, lost=False) == 0.0
+    assert _margin_cost(0.5, lost=False) == 0.0
+    assert _margin_cost(0.96, lost=False) == pytest.approx(0.36)  # j1_1 on the fit without a margin
+    assert _margin_cost(1.0, lost=False) == pytest.approx(1.0)
+    assert _margin_cost(1.1, lost=True) == 0.0
+    assert _margin_cost(394.0, lost=True) == 0.0
+    assert _margin_cost(1.0, lost=True) == pytest.approx(1.0)
+    assert _margin_cost(0.9, lost=True) == pytest.approx(4.0)
+
+
+def test_the_drive_cost_charges_the_margin_of_every_run_and_stated_limit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from bioscara_gym.validation import calibrate as cal
+
+    seen: list[tuple[float, bool]] = []
+
+    def charged(demand: float, lost: bool) -> float:
+        seen.append((demand, lost))
+        return 1000.0
+
+    monkeypatch.setattr(cal, "_margin_cost", charged)
+    rec = find_recordings(None)
+    j1 = sorted((r for r in rec.max_accel if r.joint == "j1"), key=lambda r: r.path.name)
+    assert cal.drive_cost(CONFIG, j1, ()) > 3000.0
+    # maxAccel/README.md: j1 held at 1 rad/s and 2 rad/s², lost steps at 3 rad/s² and at 2 rad/s.
+    assert [lost for _, lost in seen] == [False, True, True]
+    assert all(d > 0.0 for d, _ in seen)
+    seen.clear()
+    j3_limits = [lim for lim in cal.README_LIMITS if lim.joint == "j3"]
+    assert cal.drive_cost(CONFIG, (), j3_limits) == 3000.0  # every verdict as stated
+    assert [lost for _, lost in seen] == [False, True, False]
+    assert all(d > 0.0 for d, _ in seen)

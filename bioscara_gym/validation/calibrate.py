@@ -323,15 +323,32 @@ def _with_drive(config: ArmConfig, joint: str, drive: DriveParams) -> ArmConfig:
     return dataclasses.replace(config, joints=joints)
 
 
+#: How far from the edge of its pull-out a run must stay before the fit
+#: pays for it: a run the real motor held should ask at most ``1 - m`` of
+#: the pull-out torque, one where it lost steps at least ``1 + m``. The real
+#: verdicts bracket the edge (j1 held at 1 rad/s with 2 rad/s², lost with
+#: 3); without a margin a least-cost fit puts the edge on the held run
+#: (``j1_1`` asked 0.96 of its pull-out), where a command a hair faster in
+#: a task loses steps the real motor kept.
+DEMAND_MARGIN = 0.1
+
+
+def _margin_cost(demand: float, lost: bool) -> float:
+    """(How far inside :data:`DEMAND_MARGIN` of the edge ``demand`` is, over the margin)²."""
+    inside = (1.0 + DEMAND_MARGIN - demand) if lost else (demand - (1.0 - DEMAND_MARGIN))
+    return max(0.0, inside / DEMAND_MARGIN) ** 2
+
+
 def drive_cost(
     config: ArmConfig, runs: Sequence[MaxAccelRun], limits: Sequence[Limit], step_loss_weight: float = 1.0
 ) -> float:
-    """What the drive fit minimises: position and peak-speed errors, and step-loss verdicts.
+    """What the drive fit minimises: position and peak-speed errors, step-loss verdicts and their margin.
 
     Per published run: (position RMS / move)² + (peak speed error / peak)²
     over the compared window, plus ``step_loss_weight`` if the simulated run
-    disagrees with the real one on lost steps; per stated limit, the weight
-    if the verdict differs.
+    disagrees with the real one on lost steps and ``step_loss_weight`` times
+    the margin cost (:data:`DEMAND_MARGIN`) of the largest share of the
+    pull-out torque it asked for; per stated limit, the same verdict and margin terms.
     """
     total = 0.0
     for run in runs:
@@ -345,12 +362,16 @@ def drive_cost(
         peak_err = abs(float(np.max(np.abs(sim.qd[mask]))) - peak) / peak
         lost_real = max_accel.lost_steps(run.qd[mask], commanded.qd[mask], run)
         lost_sim = max_accel.lost_steps(sim.qd[mask], commanded.qd[mask], run)
-        total += rms**2 + peak_err**2 + step_loss_weight * (lost_real != lost_sim)
+        demand = max_accel.peak_demand(sim, mask) or 0.0
+        total += rms**2 + peak_err**2
+        total += step_loss_weight * ((lost_real != lost_sim) + _margin_cost(demand, lost_real))
     for limit in limits:
         run = limit.as_run()
         sim = max_accel.replay(run, config)
         commanded = max_accel.replay(run, max_accel.ideal(config, run.joint))
-        total += step_loss_weight * (max_accel.lost_steps(sim.qd, commanded.qd, run) != limit.lost)
+        demand = max_accel.peak_demand(sim, np.ones(len(sim.t), bool)) or 0.0
+        lost_sim = max_accel.lost_steps(sim.qd, commanded.qd, run)
+        total += step_loss_weight * ((lost_sim != limit.lost) + _margin_cost(demand, limit.lost))
     return total
 
 
