@@ -311,10 +311,11 @@ DRIVE_BOUNDS = (
 
 
 #: The drive fit's starting assumptions, each searched in full; the lower
-#: cost is kept. With the slipping rotor's push free, the search settles for
+#: cost is kept. With the slipping rotor's push free, the search settled for
 #: j1 in a valley where a slipped rotor creeps on at 0.089 rad/s (drive cost
 #: 0.0131); the real j1 in ``j1_3`` slows at a nearly constant rate and stops
-#: dead, which the search finds only with that push held at 0 (0.0021).
+#: dead, which the search found with that push held at 0 (0.0043, before
+#: :data:`DEMAND_MARGIN`; docs/validation.md).
 DRIVE_HYPOTHESES: tuple[Mapping[str, float], ...] = ({}, {"slip_fraction": 0.0})
 
 
