@@ -428,7 +428,7 @@ def fit_drive(
         nonlocal calls
         calls += 1
         if progress:
-            progress(f"{joint}{_named(held)}: generation {calls}, cost {cost(xk):.4f}")
+            progress(f"{joint} ({_hypothesis(held)}): generation {calls}, cost {cost(xk):.4f}")
 
     bounds = [(math.log10(lo), math.log10(hi)) if log else (lo, hi) for _, lo, hi, log in searched]
     result = differential_evolution(
@@ -455,15 +455,13 @@ def fit_drive(
     best = polished.x if polished.fun <= result.fun else result.x
     if progress:
         done = min(polished.fun, result.fun)
-        progress(f"{joint}{_named(held)}: polished cost {done:.4f} (from {result.fun:.4f})")
+        progress(f"{joint} ({_hypothesis(held)}): polished cost {done:.4f} (from {result.fun:.4f})")
     return drive_of(best)
 
 
-def _named(held: Mapping[str, float]) -> str:
-    """`` (slip_fraction held at 0)`` for progress lines; empty when nothing is held."""
-    if not held:
-        return ""
-    return " (" + ", ".join(f"{k} held at {v:g}" for k, v in held.items()) + ")"
+def _hypothesis(held: Mapping[str, float]) -> str:
+    """``slip_fraction held at 0``, or ``all searched`` when nothing is held."""
+    return ", ".join(f"{k} held at {v:g}" for k, v in held.items()) or "all searched"
 
 
 def hypotheses_line(costs: Sequence[float]) -> str:
@@ -473,7 +471,7 @@ def hypotheses_line(costs: Sequence[float]) -> str:
     """
     kept = list(costs).index(min(costs))
     parts = [
-        f"{_named(h)[2:-1] or 'all searched'} {c:.4f}" + (" (kept)" if i == kept else "")
+        f"{_hypothesis(h)} {c:.4f}" + (" (kept)" if i == kept else "")
         for i, (h, c) in enumerate(zip(DRIVE_HYPOTHESES, costs, strict=True))
     ]
     return ", ".join(parts)
