@@ -23,7 +23,9 @@ from bioscara_gym.hardware.config import (
     config_to_dict,
     load_config,
 )
+from bioscara_gym.hardware.drive import velocity_mode_acceleration
 from bioscara_gym.hardware.errors import ConfigError, InvalidArgumentError
+from bioscara_gym.hardware.registers import MOTOR_ACCELERATION_MAX_DPS2
 
 # docs/model.md tables, row by row: address, type, reduction, (min, max), max vel,
 # max acc, stall threshold, hold current, drive current,
@@ -665,8 +667,17 @@ INVALID_CASES = [
     pytest.param(
         _set_joint("j1", "max_acceleration", 15.0),
         r"config\.yaml: joint j1: max_acceleration 15\.0 rad/s² is 3\.008e\+04 deg/s² at the motor; the "
-        r"joints lose their ramp above 23,400 deg/s², so at most 30000 \(14\.9599[0-9]* rad/s²\)$",
+        r"driver chip's 16-bit acceleration register wraps above 20,945 deg/s², so at most 20900 "
+        r"\(10\.4221[0-9]* rad/s²\)$",
         id="max-acceleration-beyond-the-motor",
+    ),
+    # maxAccel/j4_4: the real j4 set to 34 rad/s² (23,377 deg/s²) ramped at 2,431 and reached
+    # 1.9 rad/s of 10. 30.5 rad/s² (20,970 deg/s²) is just past the wrap: it would ramp at 8 deg/s².
+    pytest.param(
+        _set_joint("j4", "max_acceleration", 30.5),
+        r"config\.yaml: joint j4: max_acceleration 30\.5 rad/s² is 2\.097e\+04 deg/s² at the motor; the "
+        r"driver chip's 16-bit acceleration register wraps",
+        id="max-acceleration-past-the-chip-wrap",
     ),
     pytest.param(
         _set_homing("j1", "threshold", 0),
@@ -886,7 +897,7 @@ def test_value_error_in_file_names_path_and_joint(tmp_path: Path, default_dict: 
         ("j2", "homing.current", 1),
         ("j4", "drive_current", 1),
         ("j4", "max_velocity", 2000.0 * 6.0 / math.degrees(12.0)),  # 2000 RPM at the motor exactly
-        ("j3", "max_acceleration", 30_000.0 / math.degrees(24.0)),  # 30,000 deg/s^2 at the motor exactly
+        ("j3", "max_acceleration", 20_900.0 / math.degrees(24.0)),  # 20,900 deg/s^2 at the motor exactly
     ],
 )
 def test_the_bounds_of_what_the_arm_can_honour_are_themselves_accepted(
@@ -898,6 +909,13 @@ def test_the_bounds_of_what_the_arm_can_honour_are_themselves_accepted(
     else:
         spec[field] = value
     config_from_dict(default_dict, source="config.yaml")
+
+
+def test_the_acceleration_bound_is_one_the_driver_chip_holds_and_just_past_it_the_chip_wraps() -> None:
+    # The chip's AMAX field has 16 bits (drive.velocity_mode_acceleration): 20,900 deg/s^2
+    # is ramped as set; 20,946 wraps to 0.32 deg/s^2, a joint that barely moves.
+    assert velocity_mode_acceleration(MOTOR_ACCELERATION_MAX_DPS2) == pytest.approx(20_900.0, rel=1e-4)
+    assert velocity_mode_acceleration(20_946.0) < 1.0
 
 
 def test_a_dynamixel_joint_is_not_bound_by_the_steppers_limits() -> None:

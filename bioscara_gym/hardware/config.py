@@ -467,7 +467,8 @@ class JointConfig:
         if dps2 > MOTOR_ACCELERATION_MAX_DPS2 * (1 + 1e-12):
             raise ConfigError(
                 f"max_acceleration {_fmt(self.max_acceleration)}{unit}/s² is {dps2:.4g} deg/s² at the motor; "
-                f"the joints lose their ramp above 23,400 deg/s², so at most {MOTOR_ACCELERATION_MAX_DPS2:g} "
+                f"the driver chip's 16-bit acceleration register wraps above 20,945 deg/s², so at most "
+                f"{MOTOR_ACCELERATION_MAX_DPS2:g} "
                 f"({_fmt(self.max_acceleration * MOTOR_ACCELERATION_MAX_DPS2 / dps2)}{unit}/s²)"
             )
 

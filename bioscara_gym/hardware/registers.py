@@ -203,12 +203,14 @@ DRIVE_CURRENT_MIN_PCT = 1
 #: is beyond what they can do (our choice). A limit above it (j4 at
 #: 1e6 rad/s was accepted) clamps nothing.
 MOTOR_RPM_MAX = 2000.0
-#: Largest motor acceleration a joint may be configured for, deg/s^2. The
-#: real joints lost their ramp above j1 3 rad/s^2 (6,000 deg/s^2 at the
-#: motor), j3 15 rad/s^2 (20,600) and j4 between 30 and 34 rad/s^2 (20,600 to
-#: 23,400; maxAccel/README.md); 30,000 deg/s^2 is 1.28 times the highest that
-#: failed (our choice).
-MOTOR_ACCELERATION_MAX_DPS2 = 30_000.0
+#: Largest motor acceleration a joint may be configured for, deg/s^2: what the
+#: driver chip's 16-bit AMAX field holds (0xFFFF / (200/360 x 256 x 0.0220),
+#: 20,945; ``drive.velocity_mode_acceleration``), rounded down. Above it the
+#: library's cast wraps, and the joint ramps at a fraction of its limit:
+#: 20,946 deg/s^2 becomes 0.32. The real arm shows it: ``maxAccel/j4_4`` set
+#: 23,377 and ramped at 2,431 (j4 reached 1.9 rad/s of 10), ``j2_5`` set
+#: 27,000 and ramped at 6,055. (Before, 30,000 was accepted.)
+MOTOR_ACCELERATION_MAX_DPS2 = 20_900.0
 
 # --------------------------------------------------- firmware timings
 #: Main-loop period in seconds: stall detection and the deadman run once per
