@@ -38,6 +38,7 @@ from bioscara_gym.hardware.errors import (
     JointError,
     NotHomedError,
 )
+from bioscara_gym.hardware.field_watch import FieldLostError, FieldWatch
 from bioscara_gym.hardware.registers import DEADMAN_S, TICK_S, Flag, Reg
 from bioscara_gym.hardware.safety import (
     REST_RPM,
@@ -77,6 +78,11 @@ def check_control_freq(control_freq: object, name: str = "control_freq") -> floa
             f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
         )
     return float(control_freq)
+
+
+def _speed_unit(config: JointConfig) -> str:
+    """``"m/s"`` for the lift, ``"rad/s"`` for the revolute joints."""
+    return "m/s" if config.joint_type == "prismatic" else "rad/s"
 
 
 class PhaseObserver(Protocol):
@@ -163,6 +169,14 @@ class Arm:
         #: cycle's command reaches the joint.
         self.cycle_bus_s = 0.0
         self._homing: set[str] = set()
+        #: Each stepper joint's field watch (docs/arm.md, "The field watch"), and the
+        #: position or velocity command the last write sent it.
+        self.watches = {
+            name: FieldWatch(name, cfg.reduction, cfg.max_velocity, cfg.max_acceleration, _speed_unit(cfg))
+            for name, cfg in ((n, self.config.joint(n)) for n in self.names)
+            if self.joints[name].has_field
+        }
+        self._sent: dict[str, float] = {}
 
     # ------------------------------------------------------------ lifecycle
     def _require(self, *states: Lifecycle, action: str) -> None:
@@ -547,6 +561,7 @@ class Arm:
                 self._guarded(lambda: self._enable_joint(name))
                 self._read_joint(name)
         state = self.joint_states[name]
+        self._restart_watch(name, state.velocity)  # the chip runs on at the speed the encoder reads
         self.commands[name] = {
             CommandMode.POSITION: state.position,
             CommandMode.VELOCITY: 0.0,
@@ -566,6 +581,9 @@ class Arm:
         if mode is CommandMode.HOME and name in self._homing:
             raise ArmStateError(f"{name}: homing is running; abort it (home command 0) before releasing")
         self.modes[name] = CommandMode.NONE
+        self._sent.pop(name, None)
+        if name in self.watches:
+            self.watches[name].stop()
         joint = self.joints[name]
         if mode is CommandMode.VELOCITY and self.state is Lifecycle.ACTIVE and joint.is_enabled():
             self._guarded(lambda: joint.set_velocity(0.0))
@@ -626,7 +644,62 @@ class Arm:
         self._require(Lifecycle.INACTIVE, Lifecycle.ACTIVE, action="read")
         for name in self.names:
             self._guarded(lambda name=name: self._read_joint(name))
+            self._guarded(lambda name=name: self._watch(name))
         return self.joint_states
+
+    def _watch(self, name: str) -> None:
+        """Feed the joint's field watch this reading (docs/arm.md, "The field watch").
+
+        Only while the position or velocity interface has sent a command and
+        the joint's flags say it runs it (enabled, homed, not stalled, not
+        busy); otherwise the watch starts over.
+
+        Raises:
+            FieldLostError: The rotor stayed behind its field; the joint is
+                disabled at once (the caller's on-error transition stops the rest).
+        """
+        watch = self.watches.get(name)
+        if watch is None:
+            return
+        mode, st = self.modes[name], self.joint_states[name]
+        halted = Flag.STALL | Flag.NOT_ENABLED | Flag.NOT_HOMED | Flag.BUSY
+        now = self.backend.clock.now()
+        if st.flags & halted or self.joints[name].picking_up:
+            if st.flags & (Flag.STALL | Flag.NOT_ENABLED):  # stopped hard, or unpowered: at rest
+                watch.start(now, 0.0, st.velocity, st.position)
+            else:
+                watch.stop()
+            return
+        if mode not in (CommandMode.POSITION, CommandMode.VELOCITY) or name not in self._sent:
+            return  # nothing sent since the watch last started
+        try:
+            if mode is CommandMode.VELOCITY:
+                watch.velocity(now, self._sent[name], st.velocity)
+            else:
+                watch.position(now, self._sent[name], st.position, st.velocity)
+        except FieldLostError:
+            # Its field first, at once: the rotor stands, and a ramped stop would keep the
+            # field slipping over it for as long as the ramp takes (0.5 s for j1).
+            with contextlib.suppress(JointError):
+                self.joints[name].disable()
+            raise
+
+    def _restart_watch(self, name: str, field: float) -> None:
+        """The joint's field watch starts now at ``field``, with nothing sent yet."""
+        self._sent.pop(name, None)
+        if name in self.watches:
+            st = self.joint_states[name]
+            self.watches[name].start(self.backend.clock.now(), field, st.velocity, st.position)
+
+    def forget_motion(self) -> None:
+        """Every field watch starts over with the joints at rest: they were placed, not driven.
+
+        For a simulation's reset: the encoders' speed estimates read the jump
+        for a while, and the last positions read are stale.
+        """
+        now = self.backend.clock.now()
+        for watch in self.watches.values():
+            watch.start(now, 0.0, 0.0)
 
     def _read_joint(self, name: str) -> None:
         """Position, velocity, then the home state of one joint (a finished homing is stopped).
@@ -683,8 +756,10 @@ class Arm:
             mode = self.modes[name]
             if mode is CommandMode.POSITION:
                 joint.set_position(self.commands[name])
+                self._sent[name] = self.commands[name]
             elif mode is CommandMode.VELOCITY:
                 joint.set_velocity(self.commands[name])
+                self._sent[name] = self.commands[name]
             elif mode is CommandMode.HOME:
                 self._write_home(name)
         if self.gripper.is_enabled and self.gripper_command != self.gripper.get_position():

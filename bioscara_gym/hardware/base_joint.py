@@ -6,7 +6,7 @@ import abc
 import contextlib
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.codec import pack_bytes
@@ -105,6 +105,11 @@ class BaseJoint(abc.ABC):
         max: Upper joint limit (rad or m); the offset after homing positive.
         clock: Time source for waiting on blocking commands.
     """
+
+    #: Whether a stepper's field drives the joint, one that can run away from
+    #: its rotor: the arm then watches it (:mod:`~bioscara_gym.hardware.field_watch`).
+    #: False for a joint that mirrors its commands or closes its own loop.
+    has_field: ClassVar[bool] = True
 
     def __init__(
         self,

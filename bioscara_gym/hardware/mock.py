@@ -36,6 +36,8 @@ class MockJoint(BaseJoint):
         homing_time_s: How long homing takes.
     """
 
+    has_field = False  # it mirrors its commands: no field to run away from the rotor
+
     def __init__(
         self,
         name: str,

@@ -96,6 +96,8 @@ class DynamixelJoint(BaseJoint):
         clock: Time source (waits after REBOOT).
     """
 
+    has_field = False  # it closes its own loop: no field to run away from the rotor
+
     def __init__(
         self,
         name: str,
