@@ -29,6 +29,7 @@ from bioscara_gym.envs.base import JOINT_MODE
 from bioscara_gym.envs.reach import reachable_travel
 from bioscara_gym.hardware.arm import CommandMode, Lifecycle
 from bioscara_gym.hardware.errors import StalledError
+from bioscara_gym.hardware.field_watch import FieldLostError
 from bioscara_gym.hardware.registers import Flag
 
 REACH = "Bioscara-Reach-v0"
@@ -457,6 +458,7 @@ def test_a_collision_at_full_speed_passes_the_spike_filter_only_later(make_env: 
     [
         (StalledError("stall detection tripped", joint="j3"), "j3"),
         (StalledError("j2: a message naming a joint, without joint="), None),
+        (FieldLostError("j1: lost its field", joint="j1", field=1.0, rotor=0.0), "j1"),
     ],
 )
 def test_stalled_joint_comes_from_the_error_not_its_text(
@@ -473,6 +475,7 @@ def test_stalled_joint_comes_from_the_error_not_its_text(
     _, reward, terminated, _, info = env.step(u._neutral_action())
     assert terminated and info["stalled"] is True
     assert info.get("stalled_joint") == expected
+    assert info["field_lost"] is isinstance(error, FieldLostError)  # whose stop it was
     assert reward < BioscaraEnv.stall_penalty + 1e-9
     assert u.arm.state is Lifecycle.INACTIVE
 

@@ -230,6 +230,16 @@ def test_a_stall_the_env_reports_names_the_joint(mock_arm: Arm) -> None:
     assert str(caught.value) == "j4 stalled (stall detection tripped); every joint stopped"
 
 
+def test_a_field_the_arms_watch_saw_lost_is_named_as_such_not_as_the_firmwares_stall(mock_arm: Arm) -> None:
+    env = Env(info={"stalled": True, "stalled_joint": "j1", "field_lost": True})
+    with pytest.raises(SafetyStop) as caught:
+        layer(mock_arm, env).step([0.0, 0.0])
+    assert caught.value.reason is StopReason.STALL and caught.value.joint == "j1"
+    assert str(caught.value) == (
+        "j1 lost its field (the arm's field watch: the rotor stayed behind the drive); every joint stopped"
+    )
+
+
 def test_a_step_of_an_unconfigured_arm_skips_the_enabled_check(mock_arm: Arm) -> None:
     # Unconfigured: its joints' last flags say nothing; the check is for an active arm only.
     result, _ = layer(mock_arm).step([0.0, 0.0])

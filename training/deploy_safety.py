@@ -212,9 +212,12 @@ class SafetyLayer:
         if info.get("stalled"):
             joint = info.get("stalled_joint")
             who = joint or "a joint (the env did not say which)"
-            raise SafetyStop(
-                StopReason.STALL, f"{who} stalled (stall detection tripped); every joint stopped", joint
+            how = (
+                "lost its field (the arm's field watch: the rotor stayed behind the drive)"
+                if info.get("field_lost")
+                else "stalled (stall detection tripped)"
             )
+            raise SafetyStop(StopReason.STALL, f"{who} {how}; every joint stopped", joint)
 
     def _check_enabled(self) -> None:
         """Stop if a joint reports not enabled while the arm is active."""

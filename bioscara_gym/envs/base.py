@@ -53,6 +53,7 @@ from bioscara_gym.hardware.arm import (
 from bioscara_gym.hardware.backends import BACKENDS, Backend, make_backend
 from bioscara_gym.hardware.config import ArmConfig, load_config
 from bioscara_gym.hardware.errors import JointError, StalledError
+from bioscara_gym.hardware.field_watch import FieldLostError
 from bioscara_gym.hardware.registers import Flag
 from bioscara_gym.hardware.safety import SafeStopReport
 
@@ -168,6 +169,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if render_mode is not None:
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode
+        self._field_lost = False  # the last step's stall was the field watch's
         if cartesian_lead is not None:  # else the class's
             self.cartesian_lead = bool(cartesian_lead)
         if cartesian_step is not None:  # else the class's
@@ -387,6 +389,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self.sim.set_joint_state(dict(zip(self.joint_names, pose, strict=True)))
             for name in self.joint_names:  # no real joint jumps: the drivers must not take it for noise
                 self.arm.joints[name].forget_position()
+            self.arm.forget_motion()  # nor for a rotor left behind its field
             return
         self.arm.move_to(dict(zip(self.joint_names, map(float, pose), strict=True)), period_s=self.dt)
 
@@ -400,14 +403,17 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
         The stalled joint is the :class:`StalledError`'s ``joint``, else the
         first whose state flags STALL. A stall stops every joint (the arm is
-        deactivated), as on the arm.
+        deactivated), as on the arm; so does a rotor the arm's field watch
+        saw fall behind its field (:class:`FieldLostError`, ``info["field_lost"]``).
         """
         stalled, joint = False, None
+        self._field_lost = False
         try:
             self._set_action(action)
             self.arm.cycle(self.dt)
         except StalledError as e:
             stalled, joint = True, e.joint
+            self._field_lost = isinstance(e, FieldLostError)
         if joint is None:
             for name in self.joint_names:
                 if self.arm.joint_states[name].flags & Flag.STALL:
@@ -493,12 +499,16 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     def _get_info(
         self, obs: dict[str, np.ndarray], stalled: bool = False, stalled_joint: str | None = None
     ) -> dict[str, Any]:
-        """``is_success``, ``distance`` (m), ``stalled``, ``stalled_joint`` (if known), ``flags``, ``bus``."""
+        """``is_success``, ``distance`` (m), ``stalled``, ``stalled_joint`` (if known), ``flags``, ``bus``.
+
+        And ``field_lost``: the stall was the arm's field watch's, not the firmware's flag.
+        """
         achieved, desired = obs["achieved_goal"], obs["desired_goal"]
         info: dict[str, Any] = {
             "is_success": bool(self._is_success(achieved, desired)),
             "distance": float(np.linalg.norm(achieved - desired)),
             "stalled": stalled,
+            "field_lost": stalled and self._field_lost,
             "flags": {n: int(self.arm.joint_states[n].flags) for n in self.joint_names},
         }
         if stalled_joint is not None:
