@@ -99,11 +99,12 @@ class FieldWatch:
         self.max_acceleration = float(max_acceleration)
         self.unit = unit
         self.bound = FIELD_LOST_MOTOR_RAD_S / abs(reduction)
+        #: The field's speed now, joint units (None: not predicting), and what the encoder
+        #: of a rotor on it reads.
         self.field: float | None = None
-        self.reading = 0.0
+        self.reading = self.time = 0.0
         self._measured: float | None = None  # the position at the last reading (position mode)
-        self.time = 0.0
-        self.behind_since: float | None = None
+        self.behind_since: float | None = None  # when the rotor fell behind, if it is
 
     def start(self, now: float, field: float, reading: float, position: float | None = None) -> None:
         """Start predicting at ``now``: the field turns at ``field``, the encoder reads ``reading``.
@@ -120,8 +121,6 @@ class FieldWatch:
     def stop(self) -> None:
         """Stop predicting until :meth:`start` (or a reading, which starts at the rotor's speed)."""
         self.field = None
-        self._measured = None
-        self.behind_since = None
 
     def velocity(self, now: float, command: float, rotor: float) -> None:
         """A reading in velocity mode: ``command`` was sent (SETRPM), the encoder reads ``rotor``.
