@@ -140,6 +140,16 @@ def test_stopped_the_next_reading_starts_over_from_the_rotors_speed() -> None:
         watch.velocity(1.0 + 0.01 * k, 0.0, 0.0)
 
 
+def test_a_reading_long_after_the_last_starts_over_instead_of_replaying_the_gap() -> None:
+    # An hour between readings (a position interface left idle, no deadman in position mode):
+    # not 360,000 ramp steps, and the field is taken from the rotor, not the hour-old command.
+    watch = _steady_watch()
+    watch.velocity(3600.0, 1.0, 0.0)
+    assert (watch.field, watch.time) == (0.0, 3600.0)
+    for k in range(1, 200):  # commanded to rest from there: nothing left of the old field
+        watch.velocity(3600.0 + 0.01 * k, 0.0, 0.0)
+
+
 def _ramp_from(watch: FieldWatch) -> None:
     """j1 commanded 1 rad/s at 2 rad/s², read 20 times a second as the estimator's 63 ms late."""
     for k in range(1, 30):

@@ -50,6 +50,10 @@ FIELD_LOST_HOLD_S = 0.1
 #: The chip ramps continuously; the watch steps its ramp at the firmware's loop
 #: period, which is off by at most the max acceleration times this (j2: 2 mm/s).
 RAMP_STEP_S = 0.01
+#: Readings further apart than this say nothing of what the chip did between
+#: them (every ramp of the arm's limits ends within 0.5 s): the prediction
+#: starts over at the rotor's speed.
+MAX_GAP_S = 1.0
 #: The encoder's speed estimate (``getRPM()``, a PI tracking loop) trails a
 #: speed that changes at a constant rate by KP/KI = 63 ms (``drive.VelocityEstimator``):
 #: j3 accelerating at 14 rad/s² reads 0.88 rad/s slow, more than the bound.
@@ -148,7 +152,7 @@ class FieldWatch:
         still stops at ``command`` from the field's own position, which
         starts at where the rotor was measured at the last reading.
         """
-        if self.field is None or now <= self.time:
+        if self.field is None or not 0.0 < now - self.time <= MAX_GAP_S:
             self.start(now, rotor, rotor, position)
             return
         start, self._measured = self._measured, position
