@@ -561,7 +561,7 @@ class Arm:
                 self._guarded(lambda: self._enable_joint(name))
                 self._read_joint(name)
         state = self.joint_states[name]
-        self._restart_watch(name, state.velocity)  # the chip runs on at the speed the encoder reads
+        self._restart_watch(name)  # the chip runs on at about the speed the encoder reads
         self.commands[name] = {
             CommandMode.POSITION: state.position,
             CommandMode.VELOCITY: 0.0,
@@ -684,12 +684,12 @@ class Arm:
                 self.joints[name].disable()
             raise
 
-    def _restart_watch(self, name: str, field: float) -> None:
-        """The joint's field watch starts now at ``field``, with nothing sent yet."""
+    def _restart_watch(self, name: str) -> None:
+        """The joint's field watch starts now at the measured speed (not exact), with nothing sent yet."""
         self._sent.pop(name, None)
         if name in self.watches:
-            st = self.joint_states[name]
-            self.watches[name].start(self.backend.clock.now(), field, st.velocity, st.position)
+            st, now = self.joint_states[name], self.backend.clock.now()
+            self.watches[name].start(now, st.velocity, st.velocity, st.position, exact=False)
 
     def forget_motion(self) -> None:
         """Every field watch starts over with the joints at rest: they were placed, not driven.
