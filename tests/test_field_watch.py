@@ -284,15 +284,21 @@ def test_on_the_real_free_ramps_of_the_stall_test_it_never_trips() -> None:
 # ------------------------------------------------------------ in the arm
 
 
-def test_the_arm_stops_j1_blocked_at_full_speed_which_the_firmware_does_not_flag(make_arm_backend) -> None:
-    # j1 blocked at 1 rad/s (35 rad/s at the motor, 285 a pass) rises past the spike filter at
-    # once: the firmware alone presses on (benchmarks/collision_speeds.py).
-    from rigs import place_obstacle
-
+@pytest.fixture
+def arm(make_arm_backend) -> Arm:
+    """The simulated arm, active and homed (every joint at its max end stop)."""
     arm = Arm(make_arm_backend("sim"))
     arm.configure()
     arm.activate()
     arm.home()
+    return arm
+
+
+def test_the_arm_stops_j1_blocked_at_full_speed_which_the_firmware_does_not_flag(arm: Arm) -> None:
+    # j1 blocked at 1 rad/s (35 rad/s at the motor, 285 a pass) rises past the spike filter at
+    # once: the firmware alone presses on (benchmarks/collision_speeds.py).
+    from rigs import place_obstacle
+
     arm.claim("j1", "velocity")
     arm.set_command("j1", -1.0)
     for _ in range(40):
@@ -309,15 +315,11 @@ def test_the_arm_stops_j1_blocked_at_full_speed_which_the_firmware_does_not_flag
 
 
 @pytest.mark.parametrize("joint", ["j1", "j2", "j3", "j4"])
-def test_a_joint_sent_a_new_target_every_cycle_is_never_stopped(make_arm_backend, joint: str) -> None:
+def test_a_joint_sent_a_new_target_every_cycle_is_never_stopped(arm: Arm, joint: str) -> None:
     # Position mode at 20 Hz, a random target around mid-range each cycle (as a cartesian
     # policy sends): the chip brakes, overshoots and turns back, and the watch must know where
     # its field is. A field braked one cycle early (anchored at the wrong reading) is off by
     # the max acceleration times a cycle: for j2, 0.01 m/s against a bound of 0.0078.
-    arm = Arm(make_arm_backend("sim"))
-    arm.configure()
-    arm.activate()
-    arm.home()
     cfg = CONFIG.joint(joint)
     mid = 0.5 * (cfg.min + cfg.max)
     arm.claim(joint, "position")
@@ -329,13 +331,9 @@ def test_a_joint_sent_a_new_target_every_cycle_is_never_stopped(make_arm_backend
         arm.cycle(0.05)
 
 
-def test_a_joint_claimed_for_velocity_while_braking_a_position_move_is_not_stopped(make_arm_backend) -> None:
+def test_a_joint_claimed_for_velocity_while_braking_a_position_move_is_not_stopped(arm: Arm) -> None:
     # Seen (a hostile test): j4 switched from a position move, 0.5 s in and braking, to
     # velocity 0. The encoder trails the braking field by 30 rad/s² x 63 ms = 1.9 rad/s.
-    arm = Arm(make_arm_backend("sim"))
-    arm.configure()
-    arm.activate()
-    arm.home()
     arm.claim("j4", "position")
     arm.move_to({"j4": -2.0})
     arm.set_command("j4", 2.0)
@@ -370,13 +368,9 @@ def test_a_mock_joint_mirrors_its_commands_and_is_not_watched(homed_mock_arm: Ar
     assert homed_mock_arm.watches == {}
 
 
-def test_an_arm_driving_every_joint_at_its_limits_is_never_stopped_by_the_watch(make_arm_backend) -> None:
+def test_an_arm_driving_every_joint_at_its_limits_is_never_stopped_by_the_watch(arm: Arm) -> None:
     # To mid-range in position mode, then every joint reversed between its max velocities at
     # its max acceleration, all at once (around mid-range: no end stop in reach).
-    arm = Arm(make_arm_backend("sim"))
-    arm.configure()
-    arm.activate()
-    arm.home()
     arm.move_to({j.name: 0.5 * (j.min + j.max) for j in CONFIG.joints}, period_s=0.02)
     for name in arm.names:
         arm.release(name)
