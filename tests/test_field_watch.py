@@ -115,22 +115,43 @@ def test_the_encoders_lag_while_accelerating_is_not_a_loss() -> None:
     assert worst > watch.bound  # the lag alone would have stopped it
 
 
-def test_a_position_move_is_predicted_as_the_chip_brakes_it() -> None:
-    # A 1 rad move of j1 at 1 rad/s and 2 rad/s²: a rotor on the trapezoid is never behind;
-    # one that stands with the target 1 rad away is.
-    watch = FieldWatch("j1", 35.0, 1.0, 2.0)
-    q, v = 0.0, 0.0
-    watch.position(0.0, 1.0, q, v)
-    for k in range(1, 200):
-        brake = math.sqrt(2 * 2.0 * max(1.0 - q, 0.0))
-        v = min(v + 2.0 * 0.01, 1.0, brake)
-        q += v * 0.01
-        watch.position(0.01 * k, 1.0, q, v)  # the encoder's lag left out: the rotor ahead, if anything
-    standing = FieldWatch("j1", 35.0, 1.0, 2.0)
-    standing.position(0.0, 1.0, 0.0, 0.0)
+@pytest.mark.parametrize(
+    ("reduction", "speed", "accel", "move"),
+    [pytest.param(35.0, 1.0, 2.0, 1.0, id="j1-1rad"), pytest.param(-1570.8, 0.03, 0.2, 0.02, id="j2-20mm")],
+)
+def test_a_position_move_is_predicted_as_the_chip_brakes_it(
+    reduction: float, speed: float, accel: float, move: float
+) -> None:
+    # A move read at 20 Hz: the field's place within each 50 ms decides when it brakes (j2's
+    # bound, 7.8 mm/s, is less than a cycle of its 0.2 m/s²). A rotor on the trapezoid (the
+    # chip's own 1 ms steps) is never behind; one that stands 40 % into the move is.
+    watch = FieldWatch("j", reduction, speed, accel)
+    watch.start(0.0, 0.0, 0.0, 0.0)
+    q, v, t = 0.0, 0.0, 0.0
+    for ms in range(1, 4001):
+        v = min(v + accel * 0.001, speed, math.sqrt(2 * accel * max(move - q, 0.0)))
+        q += v * 0.001
+        if ms % 50 == 0:
+            t = ms * 0.001
+            watch.position(t, move, q, v)  # the encoder's lag left out: the rotor ahead, if anything
+    standing = FieldWatch("j", reduction, speed, accel)
+    standing.start(0.0, 0.0, 0.0, 0.0)
     with pytest.raises(FieldLostError):
-        for k in range(1, 200):
-            standing.position(0.01 * k, 1.0, 0.0, 0.0)
+        for k in range(1, 80):
+            q = min(0.05 * k * speed, 0.4 * move)
+            standing.position(0.05 * k, move, q, speed if q < 0.4 * move else 0.0)
+
+
+def test_a_position_reading_brakes_the_field_from_where_the_joint_was_at_the_last_one() -> None:
+    # j2 cruising at 0.03 m/s, the target 3 mm ahead; the next reading 50 ms later. The chip,
+    # in 10 ms steps: 0.03 m/s while the target is further than v²/2a = 2.25 mm (three steps,
+    # 0.9 mm), then braking at 0.2 m/s²: 0.0290, then 0.0270 (sqrt(2 x 0.2 x 1.805 mm) = 0.0269
+    # asks for more than one step can take). From the reading's own place (1.5 mm on) it
+    # would have braked from the first step, to 0.020.
+    watch = FieldWatch("j2", -1570.8, 0.03, 0.2, "m/s")
+    watch.start(0.0, 0.03, 0.03, 0.0)
+    watch.position(0.05, 0.003, 0.0015, 0.03)
+    assert watch.field == pytest.approx(0.0270, abs=0.0002)
 
 
 def test_stopped_the_next_reading_starts_over_from_the_rotors_speed() -> None:
@@ -166,11 +187,31 @@ def test_a_start_at_the_encoders_reading_allows_for_its_lag_at_full_acceleration
     assert watch.slack == pytest.approx(14.0 * 0.063, rel=0.01)  # 0.88 rad/s, above the bound of 0.51
     watch.start(0.0, 0.0, 0.0)
     assert watch.slack == 0.0
+    fresh = FieldWatch("j3", j3.reduction, j3.max_velocity, j3.max_acceleration)
+    fresh.velocity(0.0, 5.0, 2.0)  # no start: the first reading starts it, at the reading
+    assert (fresh.field, fresh.slack) == (2.0, pytest.approx(14.0 * 0.063, rel=0.01))
+
+
+def test_each_turn_of_the_ramp_adds_a_10_ms_step_until_the_field_has_held_its_speed_long_enough() -> None:
+    # j1 (2 rad/s²) from rest to 1 rad/s: two turns (it starts, then stops accelerating),
+    # 0.02 rad/s each; cleared once 1 rad/s has held for 0.04 / 2 + 0.01 = 0.03 s.
+    watch = FieldWatch("j1", 35.0, 1.0, 2.0)
+    watch.start(0.0, 0.0, 0.0)
+    watch.velocity(0.25, 1.0, 1.0)  # the rotor ahead: never behind
+    assert watch.slack == pytest.approx(0.02)  # accelerating
+    watch.velocity(0.51, 1.0, 1.0)
+    assert watch.slack == pytest.approx(0.04)  # at 1 rad/s since 0.50 s: held 0.01 s
+    watch.velocity(0.525, 1.0, 1.0)
+    assert watch.slack == pytest.approx(0.04)  # held 0.025 s
+    watch.velocity(0.535, 1.0, 1.0)
+    assert watch.slack == 0.0  # held 0.035 s
+    watch.velocity(0.6, -1.0, 1.0)  # a reversal: one turn
+    assert watch.slack == pytest.approx(0.02)
 
 
 def test_a_ramp_that_keeps_turning_widens_the_bound_until_the_field_holds_its_speed() -> None:
-    # j1 switched between ±1 rad/s every 0.1 s: each turn of the ramp (it reverses at 2 rad/s²)
-    # adds 0.02 rad/s (a 10 ms step); 0.2 s at 1 rad/s, once it gets there, clears it.
+    # j1 switched between ±1 rad/s every 0.1 s: 10 reversals, 0.2 rad/s; 0.2 s at 1 rad/s,
+    # once it gets there, clears it.
     watch = FieldWatch("j1", 35.0, 1.0, 2.0)
     watch.start(0.0, 0.0, 0.0)
     t = 0.0
@@ -178,7 +219,7 @@ def test_a_ramp_that_keeps_turning_widens_the_bound_until_the_field_holds_its_sp
         for _ in range(5):
             t += 0.02
             watch.velocity(t, 1.0 if k % 2 == 0 else -1.0, watch.reading)
-    assert watch.slack > 0.1
+    assert watch.slack == pytest.approx(0.2)
     for _ in range(60):
         t += 0.02
         watch.velocity(t, 1.0, watch.reading)
@@ -190,6 +231,7 @@ def test_a_ramp_that_keeps_turning_widens_the_bound_until_the_field_holds_its_sp
     [
         (("j1", 0.0, 1.0, 2.0), "j1: the field watch needs a finite, non-zero reduction, got 0.0"),
         (("j1", 35.0, 1.0, -2.0), "j1: the field watch needs a max_acceleration > 0, got -2.0"),
+        (("j1", 35.0, 1.0, 0.0), "j1: the field watch needs a max_acceleration > 0, got 0.0"),
         (("j2", 35.0, math.nan, 2.0), "j2: the field watch needs a max_velocity > 0, got nan"),
     ],
 )
