@@ -671,6 +671,12 @@ INVALID_CASES = [
         r"\(10\.4221[0-9]* rad/s²\)$",
         id="max-acceleration-beyond-the-motor",
     ),
+    pytest.param(
+        _set_homing("j4", "acceleration", 31.0),
+        r"config\.yaml: joint j4: homing\.acceleration 31\.0 rad/s² is 2\.131e\+04 deg/s² at the motor; the "
+        r"driver chip's 16-bit acceleration register wraps above 20,945 deg/s², so at most 20900",
+        id="homing-acceleration-past-the-chip-wrap",
+    ),
     # maxAccel/j4_4: the real j4 set to 34 rad/s² (23,377 deg/s²) ramped at 2,431 and reached
     # 1.9 rad/s of 10. 30.5 rad/s² (20,970 deg/s²) is just past the wrap: it would ramp at 8 deg/s².
     pytest.param(
@@ -898,6 +904,7 @@ def test_value_error_in_file_names_path_and_joint(tmp_path: Path, default_dict: 
         ("j4", "drive_current", 1),
         ("j4", "max_velocity", 2000.0 * 6.0 / math.degrees(12.0)),  # 2000 RPM at the motor exactly
         ("j3", "max_acceleration", 20_900.0 / math.degrees(24.0)),  # 20,900 deg/s^2 at the motor exactly
+        ("j3", "homing.acceleration", 20_900.0 / math.degrees(24.0)),
     ],
 )
 def test_the_bounds_of_what_the_arm_can_honour_are_themselves_accepted(

@@ -442,10 +442,10 @@ class JointConfig:
         drive = _integer(self.drive_current, "drive_current", high=CURRENT_MAX_PCT, unit=" %")
         if drive < DRIVE_CURRENT_MIN_PCT:
             raise ConfigError("drive_current 0 % gives the motor no torque: the joint could not move")
-        if self.type == "i2c":
-            self._check_motor_limits(unit)
         if not isinstance(self.homing, HomingConfig):
             raise ConfigError(f"homing must be a HomingConfig, got {_type_name(self.homing)}")
+        if self.type == "i2c":
+            self._check_motor_limits(unit)
         rpm = self.homing_rpm()
         if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
             raise ConfigError(
@@ -463,14 +463,19 @@ class JointConfig:
                 f"were measured to 1639 RPM, so at most {MOTOR_RPM_MAX:g} RPM "
                 f"({_fmt(self.max_velocity * MOTOR_RPM_MAX / rpm)}{unit}/s)"
             )
-        dps2 = abs(rate_to_degrees(self.max_acceleration, self.reduction))
-        if dps2 > MOTOR_ACCELERATION_MAX_DPS2 * (1 + 1e-12):
-            raise ConfigError(
-                f"max_acceleration {_fmt(self.max_acceleration)}{unit}/s² is {dps2:.4g} deg/s² at the motor; "
-                f"the driver chip's 16-bit acceleration register wraps above 20,945 deg/s², so at most "
-                f"{MOTOR_ACCELERATION_MAX_DPS2:g} "
-                f"({_fmt(self.max_acceleration * MOTOR_ACCELERATION_MAX_DPS2 / dps2)}{unit}/s²)"
-            )
+        limits = (
+            ("max_acceleration", self.max_acceleration),
+            ("homing.acceleration", self.homing.acceleration),
+        )
+        for name, value in limits:
+            dps2 = abs(rate_to_degrees(value, self.reduction))
+            if dps2 > MOTOR_ACCELERATION_MAX_DPS2 * (1 + 1e-12):
+                most = _fmt(value * MOTOR_ACCELERATION_MAX_DPS2 / dps2)
+                raise ConfigError(
+                    f"{name} {_fmt(value)}{unit}/s² is {dps2:.4g} deg/s² at the motor; the driver chip's "
+                    f"16-bit acceleration register wraps above 20,945 deg/s², so at most "
+                    f"{MOTOR_ACCELERATION_MAX_DPS2:g} ({most}{unit}/s²)"
+                )
 
     def homing_rpm(self) -> float:
         """Return the signed motor speed of homing in RPM.
