@@ -161,14 +161,17 @@ def test_stopped_the_next_reading_starts_over_from_the_rotors_speed() -> None:
         watch.velocity(1.0 + 0.01 * k, 0.0, 0.0)
 
 
-def test_a_reading_long_after_the_last_starts_over_instead_of_replaying_the_gap() -> None:
-    # An hour between readings (a position interface left idle, no deadman in position mode):
-    # not 360,000 ramp steps, and the field is taken from the rotor, not the hour-old command.
+@pytest.mark.parametrize("gap", [1.1, 3600.0])
+def test_a_reading_long_after_the_last_starts_over_instead_of_replaying_the_gap(gap: float) -> None:
+    # More than 1 s, up to an hour between readings (a position interface left idle, no deadman
+    # in position mode): not 360,000 ramp steps, and the field is taken from the rotor (at rest
+    # here), not from the old command (1 rad/s).
     watch = _steady_watch()
-    watch.velocity(3600.0, 1.0, 0.0)
-    assert (watch.field, watch.time) == (0.0, 3600.0)
+    now = 0.5 + gap
+    watch.velocity(now, 1.0, 0.0)
+    assert (watch.field, watch.time) == (0.0, now)
     for k in range(1, 200):  # commanded to rest from there: nothing left of the old field
-        watch.velocity(3600.0 + 0.01 * k, 0.0, 0.0)
+        watch.velocity(now + 0.01 * k, 0.0, 0.0)
 
 
 def test_a_velocity_reading_after_a_start_in_position_is_a_ramp_not_a_move() -> None:

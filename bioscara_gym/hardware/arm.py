@@ -80,11 +80,6 @@ def check_control_freq(control_freq: object, name: str = "control_freq") -> floa
     return float(control_freq)
 
 
-def _speed_unit(config: JointConfig) -> str:
-    """``"m/s"`` for the lift, ``"rad/s"`` for the revolute joints."""
-    return "m/s" if config.joint_type == "prismatic" else "rad/s"
-
-
 class PhaseObserver(Protocol):
     """Told about each step of :meth:`Arm.bring_up` and :meth:`Arm.shut_down` (a display, a run log)."""
 
@@ -171,11 +166,12 @@ class Arm:
         self._homing: set[str] = set()
         #: Each stepper joint's field watch (docs/arm.md, "The field watch"), and the
         #: position or velocity command the last write sent it.
-        self.watches = {
-            name: FieldWatch(name, cfg.reduction, cfg.max_velocity, cfg.max_acceleration, _speed_unit(cfg))
-            for name, cfg in ((n, self.config.joint(n)) for n in self.names)
-            if self.joints[name].has_field
-        }
+        self.watches: dict[str, FieldWatch] = {}
+        for name in self.names:
+            if self.joints[name].has_field:
+                j = self.config.joint(name)
+                unit = f"{self._unit(name)}/s"
+                self.watches[name] = FieldWatch(name, j.reduction, j.max_velocity, j.max_acceleration, unit)
         self._sent: dict[str, float] = {}
 
     # ------------------------------------------------------------ lifecycle
