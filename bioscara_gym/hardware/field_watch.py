@@ -127,14 +127,15 @@ class FieldWatch:
         self.max_acceleration = float(max_acceleration)
         self.unit = unit
         self.bound = FIELD_LOST_MOTOR_RAD_S / abs(reduction)
-        #: The field's speed now, joint units (None: not predicting), and what the encoder
-        #: of a rotor on it reads.
-        self.field: float | None = None
-        self.reading = self.time = self.slack = 0.0
-        self._measured: float | None = None  # the position at the last reading (position mode)
-        self._turn = 0  # the ramp's direction at the last step: +1, -1, or 0 holding its speed
-        self._held_s = 0.0  # how long the field has held its speed
-        self.behind_since: float | None = None  # when the rotor fell behind, if it is
+        # The state (start() sets all of it): the field's speed now, joint units (None: not
+        # predicting), what the encoder of a rotor on it reads, the position at the last
+        # reading (position mode), the ramp's direction at the last step (+1, -1, 0 holding
+        # its speed), how long it has held its speed, and when the rotor fell behind.
+        self.field: float | None
+        self._measured: float | None
+        self.behind_since: float | None
+        self.start(0.0, 0.0, 0.0)
+        self.stop()
 
     def start(
         self, now: float, field: float, reading: float, position: float | None = None, *, exact: bool = True
