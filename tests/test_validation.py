@@ -20,6 +20,7 @@ import pytest
 
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.hardware import load_config
+from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.drive import KICK_ACCEL, DriveParams
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE
 from bioscara_gym.hardware.motor import KinematicStepper
@@ -99,20 +100,93 @@ def test_j1_at_2_rad_per_s_loses_steps_as_the_real_one_did() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="the packaged j1 creeps on at 0.09 rad/s; the drive that stops (docs/validation.md, "
-    "'Two hypotheses and a margin') lost j1's field in a PickPlace carry and is not packaged",
+    reason="the packaged j1 creeps on at 0.09 rad/s; the margin's j1, which stops, hunts at its "
+    "target in position mode and is not packaged (docs/validation.md, 'j1')",
 )
 def test_j1_after_losing_its_field_stops_where_the_real_one_stopped() -> None:
     # maxAccel/j1_3.csv: the real j1 slowed at a nearly constant rate and was
     # at rest 0.392 rad from its start from 0.81 s on (|qd| < 0.005 rad/s),
-    # its field running on. A slipped rotor pushed on by that field crept at
-    # 0.089 rad/s for ever (the drive fit's local optimum, docs/validation.md).
+    # its field running on. The packaged j1, fitted before the margin of its
+    # verdicts, lets the slipped rotor creep on at 0.089 rad/s for ever.
     run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
     sim = max_accel.replay(run, CONFIG)
     rest = run.t > 1.0
     assert float(np.max(np.abs(run.qd[rest]))) < 0.005  # the recording, as read
     assert float(np.max(np.abs(sim.qd[rest]))) < 0.01
     assert sim.q[-1] - sim.q[0] == pytest.approx(-4.33145 - -4.72375, abs=0.02)  # first and last rows
+
+
+#: j1's drive as `bioscara calibrate` fits it with the verdicts' margin (docs/validation.md, "j1").
+J1_MARGIN_DRIVE = DriveParams(
+    pullout_accel=917.7,
+    corner_speed=54.28,
+    corner_exponent=3.615,
+    friction_coulomb=40.81,
+    friction_viscous=0.6585,
+    slip_fraction=0.05094,
+    pullin_speed=19.96,
+)
+J1_MARGIN_CONFIG = dataclasses.replace(
+    CONFIG,
+    joints=tuple(
+        dataclasses.replace(j, drive=J1_MARGIN_DRIVE) if j.name == "j1" else j for j in CONFIG.joints
+    ),
+)
+
+
+def test_the_margins_j1_stops_where_the_real_one_stopped() -> None:
+    # The same recording as above: at rest 0.392 rad from its start.
+    run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
+    sim = max_accel.replay(run, J1_MARGIN_CONFIG)
+    assert float(np.max(np.abs(sim.qd[run.t > 1.0]))) < 0.01
+    assert sim.q[-1] - sim.q[0] == pytest.approx(-4.33145 - -4.72375, abs=0.02)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="its friction is 22 % of its pull-out: a moving rotor lags its field by more than the "
+    "closed loop's 15 microsteps, XACTUAL is rewritten every pass and the chip's ramp never ends "
+    "(docs/validation.md, 'j1')",
+)
+def test_the_margins_j1_comes_to_rest_at_its_target(make_arm_backend) -> None:
+    arm = Arm(make_arm_backend("sim", config=J1_MARGIN_CONFIG))
+    arm.configure()
+    arm.activate()
+    arm.home()
+    arm.move_to({"j1": 0.0}, timeout_s=8.0)  # the packaged j1 is there in 4.0 s (from its max end stop)
+
+
+#: The runs of maxAccel/ whose real motor lost steps (their qd falls away from
+#: the command: maxAccel/README.md's "hearable skipping at 3 rad/s2", "doesnt
+#: reach max velocity"; j2 at 0.05 m/s moved 19 mm where 102 were asked).
+REAL_LOST = {"j1_2", "j1_3", "j2_2"}
+
+
+#: The packaged j1 was fitted before the margin: it asks 1.14 of its pull-out in
+#: j1_1, where the real motor held (docs/validation.md, "j1").
+_J1_BEFORE_THE_MARGIN = pytest.mark.xfail(strict=True, reason="the packaged j1 predates the margin")
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(p.stem, marks=_J1_BEFORE_THE_MARGIN) if p.stem == "j1_1" else p.stem
+        for p in sorted((DATA_DIR / "maxAccel").glob("*.csv"))
+    ],
+)
+def test_the_packaged_drive_keeps_a_margin_from_each_real_verdict(name: str) -> None:
+    # A run the real motor held asks at most 0.9 of the simulated pull-out, one
+    # where it lost steps at least 1.1: a task's command a little harder than
+    # a recorded one meets what the real motor did (j1 held 1 rad/s with
+    # 2 rad/s^2 and lost it with 3). The fit stops at the margin's edge, so
+    # the bound holds to 0.005 (j4_5 asks 0.90002 of the packaged j4).
+    run = read_max_accel(DATA_DIR / "maxAccel" / f"{name}.csv")
+    sim = max_accel.replay(run, CONFIG)
+    demand = max_accel.peak_demand(sim, max_accel.window(run, CONFIG))
+    if name in REAL_LOST:
+        assert demand > 1.095, f"{name} lost steps on the real arm; simulated demand {demand:.2f}"
+    else:
+        assert demand < 0.905, f"{name} held on the real arm; simulated demand {demand:.2f}"
 
 
 def test_the_largest_share_of_the_pull_out_torque_asked_for_is_kept() -> None:
