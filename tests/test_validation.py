@@ -144,9 +144,9 @@ def test_the_margins_j1_stops_where_the_real_one_stopped() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="its friction is 22 % of its pull-out: a moving rotor lags its field by more than the "
-    "closed loop's 15 microsteps, XACTUAL is rewritten every pass and the chip's ramp never ends "
-    "(docs/validation.md, 'j1')",
+    reason="its rotor lags its field by more than the closed loop's 15 microsteps while it moves "
+    "(friction 22 % of a low pull-out): XACTUAL is rewritten every pass and j1 hunts about its "
+    "target (docs/validation.md, 'j1')",
 )
 def test_the_margins_j1_comes_to_rest_at_its_target(make_arm_backend) -> None:
     arm = Arm(make_arm_backend("sim", config=J1_MARGIN_CONFIG))
@@ -158,7 +158,7 @@ def test_the_margins_j1_comes_to_rest_at_its_target(make_arm_backend) -> None:
 
 #: The runs of maxAccel/ whose real motor lost steps (their qd falls away from
 #: the command: maxAccel/README.md's "hearable skipping at 3 rad/s2", "doesnt
-#: reach max velocity"; j2 at 0.05 m/s moved 19 mm where 102 were asked).
+#: reach max velocity"; j2 at 0.05 m/s moved 19 mm where a joint that follows moves 102).
 REAL_LOST = {"j1_2", "j1_3", "j2_2"}
 
 
