@@ -102,3 +102,27 @@ def test_pick_place_expert_lifts_the_block_it_carries_to_a_target_on_the_table(m
             assert lifted and min(lifted) > 0.003, (make.__name__, min(lifted, default=None))
     finally:
         env.close()
+
+
+def test_the_carry_target_is_2_cm_up_until_the_block_is_within_1_cm_of_a_target_on_the_table() -> None:
+    # The rule behind the test above, at its edges (docs/validation.md, "j1").
+    env = gym.make("Bioscara-PickPlace-v1")
+    try:
+        expert = experts.ObservationExpert(env.unwrapped)
+        grasp, goal, offset = expert.GRASP_Z, np.array([0.3, 0.0, 0.015]), np.array([0.0, 0.0, 0.0])
+        far = expert._carry_to(np.array([0.3 - 0.0101, 0.0, 0.015]), goal, offset)
+        near = expert._carry_to(np.array([0.3 - 0.0099, 0.0, 0.015]), goal, offset)
+        assert far[2] == pytest.approx(grasp + 0.02) and near[2] == pytest.approx(max(0.015, grasp))
+        assert far[:2].tolist() == near[:2].tolist() == [0.3, 0.0]
+        high = expert._carry_to(np.array([0.0, 0.0, 0.015]), np.array([0.3, 0.0, 0.2]), offset)
+        assert high[2] == pytest.approx(0.2)  # a target above the lift is kept
+        flat = experts.ObservationExpert(env.unwrapped, carry_lift_m=0.0)  # Stack's lower block slides
+        slid = flat._carry_to(np.array([0.0, 0.0, 0.015]), goal, offset)
+        assert slid[2] == pytest.approx(max(0.015, grasp))
+    finally:
+        env.close()
+    stack = gym.make("Bioscara-Stack-v0")
+    try:
+        assert experts.StackExpert(stack.unwrapped).pick.carry_lift_m == 0.0
+    finally:
+        stack.close()
