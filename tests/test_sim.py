@@ -246,6 +246,39 @@ def test_reenabled_joint_moves_again_once_the_obstacle_is_removed(j1_driven_into
     assert qpos(backend, "j1") < before - 0.15
 
 
+@pytest.mark.parametrize(
+    ("pushes", "held"),
+    [
+        ((0.0, 0.0, 0.0, 0.0, -4.0), False),  # one 2 ms step at 4x its force: a rattling block
+        ((-1.0, -1.0, -1.0, -1.0, -1.0), True),  # the drive's force for the whole tick: an obstacle
+        ((-1.0, -1.0, -1.0, -1.0, -0.6), True),  # a mean of 0.92 of it, the last step under 0.9
+        ((-0.8, -0.8, -0.8, -0.8, -1.2), False),  # a mean of 0.88 of it, the last step over 0.9
+    ],
+)
+def test_a_contact_holds_the_rotor_by_its_mean_force_over_the_tick(
+    mujoco_arm: Backend, pushes: tuple[float, ...], held: bool
+) -> None:
+    # A rotor is held once the constraints push against its drive with more than
+    # CONTACT_FRACTION (0.9) of the drive's force at its current, over the tick's
+    # five 2 ms physics steps: the grasped block that rattles between the fingers
+    # kicks j1 for one step with 3-5 N m, about j1's 3.5 N m at 20 % current or
+    # more (seed 0 of PickPlace-v1, velocity mode), and the real stepper rides it out.
+    backend = mujoco_arm
+    home(backend, "j1")
+    backend.joints["j1"].set_velocity(-0.2)  # away from the end stop it homed at
+    run(backend, 0.3, poll_all(backend))
+    motor = sim_of(backend).motors["j1"]
+    data, model = motor._data, motor._model
+    force = model.actuator_forcerange[motor._act_id, 1]  # the drive's force at this current
+    assert force == pytest.approx(17.5 * 0.2)
+    for push in pushes:
+        data.actuator_force[motor._act_id] = -force
+        data.qfrc_constraint[motor._dadr] = -push * force
+        motor.sample_load()
+    motor.end_physics()
+    assert motor.stepper.held is held
+
+
 # ------------------------------------------- acceleration beyond the torque
 
 

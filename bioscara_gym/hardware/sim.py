@@ -97,6 +97,10 @@ class MujocoMotor:
         self._range = tuple(float(x) for x in model.jnt_range[jid])  # the end stops, joint units
         self._hold_push = 0.0  # fraction of the drive's force a held rotor presses with
         self._physics_t = float(data.time)  # MuJoCo's time at the last end_physics
+        # Sums of the drive's and the constraints' force on the joint over the
+        # physics steps since the last end_physics (sample_load), and their count.
+        self._drive_sum = self._load_sum = 0.0
+        self._samples = 0
         self.set_torque_fraction(0.0)
 
     @property
@@ -211,11 +215,21 @@ class MujocoMotor:
         # Damp the tracking error's rate, not the absolute speed: kv*(v_sp - qdot).
         self._model.actuator_biasprm[self._act_id, 0] = self._kv * velocity
 
+    def sample_load(self) -> None:
+        """After one physics step: add the drive's and the constraints' force on the joint to the tick's."""
+        self._drive_sum += self._data.actuator_force[self._act_id]
+        self._load_sum += self._data.qfrc_constraint[self._dadr]
+        self._samples += 1
+
     def end_physics(self) -> None:
         """After physics: if a constraint holds the joint against the drive, the rotor is held there.
 
-        Released once the field no longer drives it that way or the
-        obstacle gave way.
+        The forces are the means over the physics steps since the last call
+        (:meth:`sample_load`): a rotor is held by what pushes on it for that
+        long, not by one step's spike (a block rattling between the closed
+        fingers kicks the joint with several times the drive's force for a
+        single 2 ms step, and a stepper's field rides that out). Released
+        once the field no longer drives it that way or the obstacle gave way.
         """
         stepper = self.stepper
         elapsed, self._physics_t = self._data.time - self._physics_t, float(self._data.time)
@@ -225,8 +239,13 @@ class MujocoMotor:
             stepper.turn_to(self._joint_deg(), elapsed)  # the unpowered rotor goes with its link
             self._tick_start = self._rotor_mean_deg()
             return
-        drive = self._data.actuator_force[self._act_id]
-        held = self._data.qfrc_constraint[self._dadr]
+        if self._samples:
+            drive, held = self._drive_sum / self._samples, self._load_sum / self._samples
+        else:
+            drive = self._data.actuator_force[self._act_id]
+            held = self._data.qfrc_constraint[self._dadr]
+        self._drive_sum = self._load_sum = 0.0
+        self._samples = 0
         q = self._data.qpos[self._qadr]
         lo, hi = self._range
         at_stop = q <= lo + END_STOP_BAND or q >= hi - END_STOP_BAND
@@ -421,7 +440,10 @@ class ArmSim:
                 motor.begin_physics()
             homing = [core for core in cores if core.homing_runs]
             if not homing:
-                mujoco.mj_step(m, d, nstep=n)
+                for _ in range(n):
+                    mujoco.mj_step(m, d)
+                    for motor in motors:
+                        motor.sample_load()
                 for motor in motors:
                     motor.end_physics()
                 continue
@@ -430,6 +452,7 @@ class ArmSim:
             for _ in range(n):
                 mujoco.mj_step(m, d)
                 for motor in motors:
+                    motor.sample_load()
                     motor.end_physics()
                 for core in homing:
                     core.poll_homing()
