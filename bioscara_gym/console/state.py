@@ -54,6 +54,7 @@ from bioscara_gym.errors import StateFileError, StateFileInUseError
 from bioscara_gym.fsutil import LockFile, atomic_write_text, read_json
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.config import ArmConfig
+from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.hardware.stats import CommStats
 
 #: ``format`` and ``version`` of the state file.
@@ -268,6 +269,8 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     for name, fresh in fresh_drives.items():
         keep = {k: v for k, v in fresh.items() if k != "rng"}
         saved = saved_drives[name]
+        if isinstance(saved, dict):
+            saved = {**{k: v for k, v in KinematicStepper.LATER_STATE.items() if k in keep}, **saved}
         if not isinstance(saved, dict) or set(saved) != set(keep):
             raise StateFileError(f"{where}: drive state of {name} does not match this drive model")
         drives[name] = {k: _decode(saved[k], keep[k], f"{where}: {name}.{k}") for k in keep}

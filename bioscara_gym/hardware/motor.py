@@ -61,6 +61,42 @@ _RAD = math.pi / 180.0
 _DEG = 180.0 / math.pi
 
 
+def _load_angle_deg(needed: float, pullout: float) -> float:
+    """How far a following rotor lags its field, motor degrees (signed as ``needed``).
+
+    The torque of a hybrid stepper is the pull-out torque times the sine of
+    the load angle, which reaches a quarter electrical period at one full
+    step: ``asin(needed / pullout)`` of it.
+    """
+    if not (math.isfinite(pullout) and pullout > 0.0) or not needed:
+        return 0.0
+    return math.copysign(math.asin(min(1.0, abs(needed) / pullout)) / (math.pi / 2) * FULL_STEP_DEG, needed)
+
+
+def _settled(offset_deg: float, rate_dps: float, pullout: float, h: float) -> tuple[float, float]:
+    """A following rotor's way onto its load angle after ``h`` s: offset (deg) and its rate (deg/s).
+
+    The field holds the rotor like a spring whose stiffness at small load
+    angles is the pull-out torque over a full step times π/2 (the slope of
+    :func:`_load_angle_deg`'s sine at 0). Over the rotor's inertia that is a
+    natural frequency of ``sqrt(pullout x π/2 / full step)``: 96 rad/s for
+    j1 at 20 % current. The motion is taken as critically damped, solved
+    exactly: the recordings do not resolve the rotor's own ringing, and a
+    real j1 at rest after a move sits still to a few microsteps
+    (``tracking_error/``, docs/model.md). Under a microstep it ends.
+    """
+    if not (math.isfinite(pullout) and pullout > 0.0):
+        return 0.0, 0.0
+    a = math.sqrt(pullout * (math.pi / 2) / (FULL_STEP_DEG * _RAD))
+    decay = math.exp(-a * h)
+    b = rate_dps + a * offset_deg
+    x = decay * (offset_deg + b * h)
+    v = decay * (b - a * (offset_deg + b * h))
+    if (abs(x) + abs(v) / a) * USTEPS_PER_DEG < 1.0:
+        return 0.0, 0.0
+    return x, v
+
+
 @runtime_checkable
 class Motor(Protocol):
     """What the firmware needs from a motor, in motor degrees.
@@ -182,6 +218,11 @@ class KinematicStepper:
         self._accel_left_s = 0.0
         self._falling = False  # the step rate came down on the last change (the jitter differs)
         self._lag_deg = 0.0
+        # The following rotor's way onto its load angle (its inertia on the
+        # field's spring, critically damped): its place minus field-minus-lag,
+        # deg, and that offset's rate, deg/s.
+        self._settle_deg = 0.0
+        self._settle_dps = 0.0
         self._synced = True
         self._slip_deg = 0.0  # field minus rotor while slipping
         # The rotor's swing about its mean path after a pole slip (a damped
@@ -275,6 +316,7 @@ class KinematicStepper:
         """
         self._position = float(position_deg)
         self._rotor_dps = 0.0
+        self._settle_deg = self._settle_dps = 0.0
         if self._synced:
             self.lost_sync += 1
             self._synced = False
@@ -284,6 +326,11 @@ class KinematicStepper:
     def release_rotor(self) -> None:
         """Nothing holds the rotor any more: it moves under its own torque (and may lock on again)."""
         self._held = False
+
+    #: State added to the model since state files were first saved, with the
+    #: value that means what such a file meant (a rotor on its load angle):
+    #: a file without them restores as that.
+    LATER_STATE: dict[str, float] = {"_settle_deg": 0.0, "_settle_dps": 0.0}
 
     def snapshot(self) -> dict[str, object]:
         """The model's state, the random generator's included (not the drive's parameters: configuration)."""
@@ -337,7 +384,7 @@ class KinematicStepper:
         self._command_dps = 0.0
         self._accel_rad_s2 = 0.0
         self._accel_left_s = 0.0
-        self._lag_deg = 0.0
+        self._lag_deg = self._settle_deg = self._settle_dps = 0.0
         self._rotor_dps = 0.0
         self._synced = True
         self._held = False
@@ -359,6 +406,7 @@ class KinematicStepper:
         self._rotor_dps = (target - start) / dt if n else 0.0
         self._position = self._field = self._loop.xactual_deg = target
         self._swing_deg = self._swing_dps = 0.0
+        self._lag_deg = self._settle_deg = self._settle_dps = 0.0
         self._synced = True
         self._pid_error = 0.0
 
@@ -381,10 +429,11 @@ class KinematicStepper:
     def _follow_passes(self, n: int, h: float) -> bool:
         """``n`` passes at once, if the rotor follows throughout (the common case; the same result).
 
-        At a constant step rate a following rotor keeps a constant lag, so the
-        closed loop sees the lag's change at the first pass and nothing after
-        it. Returns False (nothing done) when anything else may happen: a
-        slip, a stop, a pole slip's swing, an acceleration that ends mid-way.
+        At a constant step rate the load angle is constant; the rotor takes
+        up a change of it over its settling (:func:`_settled`), and the
+        closed loop sees each pass's place. Returns False (nothing done) when
+        anything else may happen: a slip, a stop, a pole slip's swing, the
+        rotor waiting on friction, an acceleration that ends mid-way.
         """
         if not self._synced or self._swing_deg or self._swing_dps or self.blocked or self._held:
             return False
@@ -403,33 +452,39 @@ class KinematicStepper:
         pullout = self.drive.pullout(self._torque_fraction, v * _RAD)
         if abs(needed) > pullout or self._at_stop(v):
             return False
-        self._demand(needed, pullout)
-        lag = 0.0
-        if math.isfinite(pullout) and pullout > 0.0 and needed:
-            lag = math.copysign(
-                math.asin(min(1.0, abs(needed) / pullout)) / (math.pi / 2) * FULL_STEP_DEG, needed
-            )
+        lag = _load_angle_deg(needed, pullout)
+        x, xd = self._settle_deg + lag - self._lag_deg, self._settle_dps
         step = v * h
-        first = self._field + step - lag
-        last = self._field + v * dt - lag
-        if v * (first - self._position) < 0.0:
-            return False  # it waits for the field to pull ahead (see _follow)
-        if min(first, last) < self.lower_stop_deg or max(first, last) > self.upper_stop_deg:
+        field = self._field
+        before = self._position
+        places = []
+        for _ in range(n):
+            field += step
+            if x or xd:
+                x, xd = _settled(x, xd, pullout, h)
+            place = field - lag + x
+            if v * (place - before) < 0.0:
+                return False  # it waits for the field to pull ahead (see _follow)
+            places.append(place)
+            before = place
+        if min(places) < self.lower_stop_deg or max(places) > self.upper_stop_deg:
             return False
+        self._demand(needed, pullout)
         loop = self._loop
-        error = (loop.xactual_deg + step - first) * USTEPS_PER_DEG
-        if abs(error) >= CONTROL_THRESHOLD_USTEPS:
-            loop.xactual_deg = last  # rewritten at the first pass, in step with the rotor after it
-            if n > 1:
-                error = 0.0
-        else:
-            loop.xactual_deg += v * dt
-        loop.error = self._pid_error = error
+        xactual = loop.xactual_deg
+        error = loop.error
         update = self._estimator.update
-        for k in range(n):
-            update((first + step * k) * _COUNTS_PER_DEG)
-        self._field += v * dt
-        self._position = last
+        for place in places:
+            xactual += step
+            error = (xactual - place) * USTEPS_PER_DEG
+            if abs(error) >= CONTROL_THRESHOLD_USTEPS:
+                xactual = place
+            update(place * _COUNTS_PER_DEG)
+        loop.xactual_deg = xactual
+        loop.error = self._pid_error = error
+        self._field = field
+        self._position = places[-1]
+        self._settle_deg, self._settle_dps = x, xd
         self._rotor_dps = v
         self._lag_deg = lag
         if left > 0.0:
@@ -444,6 +499,7 @@ class KinematicStepper:
             self._position = self._clamp(self._position + self._swing_deg)
             self._swing_deg = self._swing_dps = 0.0
             self._field = self._loop.xactual_deg = self._position
+            self._lag_deg = self._settle_deg = self._settle_dps = 0.0
             self._rotor_dps = 0.0
             self._synced = True
             self._pid_error = 0.0
@@ -516,21 +572,27 @@ class KinematicStepper:
         if held or abs(needed) > pullout:
             self.lost_sync += 1
             self._synced = False
+            self._settle_deg = self._settle_dps = 0.0
             self._slip_deg = self._field - self._position
             if held:
                 self._rotor_dps = 0.0
             self._slip(v_field, accel, h)
             return
-        lag = 0.0
-        if math.isfinite(pullout) and pullout > 0.0:
-            lag = math.asin(min(1.0, abs(needed) / pullout)) / (math.pi / 2) * FULL_STEP_DEG
-            lag = math.copysign(lag, needed) if needed else 0.0
+        lag = _load_angle_deg(needed, pullout)
+        # The rotor does not jump to a new load angle: its inertia on the
+        # field's spring takes it there (critically damped), so a short move
+        # ends before the full lag builds up.
+        x = self._settle_deg + lag - self._lag_deg
+        self._settle_deg, self._settle_dps = _settled(x, self._settle_dps, pullout, h)
         self._lag_deg = lag
+        place = self._field - lag
         # A rotor that starts against friction does not jump back by its load
         # angle: it waits (stiction) until the field has pulled that far ahead.
-        target = self._clamp(self._field - lag)
+        target = self._clamp(place + self._settle_deg)
         if v_field * (target - self._position) < 0.0:
             target = self._position
+        if target != place + self._settle_deg:
+            self._settle_deg, self._settle_dps = target - place, 0.0
         self._position = target
         self._rotor_dps = v_field
 
@@ -574,6 +636,7 @@ class KinematicStepper:
             self._field = self._position
             self._rotor_dps = v_field
             self._slip_deg = 0.0
+            self._lag_deg = 0.0  # on the field: it takes up its load angle from here
 
     def _kick_dps(self, v_field: float) -> float:
         """The speed one pole slip throws the rotor back with, deg/s (``DriveParams.kick_accel``).

@@ -13,11 +13,15 @@ current, max velocity 1 rad/s, the file's max acceleration):
 
 Compared: the steady-state error on the ramp, ``(r - q) / ramp speed`` in
 seconds, averaged over the middle 60 % of the ramp, against the README's
-table and the recording itself.
+table and the recording itself; and, where a recording ends at rest, how
+still the joint sits there (the closed loop's rewrites make a rotor that
+lags its field by more than 15 microsteps overshoot; a model that hunts
+about its target shows here).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +40,15 @@ README_BOUND_PCT = 25.0
 ZERO_BOUND_S = 0.02
 #: j1's max velocity in the test (the README: "configured to be 1.0 rad/s").
 MAX_VELOCITY = 1.0
+#: At rest: from this long after the reference's last change to the end of
+#: the file (the chip brakes from 0.314 rad/s at 1.57 rad/s² in 0.2 s), s.
+REST_AFTER_S = 0.5
+#: Fewest samples at rest for a rest row (0.1 s at 50 Hz).
+REST_SAMPLES = 5
+#: The largest spread of the position at rest that passes: two of the closed
+#: loop's 15-microstep thresholds on j1 (51,200 microsteps a turn, reduction
+#: 35): 1.05e-4 rad. The real j1 sits within 4.4e-5 rad.
+REST_BOUND_RAD = 2 * 15 / 51200 * 2 * np.pi / 35
 
 
 @dataclass(frozen=True)
@@ -121,8 +134,19 @@ def steady_state_error(t: np.ndarray, reference: np.ndarray, feedback: np.ndarra
     return float(np.mean(sign * (reference[lo:hi] - feedback[lo:hi])) / ramp)
 
 
+def rest_spread(t: np.ndarray, reference: np.ndarray, feedback: np.ndarray) -> float | None:
+    """Peak-to-peak position at rest after the reference's last change, rad; None if the file ends first."""
+    moved = np.flatnonzero(np.diff(reference) != 0.0)
+    if moved.size == 0:
+        return None
+    rest = t > t[moved[-1] + 1] + REST_AFTER_S
+    if np.count_nonzero(rest) < REST_SAMPLES:
+        return None
+    return float(np.ptp(feedback[rest]))
+
+
 def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
-    """Steady-state error against the README and the recording."""
+    """Steady-state error against the README and the recording; stillness at rest."""
     name = f"tracking_error/{run.name}"
     real = steady_state_error(run.t, run.reference, run.feedback, run.ramp_speed)
     simulated = steady_state_error(sim.t, sim.reference, sim.feedback, run.ramp_speed)
@@ -169,6 +193,21 @@ def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
             note="bound: 20 ms",
         )
     )
+    real_rest = rest_spread(run.t, run.reference, run.feedback)
+    if real_rest is not None:
+        sim_rest = rest_spread(sim.t, sim.reference, sim.feedback)
+        rows.append(
+            Row.compare(
+                name,
+                "position spread at rest after the ramp",
+                real_rest,
+                math.inf if sim_rest is None else sim_rest,
+                REST_BOUND_RAD,
+                unit="rad",
+                relative=False,
+                note=f"from {REST_AFTER_S:g} s after the reference stopped; bound: 2 closed-loop thresholds",
+            )
+        )
     return rows
 
 
