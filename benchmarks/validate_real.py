@@ -37,6 +37,7 @@ TARGETS = {
     "after a block: measured speed, raw error": ("high_speed_stall_test/", lambda q: "after the block" in q),
     "tracking steady-state error within 25 % of the README": ("tracking_error/", lambda q: "README" in q),
     "tracking steady-state error vs the recording": ("tracking_error/", lambda q: "recording" in q),
+    "tracking: position spread at rest after the ramp": ("tracking_error/", lambda q: "at rest" in q),
     "mean transaction time within 15 %": ("RW_test/", lambda q: q.startswith("mean")),
     "firmware handler times": ("RW_test/", lambda q: q.endswith("handler time")),
 }

@@ -98,16 +98,11 @@ def test_j1_at_2_rad_per_s_loses_steps_as_the_real_one_did() -> None:
     assert max(abs(sim.qd)) < 1.0  # it never got near the 2 rad/s asked
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the packaged j1 creeps on at 0.09 rad/s; the margin's j1, which stops, hunts at its "
-    "target in position mode and is not packaged (docs/validation.md, 'j1')",
-)
 def test_j1_after_losing_its_field_stops_where_the_real_one_stopped() -> None:
     # maxAccel/j1_3.csv: the real j1 slowed at a nearly constant rate and was
     # at rest 0.392 rad from its start from 0.81 s on (|qd| < 0.005 rad/s),
-    # its field running on. The packaged j1, fitted before the margin of its
-    # verdicts, lets the slipped rotor creep on at 0.089 rad/s for ever.
+    # its field running on. The j1 fitted before the margin of its verdicts
+    # let the slipped rotor creep on at 0.089 rad/s for ever.
     run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
     sim = max_accel.replay(run, CONFIG)
     rest = run.t > 1.0
@@ -116,42 +111,16 @@ def test_j1_after_losing_its_field_stops_where_the_real_one_stopped() -> None:
     assert sim.q[-1] - sim.q[0] == pytest.approx(-4.33145 - -4.72375, abs=0.02)  # first and last rows
 
 
-#: j1's drive as `bioscara calibrate` fits it with the verdicts' margin (docs/validation.md, "j1").
-J1_MARGIN_DRIVE = DriveParams(
-    pullout_accel=917.7,
-    corner_speed=54.28,
-    corner_exponent=3.615,
-    friction_coulomb=40.81,
-    friction_viscous=0.6585,
-    slip_fraction=0.05094,
-    pullin_speed=19.96,
-)
-J1_MARGIN_CONFIG = dataclasses.replace(
-    CONFIG,
-    joints=tuple(
-        dataclasses.replace(j, drive=J1_MARGIN_DRIVE) if j.name == "j1" else j for j in CONFIG.joints
-    ),
-)
-
-
-def test_the_margins_j1_stops_where_the_real_one_stopped() -> None:
-    # The same recording as above: at rest 0.392 rad from its start.
-    run = read_max_accel(DATA_DIR / "maxAccel" / "j1_3.csv")
-    sim = max_accel.replay(run, J1_MARGIN_CONFIG)
-    assert float(np.max(np.abs(sim.qd[run.t > 1.0]))) < 0.01
-    assert sim.q[-1] - sim.q[0] == pytest.approx(-4.33145 - -4.72375, abs=0.02)
-
-
-def test_the_margins_j1_comes_to_rest_at_its_target(make_arm_backend) -> None:
+def test_j1_comes_to_rest_at_its_target(make_arm_backend) -> None:
     # Its rotor lags its field by up to 0.75 motor degrees while it speeds up,
     # far more than the closed loop's 15 microsteps (0.105 deg). A rotor that
     # took up each new load angle at once hunted about its target for ever
     # (+-0.0007 rad); one with inertia on the field's spring settles.
-    arm = Arm(make_arm_backend("sim", config=J1_MARGIN_CONFIG))
+    arm = Arm(make_arm_backend("sim"))
     arm.configure()
     arm.activate()
     arm.home()
-    arm.move_to({"j1": 0.0}, timeout_s=8.0)  # the packaged j1 is there in 4.0 s (from its max end stop)
+    arm.move_to({"j1": 0.0}, timeout_s=8.0)  # there in 3.9 s from its max end stop
 
 
 def test_j1_sits_as_still_as_the_real_one_after_a_ramp() -> None:
@@ -171,17 +140,9 @@ def test_j1_sits_as_still_as_the_real_one_after_a_ramp() -> None:
 REAL_LOST = {"j1_2", "j1_3", "j2_2"}
 
 
-#: The packaged j1 was fitted before the margin: it asks 1.14 of its pull-out in
-#: j1_1, where the real motor held (docs/validation.md, "j1").
-_J1_BEFORE_THE_MARGIN = pytest.mark.xfail(strict=True, reason="the packaged j1 predates the margin")
-
-
 @pytest.mark.parametrize(
     "name",
-    [
-        pytest.param(p.stem, marks=_J1_BEFORE_THE_MARGIN) if p.stem == "j1_1" else p.stem
-        for p in sorted((DATA_DIR / "maxAccel").glob("*.csv"))
-    ],
+    [p.stem for p in sorted((DATA_DIR / "maxAccel").glob("*.csv"))],
 )
 def test_the_packaged_drive_keeps_a_margin_from_each_real_verdict(name: str) -> None:
     # A run the real motor held asks at most 0.9 of the simulated pull-out, one
