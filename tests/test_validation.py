@@ -184,6 +184,30 @@ def test_a_following_rotor_takes_up_a_new_load_angle_over_its_natural_period() -
     assert motor.field_deg - motor.position_deg == pytest.approx(0.6, abs=1e-9)
 
 
+def _following_run(motor: KinematicStepper) -> list[tuple[float, float, float, float]]:
+    """Ramps up, cruises, brakes, stops and turns back tick by tick; encoder, XACTUAL, PID error, speed."""
+    out = []
+    ticks = [*range(0, 400, 40), *[400] * 10, *range(400, -1, -50), *[0] * 10]
+    for v in [*ticks, *range(40, -200, -80), *[-200] * 5, *range(-200, 1, 100)]:
+        motor.command(float(v), 0.2)
+        motor.advance(0.01)
+        out.append((motor.position_deg, motor.setpoint_deg, motor.pid_error_deg, motor.velocity_dps))
+    return out
+
+
+def test_the_many_pass_shortcut_gives_what_the_1_ms_passes_give(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A drive whose load angle changes with every tick of the ramp (friction 20 %
+    # of the pull-out, the ramp 30 %): the shortcut and the passes one by one
+    # must agree on everything the firmware reads, to rounding.
+    drive = DriveParams(pullout_accel=1000.0, friction_coulomb=40.0, friction_viscous=0.5)
+    fast = _following_run(KinematicStepper(0.0, drive=drive))
+    monkeypatch.setattr(KinematicStepper, "_follow_passes", lambda self, n, h: False)
+    slow = _following_run(KinematicStepper(0.0, drive=drive))
+    assert len(fast) == len(slow) == 50
+    assert np.allclose(fast, slow, rtol=0, atol=1e-9)
+    assert max(abs(f[2]) for f in fast) > 0.1  # the closed loop rewrote XACTUAL on the way
+
+
 def test_the_largest_share_of_the_pull_out_torque_asked_for_is_kept() -> None:
     # Pull-out 1000 rad/s^2 at full current, no fall with speed, no friction: 500 at 50 %.
     # 0 -> 1 rad/s within one 10 ms tick asks 100 rad/s^2, a fifth of it.
