@@ -341,6 +341,28 @@ def test_the_position_controller_lags_as_the_readme_says() -> None:
     assert rows["steady-state error vs README"].passed
 
 
+def test_the_velocity_follower_catches_up_from_the_ramps_start_as_the_real_one_did() -> None:
+    # tracking_error/record_0p314_0p157_j1_vel_p0p5_...: the file starts 1.18 s into a
+    # ramp from -1.5707 rad (its reference -1.200 at 0.314 rad/s). The real error
+    # (r - q) still rose, 0.262 rad at the first row and 0.307 a second later, then
+    # decayed as P = 0.5 pulled it in: 0.0459 at 5 s, a mean over the ramp of 0.297 s.
+    # The README's "zero for kp > 0" is not reached within the ramp, so no row
+    # holds the replay to it.
+    name = "record_0p314_0p157_j1_vel_p0p5_i0p0_d0p0_kff1p0.csv.gz"
+    run = read_tracking(DATA_DIR / "tracking_error" / name)
+    sim = tracking.replay(run, CONFIG)
+    err = sim.reference - sim.feedback
+    at = {t: int(np.searchsorted(sim.t, t)) for t in (0.0, 1.0, 5.0)}
+    assert err[at[0.0]] == pytest.approx(0.262, abs=0.03)
+    assert err[at[1.0]] == pytest.approx(0.307, abs=0.03)
+    assert err[at[5.0]] == pytest.approx(0.0459, abs=0.02)
+    rows = {r.quantity: r for r in tracking.compare(run, sim)}
+    assert set(rows) == {"steady-state error vs recording"}
+    assert rows["steady-state error vs recording"].real == pytest.approx(0.297, abs=0.001)
+    assert rows["steady-state error vs recording"].passed
+    assert "not settled within the ramp" in rows["steady-state error vs recording"].note
+
+
 def test_transactions_take_the_measured_time_at_400_khz() -> None:
     tr = read_transactions(DATA_DIR / "RW_test" / "position_400kHz.csv.gz")
     rows = rw.compare(tr, rw.replay(tr, CONFIG))

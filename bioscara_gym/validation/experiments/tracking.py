@@ -11,9 +11,12 @@ current, max velocity 1 rad/s, the file's max acceleration):
   ``kff * v_ref + kp * (r - q) + ki * integral`` (the gains in the file
   name; ``v_ref`` the reference's slope) as the velocity command (SETRPM).
 
-Compared: the steady-state error on the ramp, ``(r - q) / ramp speed`` in
-seconds, averaged over the middle 60 % of the ramp, against the README's
-table and the recording itself; and, where a recording ends at rest, how
+A recording that starts on a ramp is replayed from the ramp's start, the
+joint at rest there (:func:`_reference`). Compared: the steady-state error on
+the ramp, ``(r - q) / ramp speed`` in seconds, averaged over the middle 60 %
+of the ramp, against the README's table (where the recording agrees with
+it: the README's zero for the velocity interface is not reached within a
+10 s ramp at 0.157 rad/s²) and the recording itself; and, where a recording ends at rest, how
 still the joint sits there (the closed loop's rewrites make a rotor that
 lags its field by more than 15 microsteps overshoot; a model that hunts
 about its target shows here).
@@ -60,34 +63,44 @@ class TrackingReplay:
     feedback: np.ndarray
 
 
-#: Pre-roll: the recordings start with the joint already on a ramp, so the
-#: replay runs the controller on the reference extended backwards at its
-#: first slope for this long first (the chip needs ramp / max accel to get
-#: up to speed, 2 s at 0.314 rad/s and 0.157 rad/s²).
-PREROLL_S = 4.0
+#: The ramps run between these positions, rad (README: "From -1.5707 rad to
+#: 1.5707 rad"), with the joint held at each end for 2-10 s between them.
+RAMP_END_RAD = 1.5707
+#: How long the joint rests at the ramp's start before a pre-rolled ramp, s.
+PREROLL_REST_S = 1.0
 #: The controller's period, s (50 Hz).
 PERIOD_S = 0.02
 
 
 def _reference(run: TrackingRun) -> tuple[np.ndarray, np.ndarray]:
-    """The recorded reference with a pre-roll: times from -PREROLL_S, positions on the first slope."""
+    """The recorded reference with a pre-roll when the recording starts on a ramp.
+
+    The ramp began at the end it runs away from (:data:`RAMP_END_RAD`), with
+    the joint at rest there after a hold of 2-10 s: the pre-roll rests there
+    for :data:`PREROLL_REST_S`, then runs the ramp at its first slope up to
+    the recording's first row. (Starting the joint on the ramp with the lag
+    a constant speed leaves missed the transient the recordings show: at
+    0.157 rad/s² with P = 0.5 the real error still rose from 0.26 to 0.31 rad
+    in the first second, then decayed over the ramp.)
+    """
     v0 = float(np.polyfit(run.t[:10], run.reference[:10], 1)[0])
     if abs(v0) < 0.2 * run.ramp_speed:
         return run.t, run.reference
-    pre = np.arange(-PREROLL_S, 0.0, PERIOD_S)
-    return np.concatenate([pre, run.t]), np.concatenate([run.reference[0] + v0 * pre, run.reference])
+    start = -math.copysign(RAMP_END_RAD, v0)
+    ramp_s = max(0.0, float(run.reference[0] - start) / v0)
+    pre = np.arange(-(ramp_s + PREROLL_REST_S), 0.0, PERIOD_S)
+    on_ramp = run.reference[0] + v0 * pre
+    pre_ref = np.where(pre < -ramp_s, start, on_ramp)
+    return np.concatenate([pre, run.t]), np.concatenate([pre_ref, run.reference])
 
 
 def replay(run: TrackingRun, config: ArmConfig, seed: int = 0) -> TrackingReplay:
     """Run the controller's 50 Hz loop on the simulated j1 with the recorded reference."""
     params = config.joint("j1")
     t_ref, reference = _reference(run)
-    # Where the real joint was against the reference at the first row, less
-    # the lag the chip builds up while it gets to speed in the pre-roll.
-    offset = float(run.feedback[0] - run.reference[0])
-    if len(t_ref) > len(run.t):
-        v0 = float(reference[1] - reference[0]) / PERIOD_S
-        offset += np.sign(v0) * v0 * v0 / (2.0 * run.max_acceleration)
+    # At rest on the ramp's start before a pre-roll; else where the real joint
+    # was against the reference at the first row.
+    offset = 0.0 if len(t_ref) > len(run.t) else float(run.feedback[0] - run.reference[0])
     rig = JointRig(config, "j1", start_q=float(reference[0] + offset), seed=seed)
     joint = rig.joint
     joint.enable(params.drive_current, params.hold_current)
@@ -151,6 +164,7 @@ def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
     real = steady_state_error(run.t, run.reference, run.feedback, run.ramp_speed)
     simulated = steady_state_error(sim.t, sim.reference, sim.feedback, run.ramp_speed)
     rows = []
+    recording_note = "bound: 20 ms"
     if run.interface == "position":
         readme = README_POSITION.get((round(run.ramp_speed, 3), round(run.max_acceleration, 3)))
         if readme is not None:
@@ -165,10 +179,13 @@ def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
                     note=f"the recording: {real:.3f} s",
                 )
             )
-    else:
+    elif run.gains.get("p", 0.0) > 0:
+        # The README's zero holds once the error has settled; where the recording
+        # itself is not there (a 10 s ramp at 0.157 rad/s² with P = 0.5 still
+        # lags 0.30 s on average), the recording is the figure to meet.
         gains = ", ".join(f"{k} {v:g}" for k, v in run.gains.items())
         bound_note = f"README: zero for kp > 0 ({gains}); the recording: {real:.3f} s"
-        if run.gains.get("p", 0.0) > 0:
+        if abs(real - README_VELOCITY) <= ZERO_BOUND_S:
             rows.append(
                 Row.compare(
                     name,
@@ -181,6 +198,8 @@ def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
                     note=bound_note,
                 )
             )
+        else:
+            recording_note = f"bound: 20 ms; {bound_note}, not settled within the ramp"
     rows.append(
         Row.compare(
             name,
@@ -190,7 +209,7 @@ def compare(run: TrackingRun, sim: TrackingReplay) -> list[Row]:
             ZERO_BOUND_S,
             unit="s",
             relative=False,
-            note="bound: 20 ms",
+            note=recording_note,
         )
     )
     real_rest = rest_spread(run.t, run.reference, run.feedback)
