@@ -227,8 +227,8 @@ class MujocoMotor:
         The forces are the means over the physics steps since the last call
         (:meth:`sample_load`): a rotor is held by what pushes on it for that
         long, not by one step's spike (a block rattling between the closed
-        fingers kicks the joint with several times the drive's force for a
-        single 2 ms step, and a stepper's field rides that out). Released
+        fingers kicks j1 with 3-5 N m, its drive's 3.5 N m at 20 % current or
+        more, for a single 2 ms step, and a stepper's field rides that out). Released
         once the field no longer drives it that way or the obstacle gave way.
         """
         stepper = self.stepper
