@@ -33,6 +33,8 @@ library's 1/256 microsteps (51,200 per revolution).
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -176,11 +178,18 @@ class VelocityEstimator:
 
     def update(self, counts: float) -> None:
         """One 1 kHz iteration with the encoder's count."""
+        self.update_many((counts,))
+
+    def update_many(self, counts: Sequence[float]) -> None:
+        """One 1 kHz iteration per count, in order."""
         t = CLOSED_LOOP_PERIOD_S
-        self._pos_est += self._vel_est * t
-        error = counts - self._pos_est
-        self._vel_int += error * ESTIMATOR_KI * t
-        self._vel_est = error * ESTIMATOR_KP + self._vel_int
+        pos, vel, integral = self._pos_est, self._vel_est, self._vel_int
+        for count in counts:
+            pos += vel * t
+            error = count - pos
+            integral += error * ESTIMATOR_KI * t
+            vel = error * ESTIMATOR_KP + integral
+        self._pos_est, self._vel_est, self._vel_int = pos, vel, integral
 
     def shift(self, counts: float) -> None:
         """Move the estimate's position by ``counts`` (the encoder was re-zeroed)."""
@@ -261,9 +270,21 @@ class PidNoiseProfile:
             raise ValueError("pid noise profile: medians must be finite and >= 0")
 
     def median(self, speed_rad_s: float, falling: bool) -> float:
-        """Median |PID error| at motor speed ``|speed_rad_s|``."""
+        """Median |PID error| at motor speed ``|speed_rad_s|``.
+
+        ``np.interp``'s rule and arithmetic, without its array set-up (it is
+        asked once a tick per joint).
+        """
         values = self.falling if falling else self.rising
-        return float(np.interp(abs(speed_rad_s), self.speeds_rad_s, values))
+        knots = self.speeds_rad_s
+        speed = abs(speed_rad_s)
+        j = bisect_right(knots, speed)
+        if j == 0:
+            return float(values[0])
+        if j == len(knots):
+            return float(values[-1])
+        slope = (values[j] - values[j - 1]) / (knots[j] - knots[j - 1])
+        return slope * (speed - knots[j - 1]) + values[j - 1]
 
 
 #: Half-normal median: |N(0, sigma)| has median 0.6745 sigma.

@@ -73,8 +73,12 @@ def _load_angle_deg(needed: float, pullout: float) -> float:
     return math.copysign(math.asin(min(1.0, abs(needed) / pullout)) / (math.pi / 2) * FULL_STEP_DEG, needed)
 
 
-def _settled(offset_deg: float, rate_dps: float, pullout: float, h: float) -> tuple[float, float]:
-    """A following rotor's way onto its load angle after ``h`` s: offset (deg) and its rate (deg/s).
+def _settled(
+    offset_deg: float, rate_dps: float, pullout: float, h: float, n: int = 1
+) -> tuple[list[float], float]:
+    """A following rotor's way onto its load angle over ``n`` passes of ``h`` s.
+
+    Returns each pass's offset from the load angle (deg) and the last rate (deg/s).
 
     The field holds the rotor like a spring whose stiffness at small load
     angles is the pull-out torque over a full step times π/2 (the slope of
@@ -86,15 +90,19 @@ def _settled(offset_deg: float, rate_dps: float, pullout: float, h: float) -> tu
     (``tracking_error/``, docs/model.md). Under a microstep it ends.
     """
     if not (math.isfinite(pullout) and pullout > 0.0):
-        return 0.0, 0.0
+        return [0.0] * n, 0.0
     a = math.sqrt(pullout * (math.pi / 2) / (FULL_STEP_DEG * _RAD))
     decay = math.exp(-a * h)
-    b = rate_dps + a * offset_deg
-    x = decay * (offset_deg + b * h)
-    v = decay * (b - a * (offset_deg + b * h))
-    if (abs(x) + abs(v) / a) * USTEPS_PER_DEG < 1.0:
-        return 0.0, 0.0
-    return x, v
+    x, v = offset_deg, rate_dps
+    offsets = []
+    for _ in range(n):
+        if x or v:
+            b = v + a * x
+            x, v = decay * (x + b * h), decay * (b - a * (x + b * h))
+            if (abs(x) + abs(v) / a) * USTEPS_PER_DEG < 1.0:
+                x = v = 0.0
+        offsets.append(x)
+    return offsets, v
 
 
 @runtime_checkable
@@ -457,11 +465,10 @@ class KinematicStepper:
         step = v * h
         field = self._field
         before = self._position
+        offsets, xd = _settled(x, xd, pullout, h, n) if x or xd else ([0.0] * n, 0.0)
         places = []
-        for _ in range(n):
+        for x in offsets:
             field += step
-            if x or xd:
-                x, xd = _settled(x, xd, pullout, h)
             place = field - lag + x
             if v * (place - before) < 0.0:
                 return False  # it waits for the field to pull ahead (see _follow)
@@ -473,18 +480,17 @@ class KinematicStepper:
         loop = self._loop
         xactual = loop.xactual_deg
         error = loop.error
-        update = self._estimator.update
         for place in places:
             xactual += step
             error = (xactual - place) * USTEPS_PER_DEG
             if abs(error) >= CONTROL_THRESHOLD_USTEPS:
                 xactual = place
-            update(place * _COUNTS_PER_DEG)
+        self._estimator.update_many([place * _COUNTS_PER_DEG for place in places])
         loop.xactual_deg = xactual
         loop.error = self._pid_error = error
         self._field = field
         self._position = places[-1]
-        self._settle_deg, self._settle_dps = x, xd
+        self._settle_deg, self._settle_dps = offsets[-1], xd
         self._rotor_dps = v
         self._lag_deg = lag
         if left > 0.0:
@@ -583,7 +589,7 @@ class KinematicStepper:
         # field's spring takes it there (critically damped), so a short move
         # ends before the full lag builds up.
         x = self._settle_deg + lag - self._lag_deg
-        self._settle_deg, self._settle_dps = _settled(x, self._settle_dps, pullout, h)
+        (self._settle_deg,), self._settle_dps = _settled(x, self._settle_dps, pullout, h)
         self._lag_deg = lag
         place = self._field - lag
         # A rotor that starts against friction does not jump back by its load
