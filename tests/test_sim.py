@@ -271,10 +271,11 @@ def test_a_contact_holds_the_rotor_by_its_mean_force_over_the_tick(
     data, model = motor._data, motor._model
     force = model.actuator_forcerange[motor._act_id, 1]  # the drive's force at this current
     assert force == pytest.approx(17.5 * 0.2)
+    forces = sim_of(backend)._forces
     for push in pushes:
         data.actuator_force[motor._act_id] = -force
         data.qfrc_constraint[motor._dadr] = -push * force
-        motor.sample_load()
+        forces.sample()
     motor.end_physics()
     assert motor.stepper.held is held
 

@@ -44,6 +44,43 @@ from bioscara_gym.hardware.registers import (
 )
 
 
+class TickForces:
+    """The drives' and the constraints' forces on the joints, summed over a tick's physics steps.
+
+    One for the whole model: :class:`ArmSim` adds each physics step's
+    (:meth:`sample`) and clears them once every motor has judged its hold
+    (:meth:`MujocoMotor.end_physics`). Without a sample the means are the
+    last physics step's forces (the 1 ms SITL steps).
+    """
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        """Zero sums for ``model``'s actuators and degrees of freedom."""
+        # Views of MuJoCo's buffers, taken once: each attribute access builds a new array.
+        self._actuator_force = data.actuator_force
+        self._constraint_force = data.qfrc_constraint
+        self._drive = np.zeros(model.nu)
+        self._load = np.zeros(model.nv)
+        self._steps = 0
+
+    def sample(self) -> None:
+        """After one physics step: add its forces."""
+        np.add(self._drive, self._actuator_force, out=self._drive)
+        np.add(self._load, self._constraint_force, out=self._load)
+        self._steps += 1
+
+    def mean(self, actuator: int, dof: int) -> tuple[float, float]:
+        """Mean force of ``actuator``'s drive and of the constraints on ``dof`` since the last clear."""
+        if not self._steps:
+            return float(self._actuator_force[actuator]), float(self._constraint_force[dof])
+        return float(self._drive[actuator]) / self._steps, float(self._load[dof]) / self._steps
+
+    def clear(self) -> None:
+        """Start the next tick's sums."""
+        self._drive[:] = 0.0
+        self._load[:] = 0.0
+        self._steps = 0
+
+
 class MujocoMotor:
     """One joint actuator of the MuJoCo arm, seen from the firmware (motor degrees).
 
@@ -66,6 +103,8 @@ class MujocoMotor:
         reduction: Signed reduction, motor turns per joint unit.
         drive: The joint's motor and drive (default: ideal).
         rng: Random numbers for the PID error's jitter.
+        forces: The model's force sums over a tick (default: this motor's own,
+            never sampled: each hold is judged on the last physics step).
     """
 
     def __init__(
@@ -76,6 +115,7 @@ class MujocoMotor:
         reduction: float,
         drive: DriveParams = IDEAL_DRIVE,
         rng: np.random.Generator | None = None,
+        forces: TickForces | None = None,
     ) -> None:
         """Bind to the joint and actuator called ``joint``."""
         self._model = model
@@ -97,10 +137,7 @@ class MujocoMotor:
         self._range = tuple(float(x) for x in model.jnt_range[jid])  # the end stops, joint units
         self._hold_push = 0.0  # fraction of the drive's force a held rotor presses with
         self._physics_t = float(data.time)  # MuJoCo's time at the last end_physics
-        # Sums of the drive's and the constraints' force on the joint over the
-        # physics steps since the last end_physics (sample_load), and their count.
-        self._drive_sum = self._load_sum = 0.0
-        self._samples = 0
+        self._forces = forces or TickForces(model, data)
         self.set_torque_fraction(0.0)
 
     @property
@@ -215,17 +252,11 @@ class MujocoMotor:
         # Damp the tracking error's rate, not the absolute speed: kv*(v_sp - qdot).
         self._model.actuator_biasprm[self._act_id, 0] = self._kv * velocity
 
-    def sample_load(self) -> None:
-        """After one physics step: add the drive's and the constraints' force on the joint to the tick's."""
-        self._drive_sum += self._data.actuator_force[self._act_id]
-        self._load_sum += self._data.qfrc_constraint[self._dadr]
-        self._samples += 1
-
     def end_physics(self) -> None:
         """After physics: if a constraint holds the joint against the drive, the rotor is held there.
 
-        The forces are the means over the physics steps since the last call
-        (:meth:`sample_load`): a rotor is held by what pushes on it for that
+        The forces are the means over the tick's physics steps
+        (:class:`TickForces`): a rotor is held by what pushes on it for that
         long, not by one step's spike (a block rattling between the closed
         fingers kicks j1 with 3-5 N m, its drive's 3.5 N m at 20 % current or
         more, for a single 2 ms step, and a stepper's field rides that out). Released
@@ -239,13 +270,7 @@ class MujocoMotor:
             stepper.turn_to(self._joint_deg(), elapsed)  # the unpowered rotor goes with its link
             self._tick_start = self._rotor_mean_deg()
             return
-        if self._samples:
-            drive, held = self._drive_sum / self._samples, self._load_sum / self._samples
-        else:
-            drive = self._data.actuator_force[self._act_id]
-            held = self._data.qfrc_constraint[self._dadr]
-        self._drive_sum = self._load_sum = 0.0
-        self._samples = 0
+        drive, held = self._forces.mean(self._act_id, self._dadr)
         q = self._data.qpos[self._qadr]
         lo, hi = self._range
         at_stop = q <= lo + END_STOP_BAND or q >= hi - END_STOP_BAND
@@ -340,9 +365,16 @@ class ArmSim:
             raise ValueError(f"model timestep {self.model.opt.timestep} must divide the 10 ms firmware tick")
         self.substeps_per_tick = round(substeps)
         self.clock = SimClock(self)
+        self._forces = TickForces(self.model, self.data)
         self.motors = {
             j.name: MujocoMotor(
-                self.model, self.data, j.name, j.reduction, j.drive, np.random.default_rng([seed, i])
+                self.model,
+                self.data,
+                j.name,
+                j.reduction,
+                j.drive,
+                np.random.default_rng([seed, i]),
+                self._forces,
             )
             for i, j in enumerate(config.joints)
         }
@@ -431,7 +463,7 @@ class ArmSim:
         """
         self._pending += dt
         m, d, n = self.model, self.data, self.substeps_per_tick
-        cores, motors = self._core_list, self._motor_list
+        cores, motors, forces = self._core_list, self._motor_list, self._forces
         while self._pending >= TICK_S - 1e-9:
             self._pending -= TICK_S
             for core in cores:
@@ -442,17 +474,16 @@ class ArmSim:
             if not homing:
                 for _ in range(n):
                     mujoco.mj_step(m, d)
-                    for motor in motors:
-                        motor.sample_load()
+                    forces.sample()
                 for motor in motors:
                     motor.end_physics()
+                forces.clear()
                 continue
             # The homing loop reads the PID error every 1 ms, not once a tick:
             # poll after every physics step (2 ms, the finest the model resolves).
             for _ in range(n):
                 mujoco.mj_step(m, d)
                 for motor in motors:
-                    motor.sample_load()
                     motor.end_physics()
                 for core in homing:
                     core.poll_homing()
