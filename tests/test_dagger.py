@@ -163,6 +163,28 @@ def test_rollouts_on_two_workers_are_the_same_seeded_episodes(pick_env: gym.Env)
     np.testing.assert_allclose(parallel, keyed(one.data.obs["observation"], one.data.actions), atol=1e-6)
 
 
+def test_evaluation_on_two_workers_is_the_one_env_evaluation(pick_env: gym.Env) -> None:
+    # DAgger evaluates on its rollouts' workers when it has them: the same seeded
+    # episodes give the same stats, and a confirming evaluation stops where the
+    # one-env loop does (after the episode that fails once more than allowed).
+    from bioscara_gym.training.parallel import make_vec_envs, run_episodes_on
+
+    expert = ObservationExpert(pick_env.unwrapped)
+
+    def half(obs: dict[str, np.ndarray]) -> np.ndarray:  # idles on goals on one side: those fail
+        return expert(obs) if obs["desired_goal"][1] > 0.0 else np.zeros(5, dtype=np.float32)
+
+    one = [run_episodes(pick_env, half, 8, seed=3, max_failures=m) for m in (None, 3)]
+    assert round(one[0].success_rate * 8) == 3  # both kinds of episode among the 8
+    assert one[1].episodes == 6 and one[1].success_rate == 2 / 6  # the 4th failure is the 6th episode
+    venv = make_vec_envs(PICK, 2, {"control_mode": "cartesian", "backend": "mock"})
+    try:
+        two = [run_episodes_on(venv, half, 8, seed=3, max_failures=m) for m in (None, 3)]
+    finally:
+        venv.close()
+    assert two == one
+
+
 def test_n_envs_below_one_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["train", "--env", PICK, "--algo", "dagger", "--n-envs", "0", "--out", str(tmp_path)]) != 0
     err = capsys.readouterr().err.strip()

@@ -547,6 +547,21 @@ def test_a_confirming_evaluation_allows_the_failures_the_target_leaves(
     assert allowed(100, 0.9, confirming=False) is None
 
 
+def test_an_evaluation_runs_on_the_rollouts_workers_when_there_are_some(
+    tmp_path: Path, policy_of: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    one, workers = Recorder(stats(1.0, 10)), Recorder(stats(0.9, 10))
+    monkeypatch.setattr(dagger, "run_episodes", one)
+    monkeypatch.setattr(dagger, "run_episodes_on", workers)
+    d = make_dagger(tmp_path, seed=3, eval_episodes=10, target_success=0.9)
+    d.eval_env, d.venv = "eval env", "workers"
+    assert d.evaluation(0, confirming=True) == stats(0.9, 10)
+    assert one.calls == []
+    assert workers.calls == [
+        (("workers", ("policy of", "the model"), 10), {"seed": 10_003, "max_failures": 1})
+    ]
+
+
 def test_an_evaluation_is_logged_at_its_env_step(
     tmp_path: Path, policy_of: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -48,12 +48,13 @@ from bioscara_gym.training.dagger_config import DaggerConfig
 from bioscara_gym.training.demos import Demos, check_demos, load_demos
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
+from bioscara_gym.training.parallel import label_rollouts, make_vec_envs, run_episodes_on
 from bioscara_gym.training.signals import SignalGuard
 
 with needs_train():
     from stable_baselines3 import SAC
     from stable_baselines3.common.logger import configure as configure_logger
+    from stable_baselines3.common.vec_env import VecEnv
 
     from bioscara_gym.training.algos import sb3_policy
 
@@ -243,6 +244,8 @@ class DAgger(TrainingMethod):
     data: Labelled | None = None
     iteration_done = 0
     env_steps = 0
+    #: The rollouts' and evaluations' workers (``n_envs`` above 1), else None.
+    venv: VecEnv | None = None
 
     def plan(self) -> RunPlan:
         """The DAgger entry (``--config``, the run's on ``--resume``, else ``dagger.yaml``) and budget."""
@@ -271,7 +274,6 @@ class DAgger(TrainingMethod):
         self.env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
         self.eval_env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **plan.env_kwargs)))
         self.expert = expert_labeller(self.env)
-        self.venv = None
         n_envs = self.args.n_envs or plan.config.n_envs
         if n_envs > 1:  # the rollouts run on workers in subprocesses (training/parallel.py)
             self.venv = make_vec_envs(self.env_id, n_envs, plan.env_kwargs)
@@ -432,13 +434,11 @@ class DAgger(TrainingMethod):
         """
         n = self.cfg.eval_episodes
         allowed = n - math.ceil(n * self.cfg.target_success - 1e-9) if confirming else None
-        stats = run_episodes(
-            self.eval_env,
-            sb3_policy(self.model),
-            n,
-            seed=self.args.seed + EVAL_SEED_OFFSET,
-            max_failures=allowed,
-        )
+        seed, act = self.args.seed + EVAL_SEED_OFFSET, sb3_policy(self.model)
+        if self.venv is None:
+            stats = run_episodes(self.eval_env, act, n, seed=seed, max_failures=allowed)
+        else:  # on the rollouts' workers: the same episodes, the same stats
+            stats = run_episodes_on(self.venv, act, n, seed=seed, max_failures=allowed)
         elapsed = time.perf_counter() - self.start
         self.logger.record("eval/success_rate", stats.success_rate)
         self.logger.record("eval/mean_final_distance", stats.mean_final_distance)

@@ -7,7 +7,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,59 @@ class EvalStats:
         """Plain dict for JSON."""
         return asdict(self)
 
+    @classmethod
+    def over(cls, results: Sequence[EpisodeResult]) -> EvalStats:
+        """The aggregate of some episodes' results (at least one)."""
+        successes = sum(r.success for r in results)
+        returns = [r.total for r in results]
+        return cls(
+            episodes=len(results),
+            success_rate=successes / len(results),
+            mean_final_distance=float(np.mean([r.distance for r in results])),
+            mean_return=float(np.mean(returns)),
+            std_return=float(np.std(returns)),
+            mean_length=float(np.mean([r.steps for r in results])),
+            stalls=sum(r.stalled for r in results),
+        )
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One evaluation episode: its last step's ``info`` verdicts, its return and length."""
+
+    success: bool
+    stalled: bool
+    distance: float
+    total: float
+    steps: int
+
+    @classmethod
+    def ended(cls, info: dict[str, Any], total: float, steps: int) -> EpisodeResult:
+        """The result of an episode whose last step returned ``info``."""
+        return cls(
+            success=bool(info.get("is_success", False)),
+            stalled=bool(info.get("stalled", False)),
+            distance=float(info.get("distance", math.nan)),
+            total=total,
+            steps=steps,
+        )
+
+
+def stopped_after(results: Sequence[EpisodeResult], max_failures: int | None) -> int | None:
+    """After how many of ``results`` an evaluation allowing ``max_failures`` failures stops.
+
+    That is at the episode that fails once more than ``max_failures``; None
+    if none of ``results`` does (or ``max_failures`` is None).
+    """
+    if max_failures is None:
+        return None
+    failures = 0
+    for k, result in enumerate(results):
+        failures += not result.success
+        if failures > max_failures:
+            return k + 1
+    return None
+
 
 def run_episodes(
     env: gym.Env,
@@ -66,7 +119,7 @@ def run_episodes(
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    successes, distances, returns, lengths, stalls = 0, [], [], [], 0
+    results: list[EpisodeResult] = []
     for ep in range(episodes):
         obs, info = env.reset(seed=seed + ep)
         if on_reset is not None:
@@ -82,22 +135,10 @@ def run_episodes(
             done = terminated or truncated
             if record is not None:
                 record(env.render())
-        successes += bool(info.get("is_success", False))
-        stalls += bool(info.get("stalled", False))
-        distances.append(float(info.get("distance", math.nan)))
-        returns.append(total)
-        lengths.append(steps)
-        if max_failures is not None and len(lengths) - successes > max_failures:
+        results.append(EpisodeResult.ended(info, total, steps))
+        if stopped_after(results, max_failures) is not None:
             break
-    return EvalStats(
-        episodes=len(lengths),
-        success_rate=successes / len(lengths),
-        mean_final_distance=float(np.mean(distances)),
-        mean_return=float(np.mean(returns)),
-        std_return=float(np.std(returns)),
-        mean_length=float(np.mean(lengths)),
-        stalls=stalls,
-    )
+    return EvalStats.over(results)
 
 
 def make_eval_env(

@@ -6,9 +6,11 @@ env in a process of its own through stable-baselines3's ``SubprocVecEnv``;
 step of the simulated arm is mostly MuJoCo and the firmware model in
 Python, so a second core roughly doubles the steps a second.
 
-:func:`label_rollouts` is DAgger's rollout loop over such workers: episode
-``k`` of a call is reset with seed ``seed + k`` whichever worker runs it, so
-the expert's demonstrations are the same episodes as with one env.
+:func:`label_rollouts` is DAgger's rollout loop over such workers, and
+:func:`run_episodes_on` its evaluation's: episode ``k`` of a call is reset
+with seed ``seed + k`` whichever worker runs it, so the expert's
+demonstrations and the evaluations are the same episodes as with one env (an
+episode of the simulated arm is a function of its seed and the policy alone).
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.tasks import GOAL_KEYS, Policy
+from bioscara_gym.training.evaluate import EpisodeResult, EvalStats, stopped_after
 from bioscara_gym.training.extras import needs_train
 
 with needs_train():
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-__all__ = ["EpisodeLog", "env_maker", "label_rollouts", "make_vec_envs"]
+__all__ = ["EpisodeLog", "env_maker", "label_rollouts", "make_vec_envs", "run_episodes_on"]
 
 #: The callback told of each finished episode: (success, steps).
 EpisodeLog = Callable[[bool, int], None]
@@ -131,3 +134,68 @@ def label_rollouts(
             else:
                 obs[i] = {k: np.asarray(next_obs[k][i]) for k in GOAL_KEYS}
     return rows, labels, successes
+
+
+def run_episodes_on(
+    venv: VecEnv, policy: Policy, episodes: int, seed: int = 0, max_failures: int | None = None
+) -> EvalStats:
+    """``run_episodes`` (training/evaluate.py) on ``venv``'s workers: the same episodes and stats.
+
+    Episode ``k`` is reset with seed ``seed + k``. With ``max_failures`` the
+    stats are the one-env loop's, which stops after the episode that fails
+    once more than that: no episode starts once the finished ones decide
+    it, and the episodes past it that were running are not counted.
+
+    Raises:
+        ValueError: ``episodes`` below 1.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    n = venv.num_envs
+    results: dict[int, EpisodeResult] = {}
+    running: list[int | None] = [None] * n  # the episode each worker runs; None: it idles
+    obs: list[dict[str, np.ndarray]] = [{} for _ in range(n)]
+    totals, steps = [0.0] * n, [0] * n
+    started = 0
+
+    def settled() -> int | None:
+        """How many episodes the one-env loop counts, once the finished ones decide it."""
+        prefix = []
+        while len(prefix) in results:
+            prefix.append(results[len(prefix)])
+        cut = stopped_after(prefix, max_failures)
+        if cut is not None:
+            return cut
+        return episodes if len(prefix) == episodes else None
+
+    def start(i: int) -> None:
+        """Worker ``i`` resets for the next seeded episode, or idles when none is left to run."""
+        nonlocal started
+        running[i] = None
+        if started < episodes and settled() is None:
+            obs[i] = venv.env_method("reset", seed=seed + started, indices=[i])[0][0]
+            running[i], totals[i], steps[i] = started, 0.0, 0
+            started += 1
+
+    for i in range(n):
+        start(i)
+    idle = np.zeros(venv.action_space.shape, dtype=np.float32)
+    while any(k is not None for k in running):
+        actions = np.repeat(idle[None], n, axis=0)
+        for i, k in enumerate(running):
+            if k is not None:
+                actions[i] = policy(obs[i])
+        next_obs, rewards, dones, infos = venv.step(actions)
+        for i, k in enumerate(running):
+            if k is None:
+                continue
+            totals[i] += float(rewards[i])
+            steps[i] += 1
+            if dones[i]:
+                results[k] = EpisodeResult.ended(infos[i], totals[i], steps[i])
+                start(i)
+            else:
+                obs[i] = {key: np.asarray(next_obs[key][i]) for key in GOAL_KEYS}
+    last = settled()
+    assert last is not None  # every started episode has finished, and none is left to start
+    return EvalStats.over([results[k] for k in range(last)])
