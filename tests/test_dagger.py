@@ -20,7 +20,7 @@ from bioscara_gym.cli import main
 from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.experts import ObservationExpert, PickPlaceExpert
 from bioscara_gym.training import dagger
-from bioscara_gym.training.algos import load_model
+from bioscara_gym.training.algos import load_model, sb3_policy
 from bioscara_gym.training.dagger import Labelled, label_episodes
 from bioscara_gym.training.dagger_config import DaggerConfig, load_dagger_config
 from bioscara_gym.training.evaluate import run_episodes
@@ -235,6 +235,31 @@ def test_the_model_loads_as_a_cloned_sac_model_for_eval_export_and_deploy(tiny_r
     finally:
         env.close()
     assert action.shape == (5,)
+
+
+def test_the_learners_actions_are_exactly_sb3s_deterministic_predict(tiny_run: Path) -> None:
+    # sb3_policy computes a SAC model's action without predict()'s per-call set-up:
+    # the same numbers, one observation or a batch, also right after training
+    # has switched the modules back to training mode.
+    model, _ = load_model(tiny_run / "model.zip")
+    act = sb3_policy(model)
+    env = gym.make(PICK, **TINY["env_kwargs"])  # type: ignore[arg-type]
+    env.action_space.seed(1)
+    observations = []
+    try:
+        obs, _ = env.reset(seed=4)
+        for _ in range(30):
+            observations.append(obs)
+            obs, *_ = env.step(env.action_space.sample())
+    finally:
+        env.close()
+    for i, obs in enumerate(observations):
+        if i == 10:
+            model.policy.set_training_mode(True)
+        np.testing.assert_array_equal(act(obs), model.predict(obs, deterministic=True)[0])
+    batch = {k: np.stack([o[k] for o in observations[:3]]) for k in observations[0]}
+    assert act(batch).shape == (3, 5)
+    np.testing.assert_array_equal(act(batch), model.predict(batch, deterministic=True)[0])
 
 
 def test_tensorboard_gets_the_dagger_scalars(tiny_run: Path) -> None:
