@@ -5,6 +5,8 @@ subprocesses (stable-baselines3's ``SubprocVecEnv``, :mod:`bioscara_gym.training
 
 * DAgger's rollouts: the PickPlace observation expert labelling the same
   seeded episodes (``label_episodes`` against ``label_rollouts``);
+* DAgger's evaluation: the same seeded episodes acted by that expert alone
+  (``run_episodes`` against ``run_episodes_on``; the stats must agree);
 * PPO on Reach: ``bioscara train --algo ppo`` for the same number of env
   steps, ``--n-envs 1`` against ``--n-envs 2`` (so 2 x ``n_steps`` a rollout).
 
@@ -34,34 +36,43 @@ import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.cli import main as bioscara
 from bioscara_gym.tasks import task
 from bioscara_gym.training.dagger import label_episodes
-from bioscara_gym.training.parallel import label_rollouts, make_vec_envs
+from bioscara_gym.training.evaluate import run_episodes
+from bioscara_gym.training.parallel import label_rollouts, make_vec_envs, run_episodes_on
 
 PICK = "Bioscara-PickPlace-v1"
 REACH = "Bioscara-Reach-v0"
 PICK_KWARGS = {"control_mode": "cartesian"}
 
 
-def dagger_rollouts(episodes: int, seed: int) -> dict[int, tuple[float, int]]:
-    """Seconds and labelled states of ``episodes`` expert episodes, with 1 and 2 workers."""
+def dagger_rollouts(episodes: int, seed: int) -> dict[str, dict[int, tuple[float, int]]]:
+    """Seconds and env steps of ``episodes`` expert episodes labelled and evaluated, 1 and 2 workers."""
     env = gym.make(PICK, **PICK_KWARGS)
-    out = {}
+    rollouts, evaluations = {}, {}
     try:
         expert = task(PICK).make_observation_expert(env.unwrapped)
         env.reset(seed=seed)  # bring-up and homing outside the timed part
         start = time.perf_counter()
         one = label_episodes(env, expert, expert, episodes, seed, 0, 1.0)
-        out[1] = (time.perf_counter() - start, len(one.data))
+        rollouts[1] = (time.perf_counter() - start, len(one.data))
+        start = time.perf_counter()
+        stats = run_episodes(env, expert, episodes, seed=seed)
+        evaluations[1] = (time.perf_counter() - start, round(stats.mean_length * stats.episodes))
         venv = make_vec_envs(PICK, 2, PICK_KWARGS)
         try:
             venv.env_method("reset", seed=seed)  # the workers' bring-up, untimed as above
             start = time.perf_counter()
             rows, _, _ = label_rollouts(venv, expert, expert, episodes, seed, 1.0, np.random.default_rng(0))
-            out[2] = (time.perf_counter() - start, len(rows))
+            rollouts[2] = (time.perf_counter() - start, len(rows))
+            start = time.perf_counter()
+            on_two = run_episodes_on(venv, expert, episodes, seed=seed)
+            evaluations[2] = (time.perf_counter() - start, round(on_two.mean_length * on_two.episodes))
         finally:
             venv.close()
     finally:
         env.close()
-    return out
+    if on_two != stats:
+        raise SystemExit(f"parallel_rollouts: 2 workers evaluated {on_two}, one env {stats}")
+    return {"rollouts": rollouts, "evaluation": evaluations}
 
 
 def ppo_training(steps: int) -> dict[int, tuple[float, int]]:
@@ -100,8 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     table = Table(title=f"1 and 2 workers, one run (load average {os.getloadavg()[0]:.1f})")
     for column in ("what", "workers", "s", "env steps/s", "2 / 1"):
         table.add_column(column, justify="right")
+    dagger = dagger_rollouts(args.episodes, args.seed)
     for what, rows in (
-        (f"DAgger rollouts, {args.episodes} PickPlace episodes", dagger_rollouts(args.episodes, args.seed)),
+        (f"DAgger rollouts, {args.episodes} PickPlace episodes", dagger["rollouts"]),
+        (f"DAgger evaluation, {args.episodes} PickPlace episodes", dagger["evaluation"]),
         (f"PPO on Reach, {args.ppo_steps} steps (incl. start-up)", ppo_training(args.ppo_steps)),
     ):
         rate = {n: steps / seconds for n, (seconds, steps) in rows.items()}
