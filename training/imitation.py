@@ -124,7 +124,8 @@ def fit_actor(
     actor.set_training_mode(True)
     obs_t = {k: th.as_tensor(np.asarray(obs[k]), dtype=th.float32) for k in GOAL_KEYS}
     act_t = th.as_tensor(np.asarray(actions), dtype=th.float32)
-    opt = th.optim.Adam(actor.parameters(), lr=learning_rate)
+    # foreach: one multi-tensor update a step, not a loop over the parameters (same numbers).
+    opt = th.optim.Adam(actor.parameters(), lr=learning_rate, foreach=True)
     gen = th.Generator().manual_seed(seed)
     target_log_std = math.log(init_std)
     loss = th.zeros(())
