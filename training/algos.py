@@ -114,14 +114,14 @@ def sb3_policy(model: Any) -> Policy:
     the squashed Gaussian's mode, ``tanh`` of the actor's mean, rescaled to
     the action space: the same numbers.
     """
-    policy = model.policy
-    if not isinstance(model, stable_baselines3.SAC) or policy.actor.use_sde:
+    if not isinstance(model, stable_baselines3.SAC) or model.policy.actor.use_sde:
 
         def act(obs: dict[str, np.ndarray]) -> np.ndarray:
             action, _ = model.predict(obs, deterministic=True)
             return action
 
         return act
+    policy = model.policy
     actor, shape = policy.actor, policy.action_space.shape
 
     def act_sac(obs: dict[str, np.ndarray]) -> np.ndarray:

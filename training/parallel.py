@@ -136,6 +136,17 @@ def label_rollouts(
     return rows, labels, successes
 
 
+def _settled(results: dict[int, EpisodeResult], episodes: int, max_failures: int | None) -> int | None:
+    """How many of ``episodes`` the one-env loop counts, once the finished ``results`` decide it."""
+    prefix = []
+    while len(prefix) in results:
+        prefix.append(results[len(prefix)])
+    cut = stopped_after(prefix, max_failures)
+    if cut is not None:
+        return cut
+    return episodes if len(prefix) == episodes else None
+
+
 def run_episodes_on(
     venv: VecEnv, policy: Policy, episodes: int, seed: int = 0, max_failures: int | None = None
 ) -> EvalStats:
@@ -158,21 +169,11 @@ def run_episodes_on(
     totals, steps = [0.0] * n, [0] * n
     started = 0
 
-    def settled() -> int | None:
-        """How many episodes the one-env loop counts, once the finished ones decide it."""
-        prefix = []
-        while len(prefix) in results:
-            prefix.append(results[len(prefix)])
-        cut = stopped_after(prefix, max_failures)
-        if cut is not None:
-            return cut
-        return episodes if len(prefix) == episodes else None
-
     def start(i: int) -> None:
         """Worker ``i`` resets for the next seeded episode, or idles when none is left to run."""
         nonlocal started
         running[i] = None
-        if started < episodes and settled() is None:
+        if started < episodes and _settled(results, episodes, max_failures) is None:
             obs[i] = venv.env_method("reset", seed=seed + started, indices=[i])[0][0]
             running[i], totals[i], steps[i] = started, 0.0, 0
             started += 1
@@ -196,6 +197,6 @@ def run_episodes_on(
                 start(i)
             else:
                 obs[i] = {key: np.asarray(next_obs[key][i]) for key in GOAL_KEYS}
-    last = settled()
+    last = _settled(results, episodes, max_failures)
     assert last is not None  # every started episode has finished, and none is left to start
     return EvalStats.over([results[k] for k in range(last)])
