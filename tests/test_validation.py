@@ -21,7 +21,7 @@ import pytest
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.hardware import load_config
 from bioscara_gym.hardware.arm import Arm
-from bioscara_gym.hardware.drive import KICK_ACCEL, DriveParams
+from bioscara_gym.hardware.drive import KICK_ACCEL, DriveParams, PidNoiseProfile
 from bioscara_gym.hardware.firmware import FIRMWARE_STALL_RULE
 from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.validation import validate
@@ -157,6 +157,17 @@ def test_the_packaged_drive_keeps_a_margin_from_each_real_verdict(name: str) -> 
         assert demand > 1.095, f"{name} lost steps on the real arm; simulated demand {demand:.2f}"
     else:
         assert demand < 0.905, f"{name} held on the real arm; simulated demand {demand:.2f}"
+
+
+def test_the_pid_noise_median_is_linear_between_knots_and_constant_beyond() -> None:
+    # PidNoiseProfile's rule: the median at each knot, linear between knots,
+    # constant beyond the last (and at the first below it); |speed| either way;
+    # the falling medians while the set speed falls.
+    profile = PidNoiseProfile((0.0, 10.0, 30.0), rising=(2.0, 12.0, 40.0), falling=(1.0, 5.0, 9.0))
+    assert [profile.median(w, False) for w in (0.0, 5.0, 10.0, 20.0, 30.0, 100.0)] == [2, 7, 12, 26, 40, 40]
+    assert profile.median(-20.0, False) == 26.0
+    assert [profile.median(w, True) for w in (2.5, 10.0, 25.0, 31.0)] == [2.0, 5.0, 8.0, 9.0]
+    assert PidNoiseProfile((5.0, 6.0), (3.0, 4.0), (3.0, 4.0)).median(1.0, False) == 3.0
 
 
 def test_a_following_rotor_takes_up_a_new_load_angle_over_its_natural_period() -> None:
