@@ -4,7 +4,10 @@
 env in a process of its own through stable-baselines3's ``SubprocVecEnv``;
 1 keeps one env in this process (``DummyVecEnv`` for SB3's methods). An env
 step of the simulated arm is mostly MuJoCo and the firmware model in
-Python, so a second core roughly doubles the steps a second.
+Python, each worker a process of its own. Whether a second core adds steps
+a second depends on the machine: on the two virtual CPUs this was measured
+on, two workers stepped PickPlace no faster than one process (README,
+``benchmarks/parallel_rollouts.py``).
 
 :func:`label_rollouts` is DAgger's rollout loop over such workers, and
 :func:`run_episodes_on` its evaluation's: episode ``k`` of a call is reset
