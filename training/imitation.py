@@ -36,6 +36,7 @@ with needs_train():
     import torch.nn.functional as F
     from stable_baselines3 import SAC
     from stable_baselines3.common.utils import polyak_update
+    from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN
 
 
 @dataclass
@@ -87,6 +88,31 @@ def _deterministic(actor: Any, obs: dict[str, th.Tensor]) -> tuple[th.Tensor, th
     return actor(obs), None  # TD3
 
 
+def _fixed_features(actor: Any, obs: dict[str, th.Tensor]) -> th.Tensor | None:
+    """Every row's features, computed once, or ``None`` if they can change while the actor learns.
+
+    They are fixed when the features extractor has no parameters (every
+    extractor of this package, and SB3's flattening one) and the actor is
+    TD3's or SAC's without gSDE (:func:`_deterministic_of_features` is then
+    what ``get_action_dist_params`` and ``forward`` compute after the
+    extractor). The extractors work row by row, so a row's features are the
+    same whether it is computed alone, in a batch or in the whole set.
+    """
+    if any(True for _ in actor.features_extractor.parameters()) or getattr(actor, "use_sde", False):
+        return None
+    with th.no_grad():
+        return actor.extract_features(obs, actor.features_extractor)
+
+
+def _deterministic_of_features(actor: Any, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+    """:func:`_deterministic` from the extractor's output (SAC without gSDE, or TD3)."""
+    if hasattr(actor, "get_action_dist_params"):  # SAC: its get_action_dist_params after the extractor
+        latent = actor.latent_pi(features)
+        log_std = th.clamp(actor.log_std(latent), LOG_STD_MIN, LOG_STD_MAX)
+        return th.tanh(actor.mu(latent)), log_std
+    return actor.mu(features), None  # TD3: its forward after the extractor (mu ends in tanh)
+
+
 def bc_pretrain(
     model: Any,
     demos: Demos,
@@ -129,9 +155,14 @@ def fit_actor(
     gen = th.Generator().manual_seed(seed)
     target_log_std = math.log(init_std)
     loss = th.zeros(())
+    # the features of every row once, not of every batch again (a third of a step)
+    features = _fixed_features(actor, obs_t)
     for _ in range(int(steps)):
         idx = th.randint(len(act_t), (batch_size,), generator=gen)
-        pred, log_std = _deterministic(actor, {k: v[idx] for k, v in obs_t.items()})
+        if features is None:
+            pred, log_std = _deterministic(actor, {k: v[idx] for k, v in obs_t.items()})
+        else:
+            pred, log_std = _deterministic_of_features(actor, features[idx])
         loss = F.mse_loss(pred, act_t[idx])
         if log_std is not None:
             loss = loss + 0.1 * F.mse_loss(log_std, th.full_like(log_std, target_log_std))
