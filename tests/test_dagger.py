@@ -316,7 +316,8 @@ def test_a_misspelt_config_key_is_refused_with_the_closest_one(tmp_path: Path) -
 
 
 @pytest.mark.parametrize(
-    ("key", "value"), [("demo_episodes", 0), ("target_success", 1.5), ("beta", 1.0), ("net_arch", [])]
+    ("key", "value"),
+    [("demo_episodes", 0), ("target_success", 1.5), ("beta", 1.0), ("net_arch", []), ("fit_threads", 0)],
 )
 def test_a_bad_config_value_is_refused(key: str, value: object) -> None:
     with pytest.raises(HyperparamError, match=key):

@@ -125,3 +125,32 @@ def test_a_fit_through_an_extractor_with_weights_trains_them(env: gym.Env) -> No
     before = model.actor.features_extractor.layer.weight.detach().clone()
     imitation.fit_actor(model, obs, actions, steps=20, batch_size=32)
     assert not th.equal(model.actor.features_extractor.layer.weight, before)
+
+
+def test_the_fit_runs_on_the_threads_asked_and_gives_them_back(
+    env: gym.Env, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    obs, actions = labelled(env)
+    seen = []
+    step = imitation._deterministic_of_features
+
+    def counting(actor: object, features: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+        seen.append(th.get_num_threads())
+        return step(actor, features)
+
+    monkeypatch.setattr(imitation, "_deterministic_of_features", counting)
+    before = th.get_num_threads()
+    model = model_of(env)
+    imitation.fit_actor(model, obs, actions, steps=3, batch_size=8, threads=before + 1)
+    assert seen == [before + 1] * 3
+    assert th.get_num_threads() == before
+    imitation.fit_actor(model, obs, actions, steps=2, batch_size=8)  # None: as they are
+    assert seen[3:] == [before] * 2
+
+
+def test_the_threads_come_back_when_the_fit_fails(env: gym.Env) -> None:
+    before = th.get_num_threads()
+    obs, actions = labelled(env)
+    with pytest.raises(RuntimeError, match="size"):  # labels of 3 actions for an actor of 5
+        imitation.fit_actor(model_of(env), obs, actions[:, :3], steps=5, batch_size=8, threads=before + 1)
+    assert th.get_num_threads() == before

@@ -383,7 +383,14 @@ class DAgger(TrainingMethod):
     def _fit(self, data: Labelled, steps: int, iteration: int) -> float:
         cfg, seed = self.cfg, self.args.seed * 1000 + iteration
         return fit_actor(
-            self.model, data.obs, data.actions, steps, cfg.batch_size, cfg.learning_rate, seed=seed
+            self.model,
+            data.obs,
+            data.actions,
+            steps,
+            cfg.batch_size,
+            cfg.learning_rate,
+            seed=seed,
+            threads=cfg.fit_threads,
         )
 
     def first_iteration(self, demos: Demos | None) -> tuple[Labelled, int]:

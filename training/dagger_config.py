@@ -43,6 +43,9 @@ class DaggerConfig:
         target_success: Success rate at which training stops.
         n_envs: Envs the rollouts run in, each in a subprocess when more
             than 1 (SB3's ``SubprocVecEnv``); 1: one env, in this process.
+        fit_threads: torch's CPU threads while the actor is fitted (the
+            rollouts' env waits meanwhile, so a second core is free); the
+            rollouts keep ``--threads``. The fit's numbers depend on it.
     """
 
     source: str
@@ -60,6 +63,7 @@ class DaggerConfig:
     eval_episodes: int = 100
     target_success: float = 0.9
     n_envs: int = 1
+    fit_threads: int = 2
 
     def __post_init__(self) -> None:
         """Refuse counts below 1 and rates outside their range.
@@ -75,6 +79,7 @@ class DaggerConfig:
             "bc_steps_first",
             "batch_size",
             "n_envs",
+            "fit_threads",
         )
         for name in (*counts, "eval_episodes"):
             value = getattr(self, name)
