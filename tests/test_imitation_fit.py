@@ -148,6 +148,7 @@ def test_the_fit_runs_on_the_threads_asked_and_gives_them_back(
     assert seen[3:] == [before] * 2
 
 
+@pytest.mark.filterwarnings("ignore:Using a target size")  # torch warns before it refuses
 def test_the_threads_come_back_when_the_fit_fails(env: gym.Env) -> None:
     before = th.get_num_threads()
     obs, actions = labelled(env)
