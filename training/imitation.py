@@ -189,7 +189,7 @@ def _fit_actor(
     gen = th.Generator().manual_seed(seed)
     target_log_std = math.log(init_std)
     loss = th.zeros(())
-    # the features of every row once, not of every batch again (a third of a step)
+    # the features of every row once, not of every batch again (14 % of a step)
     features = _fixed_features(actor, obs_t)
     for _ in range(int(steps)):
         idx = th.randint(len(act_t), (batch_size,), generator=gen)
