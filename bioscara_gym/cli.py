@@ -65,8 +65,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     final = result.final_eval
     if result.target_reached_at is not None:
         con.print(
-            f"target reached after {result.target_reached_at} steps, "
-            f"{result.target_reached_after_s:.0f} s"
+            f"target reached after {result.target_reached_at} steps, {result.target_reached_after_s:.0f} s"
         )
     if final is not None:
         con.print(f"final success rate {final.success_rate:.1%} over {final.episodes} episodes")
@@ -208,7 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/reach"), help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default 1)")
+    p.add_argument(
+        "--threads", type=int, help="torch CPU threads (default 1; DAgger fits on its config's fit_threads)"
+    )
     p.add_argument("--demos", help="Minari dataset of demonstrations to learn from (bioscara collect)")
     p.add_argument(
         "--n-envs",
@@ -223,9 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--expert", action="store_true", help="evaluate the scripted expert instead")
     p.add_argument("--env", default="Bioscara-Reach", help="env id for --expert")
     p.add_argument("--episodes", type=int, default=100)
-    p.add_argument(
-        "--backend", choices=("sim", "emulated", "sitl", "mock"), help="default: as trained (sim)"
-    )
+    p.add_argument("--backend", choices=("sim", "emulated", "sitl", "mock"), help="default: as trained (sim)")
     p.add_argument(
         "--firmware",
         type=Path,

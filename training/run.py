@@ -34,6 +34,8 @@ class TrainArgs:
         threads: Torch CPU threads. Default 1: the env steps in the same
             process, and on a 2-core machine a second torch thread only
             contends with it (measured 20x slower matrix products).
+            DAgger's fit, during which the env waits, takes its config's
+            ``fit_threads`` instead.
         verbose: Print each evaluation.
         demos: Minari dataset of demonstrations to learn from (SAC: Nair et al.
             2018, see :mod:`bioscara_gym.training.imitation`; ``bc``: cloned alone).
