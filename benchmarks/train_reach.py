@@ -38,6 +38,8 @@ def sac_her_alone(directory: Path) -> Path:
     for callback in callbacks:
         if EVAL_CALLBACK in callback:
             callback[EVAL_CALLBACK]["target_success"] = 0.95
+            # at eval_freq, as SAC + HER alone has no cloned actor to judge at the first step
+            callback[EVAL_CALLBACK].pop("first_eval", None)
     entry["callback"] = callbacks
     path = directory / "sac_her_alone.yaml"
     path.write_text(yaml.safe_dump({ENV_ID: entry}), encoding="utf-8")

@@ -197,6 +197,16 @@ CASES = [
         id="eval-episodes-zero-in-callback",
     ),
     pytest.param(
+        new_run(
+            eval_freq=None,
+            eval_episodes=None,
+            callback=[{"bioscara_gym.training.zoo.SuccessEvalCallback": {"first_eval": 0}}],
+        ),
+        r"Bioscara-Reach-v0\.callback\.SuccessEvalCallback\.first_eval is 0; expected a whole number >= 1 "
+        r"\(env steps before the first success evaluation\)",
+        id="first-eval-zero",
+    ),
+    pytest.param(
         new_run(target_success=1.5),
         r"Bioscara-Reach-v0\.target_success is 1\.5; expected a success rate in \[0, 1\]",
         id="target-success-above-one",

@@ -271,7 +271,7 @@ def scripted_evaluations(
     """``callback.evaluate`` returns ``rates`` in turn; the episode counts it was asked for."""
     asked: list[int] = []
 
-    def evaluate(episodes: int) -> SimpleNamespace:
+    def evaluate(episodes: int, continuing: object = ()) -> SimpleNamespace:
         asked.append(episodes)
         return SimpleNamespace(success_rate=rates.pop(0))
 
@@ -298,6 +298,75 @@ def test_success_callback_stops_at_the_target_by_default(monkeypatch: pytest.Mon
     cb.num_timesteps = 1000
     assert cb._on_step() is False
     assert (cb.reached_at, cb.stopped_at) == (1000, 1000)
+
+
+def test_success_callback_first_evaluation_then_the_multiples(monkeypatch: pytest.MonkeyPatch) -> None:
+    cb = SuccessEvalCallback(eval_freq=1000, eval_episodes=100, target_success=0.95, first_eval=1)
+    asked = scripted_evaluations(monkeypatch, cb, [0.5, 0.5, 0.5])
+    cb.num_timesteps = 0
+    cb._on_training_start()
+    for step in (1, 2, 999, 1000, 1001, 1999, 2000):
+        cb.num_timesteps = step
+        cb._on_step()
+    assert asked == [20, 20, 20]  # at 1, 1000 and 2000
+    cb.num_timesteps = 5000  # a resumed run: the next multiple, not the first evaluation
+    cb._on_training_start()
+    assert cb._next == 6000
+
+
+def test_success_callback_defaults_its_first_evaluation_to_eval_freq(monkeypatch: pytest.MonkeyPatch) -> None:
+    cb = SuccessEvalCallback(eval_freq=1000, eval_episodes=100, target_success=0.95)
+    asked = scripted_evaluations(monkeypatch, cb, [0.5])
+    cb.num_timesteps = 0
+    cb._on_training_start()
+    for step in (1, 999, 1000):
+        cb.num_timesteps = step
+        cb._on_step()
+    assert asked == [20]
+
+
+@pytest.mark.parametrize("first_eval", [0, -1])
+def test_success_callback_refuses_a_first_evaluation_before_the_first_step(first_eval: int) -> None:
+    with pytest.raises(ValueError, match=rf"first_eval \({first_eval}\) must be >= 1"):
+        SuccessEvalCallback(first_eval=first_eval)
+
+
+class SeededOutcomes(gym.Env):
+    """Two-step episodes that fail for the seeds in ``failing``; records every reset's seed."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,))
+
+    def __init__(self, failing: set[int]) -> None:
+        self.failing, self.seeds, self._t = failing, [], 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        self.seeds.append(seed)
+        self._t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        self._t += 1
+        info = {"is_success": self.seeds[-1] not in self.failing, "distance": 0.0}
+        return np.zeros(1, np.float32), 0.0, False, self._t == 2, info
+
+
+def test_success_callback_confirms_by_going_on_from_the_quick_episodes(monkeypatch: pytest.MonkeyPatch) -> None:
+    from stable_baselines3.common.logger import Logger
+
+    import bioscara_gym.training.zoo as zoo
+
+    env = SeededOutcomes(failing={103, 109})
+    monkeypatch.setattr(zoo, "sb3_policy", lambda model: lambda obs: np.zeros(1, np.float32))
+    cb = SuccessEvalCallback(
+        eval_freq=10, eval_episodes=12, quick_episodes=5, target_success=0.75, env=env, seed=100, verbose=0
+    )
+    cb.model = SimpleNamespace(logger=Logger(folder=None, output_formats=[]))
+    cb.num_timesteps = 10
+    assert cb._on_step() is False  # quick 4/5, then 10/12: the target, and the stop
+    assert env.seeds == list(range(100, 112))  # each seed once: the quick episodes are the first five
+    assert (cb.last.episodes, cb.last.success_rate) == (12, 10 / 12)
+    assert [r.success for r in cb.results] == [True] * 3 + [False] + [True] * 5 + [False] + [True] * 2
 
 
 @pytest.fixture(scope="module")

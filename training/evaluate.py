@@ -102,7 +102,23 @@ def run_episodes(
     video_episodes: int | None = None,
     max_failures: int | None = None,
 ) -> EvalStats:
-    """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...).
+    """The stats of ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...): see :func:`play_episodes`."""
+    return EvalStats.over(
+        play_episodes(env, policy, episodes, seed, on_reset, on_frame, video_episodes, max_failures)
+    )
+
+
+def play_episodes(
+    env: gym.Env,
+    policy: Policy,
+    episodes: int,
+    seed: int = 0,
+    on_reset: Callable[[], None] | None = None,
+    on_frame: Callable[[np.ndarray], None] | None = None,
+    video_episodes: int | None = None,
+    max_failures: int | None = None,
+) -> list[EpisodeResult]:
+    """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...); their results in order.
 
     Args:
         env: The env (``render_mode="rgb_array"`` if ``on_frame`` is given).
@@ -115,7 +131,7 @@ def run_episodes(
         video_episodes: Render only the first this many episodes (all if ``None``):
             headless software rendering costs far more than simulating.
         max_failures: Stop after the episode that fails once more than this
-            (a target out of reach); the stats are of the episodes run.
+            (a target out of reach); the results are of the episodes run.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -138,7 +154,7 @@ def run_episodes(
         results.append(EpisodeResult.ended(info, total, steps))
         if stopped_after(results, max_failures) is not None:
             break
-    return EvalStats.over(results)
+    return results
 
 
 def make_eval_env(

@@ -21,7 +21,7 @@ rl-zoo3 keys that change what the policy sees (``normalize``, ``frame_stack``,
 ``env_wrapper``, ``vec_env_wrapper``) are refused: a policy trained behind
 them could not be evaluated, exported or deployed on the plain env. Counts
 (``n_timesteps``, ``n_envs``, ``eval_freq``, ``eval_episodes``,
-``quick_episodes``) must be whole numbers >= 1, ``target_success`` in
+``quick_episodes``, ``first_eval``) must be whole numbers >= 1, ``target_success`` in
 [0, 1] and ``stop_success`` (where training stops) in
 [``target_success``, 1]; :func:`check_algo_kwargs` refuses keys the
 algorithm does not take.
@@ -88,7 +88,7 @@ class Hyperparams:
         noise_std: Its standard deviation.
         algo_kwargs: Everything else, passed to the algorithm.
         eval_kwargs: Further keyword arguments of the success callback
-            (``quick_episodes``, ``seed``, ``verbose``).
+            (``quick_episodes``, ``first_eval``, ``seed``, ``verbose``).
         callbacks: The other callbacks of the entry: (class, keyword arguments).
     """
 
@@ -253,6 +253,7 @@ POSITIVE_COUNTS = {
     "eval_freq": "env steps between success evaluations",
     "eval_episodes": "episodes per success evaluation",
     "quick_episodes": "episodes per quick success evaluation",
+    "first_eval": "env steps before the first success evaluation",
 }
 
 #: How the message names a key of the success callback given inside ``callback``.

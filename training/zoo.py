@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 import bioscara_gym  # noqa: F401 - registers the tasks (rl-zoo3 may import us before --gym-packages)
-from bioscara_gym.training.evaluate import EvalStats, run_episodes
+from bioscara_gym.training.evaluate import EpisodeResult, EvalStats, play_episodes
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.features import GoalErrorExtractor
 
@@ -98,7 +99,9 @@ class SuccessEvalCallback(BaseCallback):
 
     A cheap evaluation (``quick_episodes``) runs often; when it reaches the
     rate in question, a full one (``eval_episodes``) confirms it, so every
-    reported rate is measured on the full set. The first confirmed
+    reported rate is measured on the full set. The full one goes on from the
+    quick one's episodes: the model has not changed and the seeds are the
+    same, so they are not played twice. The first confirmed
     ``target_success`` is recorded (``reached_at``, ``reached_after_s``: the
     figure benchmarks quote); training stops at the first confirmed
     ``stop_success`` (default: the target). A stop above the target leaves a
@@ -107,7 +110,11 @@ class SuccessEvalCallback(BaseCallback):
     ...; default the model's seed + 10000).
 
     Args:
-        eval_freq: Env steps (summed over parallel envs) between evaluations.
+        eval_freq: Env steps (summed over parallel envs) between evaluations;
+            they come at its multiples.
+        first_eval: Env steps before the first evaluation (default
+            ``eval_freq``); 1 evaluates after the first step, for a model
+            that starts trained (an actor cloned from demonstrations).
         eval_episodes: Episodes of the confirming evaluation.
         target_success: Success rate recorded as reached.
         stop_success: Success rate at which training stops (>= the target).
@@ -124,30 +131,37 @@ class SuccessEvalCallback(BaseCallback):
         target_success: float = 0.95,
         stop_success: float | None = None,
         quick_episodes: int = 20,
+        first_eval: int | None = None,
         env: gym.Env | None = None,
         seed: int | None = None,
         verbose: int = 1,
     ) -> None:
         """Set up the schedule; the env may come later (see ``env``)."""
         super().__init__(verbose)
-        if eval_freq < 1 or eval_episodes < 1:
-            raise ValueError(f"eval_freq ({eval_freq}) and eval_episodes ({eval_episodes}) must be >= 1")
+        first_eval = eval_freq if first_eval is None else first_eval
+        if min(eval_freq, eval_episodes, first_eval) < 1:
+            raise ValueError(
+                f"eval_freq ({eval_freq}), eval_episodes ({eval_episodes}) and first_eval ({first_eval}) "
+                "must be >= 1"
+            )
         self.eval_env = env
         self._owns_env = env is None
         self.eval_freq = int(eval_freq)
         self.episodes = int(eval_episodes)
         self.quick_episodes = min(int(quick_episodes), self.episodes)
+        self.first_eval = int(first_eval)
         self.target = float(target_success)
         self.stop = self.target if stop_success is None else float(stop_success)
         if not self.target <= self.stop <= 1:
             raise ValueError(f"stop_success ({self.stop}) must be in [target_success ({self.target}), 1]")
         self.seed = seed
         self.last: EvalStats | None = None
+        self.results: list[EpisodeResult] = []
         self.reached_at: int | None = None
         self.reached_after_s: float | None = None
         self.stopped_at: int | None = None
         self._start = time.perf_counter()
-        self._next = self.eval_freq
+        self._next = self.first_eval
 
     def _init_callback(self) -> None:
         if self.eval_env is None:
@@ -157,19 +171,33 @@ class SuccessEvalCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         self._start = time.perf_counter()
-        self._next = (self.num_timesteps // self.eval_freq + 1) * self.eval_freq
+        # a resumed run goes on at the next multiple
+        self._next = self.first_eval if self.num_timesteps < self.first_eval else self._after(self.num_timesteps)
+
+    def _after(self, steps: int) -> int:
+        """The first multiple of ``eval_freq`` above ``steps``."""
+        return (steps // self.eval_freq + 1) * self.eval_freq
 
     def _on_training_end(self) -> None:
         if self._owns_env and self.eval_env is not None:
             self.eval_env.close()
             self.eval_env = None
 
-    def evaluate(self, episodes: int) -> EvalStats:
-        """Run ``episodes`` deterministic episodes and log them."""
+    def evaluate(self, episodes: int, continuing: Sequence[EpisodeResult] = ()) -> EvalStats:
+        """The stats of ``episodes`` deterministic episodes, logged; ``self.results`` their results.
+
+        ``continuing``: the results of the first of them, played already by
+        this model; the rest are played (seeds from ``seed + len(continuing)``).
+        """
         if self.eval_env is None:
             self._init_callback()
         assert self.eval_env is not None and self.seed is not None
-        stats = run_episodes(self.eval_env, sb3_policy(self.model), episodes, seed=self.seed)
+        self.results = list(continuing[:episodes])
+        played = len(self.results)
+        if played < episodes:
+            policy = sb3_policy(self.model)
+            self.results += play_episodes(self.eval_env, policy, episodes - played, seed=self.seed + played)
+        stats = EvalStats.over(self.results)
         self.logger.record("eval/success_rate", stats.success_rate)
         self.logger.record("eval/mean_final_distance", stats.mean_final_distance)
         self.logger.record("eval/mean_return", stats.mean_return)
@@ -188,13 +216,13 @@ class SuccessEvalCallback(BaseCallback):
     def _on_step(self) -> bool:
         if self.num_timesteps < self._next:
             return True
-        self._next += self.eval_freq
+        self._next = self._after(self.num_timesteps)
         wanted = self.target if self.reached_at is None else self.stop
         stats = self.evaluate(self.quick_episodes)
         if stats.success_rate < wanted:
             return True
         if self.quick_episodes < self.episodes:
-            stats = self.evaluate(self.episodes)
+            stats = self.evaluate(self.episodes, continuing=self.results)
         if self.reached_at is None and stats.success_rate >= self.target:
             self.reached_at = self.num_timesteps
             self.reached_after_s = time.perf_counter() - self._start
