@@ -303,15 +303,23 @@ def test_success_callback_stops_at_the_target_by_default(monkeypatch: pytest.Mon
 def test_success_callback_first_evaluation_then_the_multiples(monkeypatch: pytest.MonkeyPatch) -> None:
     cb = SuccessEvalCallback(eval_freq=1000, eval_episodes=100, target_success=0.95, first_eval=1)
     asked = scripted_evaluations(monkeypatch, cb, [0.5, 0.5, 0.5])
-    cb.num_timesteps = 0
-    cb._on_training_start()
-    for step in (1, 2, 999, 1000, 1001, 1999, 2000):
+    for step in (1, 2, 999, 1000, 1001, 1999, 2000):  # as made (rl-zoo3 may skip the training start)
         cb.num_timesteps = step
         cb._on_step()
     assert asked == [20, 20, 20]  # at 1, 1000 and 2000
     cb.num_timesteps = 5000  # a resumed run: the next multiple, not the first evaluation
     cb._on_training_start()
     assert cb._next == 6000
+
+
+def test_success_callback_resumed_at_its_first_evaluation_waits_for_the_next() -> None:
+    cb = SuccessEvalCallback(eval_freq=1000)
+    cb.num_timesteps = 1000  # evaluated there before the run stopped
+    cb._on_training_start()
+    assert cb._next == 2000
+    cb.num_timesteps = 0
+    cb._on_training_start()
+    assert cb._next == 1000
 
 
 def test_success_callback_defaults_its_first_evaluation_to_eval_freq(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -351,7 +359,7 @@ class SeededOutcomes(gym.Env):
         return np.zeros(1, np.float32), 0.0, False, self._t == 2, info
 
 
-def test_success_callback_confirms_by_going_on_from_the_quick_episodes(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_success_callback_confirms_going_on_from_the_quick_episodes(monkeypatch: pytest.MonkeyPatch) -> None:
     from stable_baselines3.common.logger import Logger
 
     import bioscara_gym.training.zoo as zoo

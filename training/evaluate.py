@@ -102,7 +102,7 @@ def run_episodes(
     video_episodes: int | None = None,
     max_failures: int | None = None,
 ) -> EvalStats:
-    """The stats of ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...): see :func:`play_episodes`."""
+    """The stats of ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...): :func:`play_episodes`."""
     return EvalStats.over(
         play_episodes(env, policy, episodes, seed, on_reset, on_frame, video_episodes, max_failures)
     )

@@ -171,8 +171,8 @@ class SuccessEvalCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         self._start = time.perf_counter()
-        # a resumed run goes on at the next multiple
-        self._next = self.first_eval if self.num_timesteps < self.first_eval else self._after(self.num_timesteps)
+        steps = self.num_timesteps  # a resumed run goes on at the next multiple
+        self._next = self.first_eval if steps < self.first_eval else self._after(steps)
 
     def _after(self, steps: int) -> int:
         """The first multiple of ``eval_freq`` above ``steps``."""
