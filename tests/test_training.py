@@ -271,7 +271,7 @@ def scripted_evaluations(
     """``callback.evaluate`` returns ``rates`` in turn; the episode counts it was asked for."""
     asked: list[int] = []
 
-    def evaluate(episodes: int, continuing: object = ()) -> SimpleNamespace:
+    def evaluate(episodes: int, continuing: object = (), max_failures: int | None = None) -> SimpleNamespace:
         asked.append(episodes)
         return SimpleNamespace(success_rate=rates.pop(0))
 
@@ -375,6 +375,48 @@ def test_success_callback_confirms_going_on_from_the_quick_episodes(monkeypatch:
     assert env.seeds == list(range(100, 112))  # each seed once: the quick episodes are the first five
     assert (cb.last.episodes, cb.last.success_rate) == (12, 10 / 12)
     assert [r.success for r in cb.results] == [True] * 3 + [False] + [True] * 5 + [False] + [True] * 2
+
+
+def test_success_callback_stops_a_confirmation_at_the_failure_that_decides_it(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from stable_baselines3.common.logger import Logger
+
+    import bioscara_gym.training.zoo as zoo
+
+    env = SeededOutcomes(failing={103, 106, 107, 108, 110})
+    monkeypatch.setattr(zoo, "sb3_policy", lambda model: lambda obs: np.zeros(1, np.float32))
+    cb = SuccessEvalCallback(
+        eval_freq=10, eval_episodes=12, quick_episodes=5, target_success=0.75, env=env, seed=100, verbose=1
+    )
+    cb.model = SimpleNamespace(logger=Logger(folder=None, output_formats=[]))
+    cb.num_timesteps = 10
+    assert cb._on_step() is True  # quick 4/5; 9 of 12 needed, at most 3 failures: the 4th is seed 108
+    assert env.seeds == list(range(100, 109))
+    assert (cb.last.episodes, cb.last.success_rate) == (9, 5 / 9)
+    assert cb.reached_at is None
+    assert "over 9 of 12 (stopped: 4 failures) episodes" in capsys.readouterr().out
+
+
+def test_success_callback_plays_no_more_when_the_given_episodes_decide(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from stable_baselines3.common.logger import Logger
+
+    import bioscara_gym.training.zoo as zoo
+    from bioscara_gym.training.evaluate import EpisodeResult
+
+    env = SeededOutcomes(failing=set())
+    monkeypatch.setattr(zoo, "sb3_policy", lambda model: lambda obs: np.zeros(1, np.float32))
+    cb = SuccessEvalCallback(eval_episodes=12, env=env, seed=100, verbose=0)
+    cb.model = SimpleNamespace(logger=Logger(folder=None, output_formats=[]))
+    failed = EpisodeResult(success=False, stalled=False, distance=0.0, total=0.0, steps=2)
+    stats = cb.evaluate(12, continuing=[failed] * 4, max_failures=3)
+    assert env.seeds == []
+    assert (stats.episodes, stats.success_rate) == (4, 0.0)
+    stats = cb.evaluate(12, continuing=[failed] * 3, max_failures=3)  # at the edge: the rest may all pass
+    assert env.seeds == list(range(103, 112))
+    assert (stats.episodes, stats.success_rate) == (12, 0.75)
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,7 @@ Example entry (``training/configs/sac.yaml``)::
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -99,9 +100,10 @@ class SuccessEvalCallback(BaseCallback):
 
     A cheap evaluation (``quick_episodes``) runs often; when it reaches the
     rate in question, a full one (``eval_episodes``) confirms it, so every
-    reported rate is measured on the full set. The full one goes on from the
-    quick one's episodes: the model has not changed and the seeds are the
-    same, so they are not played twice. The first confirmed
+    rate that passes is measured on the full set. The full one goes on from
+    the quick one's episodes (the model has not changed and the seeds are
+    the same, so they are not played twice), and stops at the failure that
+    puts the rate out of reach (the decision is the same). The first confirmed
     ``target_success`` is recorded (``reached_at``, ``reached_after_s``: the
     figure benchmarks quote); training stops at the first confirmed
     ``stop_success`` (default: the target). A stop above the target leaves a
@@ -183,20 +185,27 @@ class SuccessEvalCallback(BaseCallback):
             self.eval_env.close()
             self.eval_env = None
 
-    def evaluate(self, episodes: int, continuing: Sequence[EpisodeResult] = ()) -> EvalStats:
+    def evaluate(
+        self, episodes: int, continuing: Sequence[EpisodeResult] = (), max_failures: int | None = None
+    ) -> EvalStats:
         """The stats of ``episodes`` deterministic episodes, logged; ``self.results`` their results.
 
         ``continuing``: the results of the first of them, played already by
         this model; the rest are played (seeds from ``seed + len(continuing)``).
+        ``max_failures``: stop after the episode that fails once more than
+        this (the stats are then of the episodes played).
         """
         if self.eval_env is None:
             self._init_callback()
         assert self.eval_env is not None and self.seed is not None
         self.results = list(continuing[:episodes])
         played = len(self.results)
-        if played < episodes:
+        allowed = None if max_failures is None else max_failures - sum(not r.success for r in self.results)
+        if played < episodes and (allowed is None or allowed >= 0):
             policy = sb3_policy(self.model)
-            self.results += play_episodes(self.eval_env, policy, episodes - played, seed=self.seed + played)
+            self.results += play_episodes(
+                self.eval_env, policy, episodes - played, seed=self.seed + played, max_failures=allowed
+            )
         stats = EvalStats.over(self.results)
         self.logger.record("eval/success_rate", stats.success_rate)
         self.logger.record("eval/mean_final_distance", stats.mean_final_distance)
@@ -206,9 +215,12 @@ class SuccessEvalCallback(BaseCallback):
         self.last = stats
         if self.verbose:
             elapsed = time.perf_counter() - self._start
+            failures = sum(not r.success for r in self.results)
+            cut = f" of {episodes} (stopped: {failures} failures)" if stats.episodes < episodes else ""
             print(
                 f"[eval] step {self.num_timesteps:>7}  {elapsed:6.0f} s  success {stats.success_rate:6.1%} "
-                f"over {episodes} episodes  final distance {stats.mean_final_distance * 1000:6.1f} mm",
+                f"over {stats.episodes}{cut} episodes  "
+                f"final distance {stats.mean_final_distance * 1000:6.1f} mm",
                 flush=True,
             )
         return stats
@@ -222,7 +234,9 @@ class SuccessEvalCallback(BaseCallback):
         if stats.success_rate < wanted:
             return True
         if self.quick_episodes < self.episodes:
-            stats = self.evaluate(self.episodes, continuing=self.results)
+            # stopped at the failure that puts ``wanted`` out of reach: the decision is the same
+            allowed = self.episodes - math.ceil(self.episodes * wanted - 1e-9)
+            stats = self.evaluate(self.episodes, continuing=self.results, max_failures=allowed)
         if self.reached_at is None and stats.success_rate >= self.target:
             self.reached_at = self.num_timesteps
             self.reached_after_s = time.perf_counter() - self._start
