@@ -11,6 +11,7 @@ beside SAC+HER alone.
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -25,6 +26,7 @@ def load_bench() -> ModuleType:
     spec = importlib.util.spec_from_file_location("train_task", BENCH)
     assert spec is not None and spec.loader is not None
     bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench  # its dataclass looks its own module up while it is made
     spec.loader.exec_module(bench)
     return bench
 
