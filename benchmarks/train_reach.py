@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 import yaml
+from env_step import yardstick
 
 from bioscara_gym.training.hyperparams import default_config_path
 from bioscara_gym.training.train import TrainArgs, TrainResult, train
@@ -73,6 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.no_demos and args.algo != "sac":
         parser.error("--no-demos changes the SAC entry; use it with --algo sac")
+    print(yardstick(), flush=True)
     times = []
     for seed in args.seeds:
         result = run(args.algo, seed, args.timesteps, demos=not args.no_demos)

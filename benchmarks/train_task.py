@@ -218,7 +218,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     root = args.out or Path(tempfile.mkdtemp(prefix="train_task_"))
     root.mkdir(parents=True, exist_ok=True)
+    from env_step import yardstick  # beside this script (tests load this file without main)
+
     load_before = os.getloadavg()
+    machine = yardstick()
+    print(machine, flush=True)
     results = {env_id: run_task(env_id, args, root) for env_id in args.env or learned_tasks()}
     if args.fetch_minutes > 0:
         results[PEER] = []
@@ -231,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         summary(f"{env_id}, {args.eval_episodes} evaluation episodes each", outcomes)
     cpus = os.cpu_count()
     print(f"load average (1 min) {load_before[0]:.1f} before, {load_after[0]:.1f} after, on {cpus} CPUs")
+    print(f"{machine} (before the runs)")
     print(f"runs in {root}")
     default_rows = [o for outcomes in results.values() for o in outcomes if o.method == DEFAULT]
     in_time = all(o.success >= TARGET and o.wall_s <= args.minutes * 60 + 60 for o in default_rows)
