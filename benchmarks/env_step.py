@@ -32,6 +32,11 @@ def steps_per_second(env_id: str, steps: int, **kwargs: object) -> float:
     return rate
 
 
+def reacher_rate(steps: int) -> float:
+    """Reacher-v5's steps/s, the better of two runs (its rate varies run to run)."""
+    return max(steps_per_second("Reacher-v5", steps) for _ in range(2))
+
+
 def yardstick(steps: int = 2000) -> str:
     """This machine's speed as Reacher-v5's steps/s (best of two), for wall-clock figures.
 
@@ -40,8 +45,7 @@ def yardstick(steps: int = 2000) -> str:
     training needed did not change); a figure printed beside this rate can be
     scaled to another machine.
     """
-    rate = max(steps_per_second("Reacher-v5", steps) for _ in range(2))
-    return f"this machine: Gymnasium's Reacher-v5 at {rate:.0f} random-action steps/s"
+    return f"this machine: Gymnasium's Reacher-v5 at {reacher_rate(steps):.0f} random-action steps/s"
 
 
 def main() -> None:
@@ -49,7 +53,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=5000)
     args = parser.parse_args()
-    reacher = max(steps_per_second("Reacher-v5", args.steps) for _ in range(2))
+    reacher = reacher_rate(args.steps)
     reach = max(steps_per_second("Bioscara-Reach-v0", args.steps) for _ in range(2))
     print(f"Reacher-v5          : {reacher:8.0f} steps/s")
     print(f"Bioscara-Reach-v0   : {reach:8.0f} steps/s  (velocity mode, sim backend)")
