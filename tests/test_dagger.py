@@ -6,9 +6,11 @@ iterations); the default config's 90 % target is tests/test_pickplace_learning.p
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -150,10 +152,10 @@ def test_rollouts_on_two_workers_are_the_same_seeded_episodes(pick_env: gym.Env)
     venv = make_vec_envs(PICK, 2, {"control_mode": "cartesian", "backend": "mock"})
     try:
         assert type(venv).__name__ == "SubprocVecEnv"
-        rows, labels, successes = label_rollouts(venv, expert, expert, 3, 7, 1.0, np.random.default_rng(0))
+        rows, labels, results = label_rollouts(venv, expert, expert, 3, 7, 1.0, np.random.default_rng(0))
     finally:
         venv.close()
-    assert len(rows) == len(one.data) and successes == one.successes
+    assert len(rows) == len(one.data) and results == list(one.results)  # in seed order
 
     def keyed(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
         rows = np.concatenate([obs, actions], axis=1).astype(np.float32)
@@ -165,9 +167,10 @@ def test_rollouts_on_two_workers_are_the_same_seeded_episodes(pick_env: gym.Env)
 
 def test_evaluation_on_two_workers_is_the_one_env_evaluation(pick_env: gym.Env) -> None:
     # DAgger evaluates on its rollouts' workers when it has them: the same seeded
-    # episodes give the same stats, and a confirming evaluation stops where the
-    # one-env loop does (after the episode that fails once more than allowed).
-    from bioscara_gym.training.parallel import make_vec_envs, run_episodes_on
+    # episodes give the same stats, and a confirming evaluation (labelled, as its
+    # states may join the aggregate) stops where the one-env loop does (after the
+    # episode that fails once more than allowed).
+    from bioscara_gym.training.parallel import label_rollouts, make_vec_envs, run_episodes_on
 
     expert = ObservationExpert(pick_env.unwrapped)
 
@@ -177,12 +180,20 @@ def test_evaluation_on_two_workers_is_the_one_env_evaluation(pick_env: gym.Env) 
     one = [run_episodes(pick_env, half, 8, seed=3, max_failures=m) for m in (None, 3)]
     assert round(one[0].success_rate * 8) == 3  # both kinds of episode among the 8
     assert one[1].episodes == 6 and one[1].success_rate == 2 / 6  # the 4th failure is the 6th episode
+    labelled = label_episodes(pick_env, half, expert, 8, seed=3, iteration=1, max_failures=3)
+    assert labelled.stats == one[1]
+    assert len(labelled.data) == 6 * 200  # the 6 episodes' states (PickPlace: 200 steps)
     venv = make_vec_envs(PICK, 2, {"control_mode": "cartesian", "backend": "mock"})
     try:
         two = [run_episodes_on(venv, half, 8, seed=3, max_failures=m) for m in (None, 3)]
+        rng = np.random.default_rng(0)
+        rows, labels, results = label_rollouts(venv, half, expert, 8, 3, 0.0, rng, max_failures=3)
     finally:
         venv.close()
     assert two == one
+    assert results == list(labelled.results)
+    # The two workers ran the 7th episode beside the 6th: its states are kept, its result is not.
+    assert len(rows) == len(labels) == 7 * 200
 
 
 def test_n_envs_below_one_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -420,21 +431,35 @@ def test_an_evaluation_can_stop_once_more_failures_than_allowed() -> None:
 def test_dagger_confirms_its_target_no_longer_than_the_target_stays_in_reach(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    seen: list[int | None] = []
-    original = dagger.run_episodes
+    labelled: list[tuple[int | None, dagger.Rollouts]] = []
+    evaluated: list[tuple[int, int | None]] = []
+    label, run = dagger.label_episodes, dagger.run_episodes
 
-    def spy(*args: object, max_failures: int | None = None, **kwargs: object) -> object:
-        seen.append(max_failures)
-        return original(*args, max_failures=max_failures, **kwargs)  # type: ignore[arg-type]
+    def label_spy(*args: Any, max_failures: int | None = None, **kwargs: Any) -> dagger.Rollouts:
+        r = label(*args, max_failures=max_failures, **kwargs)
+        labelled.append((max_failures, r))
+        if max_failures is None:  # the learner's own rollouts "reach" the target
+            r = dagger.Rollouts(r.data, tuple(dataclasses.replace(x, success=True) for x in r.results))
+        return r
 
-    monkeypatch.setattr(dagger, "run_episodes", spy)
-    # The learner's own rollouts "reach" the target of 0.7 at once (the expert's share is
-    # negligible from iteration 1); 10 evaluation episodes then allow 3 failures.
-    monkeypatch.setattr(dagger.Rollouts, "success_rate", property(lambda self: 1.0))
+    def run_spy(*args: Any, max_failures: int | None = None, **kwargs: Any) -> Any:
+        stats = run(*args, max_failures=max_failures, **kwargs)
+        evaluated.append((stats.episodes, max_failures))
+        return stats
+
+    monkeypatch.setattr(dagger, "label_episodes", label_spy)
+    monkeypatch.setattr(dagger, "run_episodes", run_spy)
+    # The expert's share is negligible from iteration 1; 10 confirming episodes at a
+    # target of 0.7 allow 3 failures.
     (tmp_path / "cfg").mkdir()  # tiny_args writes its own tmp_path / "dagger.yaml"
     config = tiny_config(tmp_path / "cfg", target_success=0.7, eval_episodes=10, beta=0.01)
     train(tiny_args(tmp_path, config=config))
-    assert seen[0] == 3
-    # The tiny learner fails: each confirmation stops at its 4th failure, then the budget's
-    # own evaluation runs all 10.
-    assert seen[-1] is None
+    # The expert's 2 episodes, the learner's 1, then the confirmation: the tiny learner
+    # fails, so it stops at its 4th failure and its 4 episodes join the aggregate.
+    assert [m for m, _ in labelled] == [None, None, 3]
+    check = labelled[2][1]
+    assert check.episodes == 4 and check.successes == 0
+    meta = json.loads((tmp_path / "run" / "metadata.json").read_text(encoding="utf-8"))
+    assert meta["dagger"]["labelled_states"] == 7 * 200 == meta["timesteps"]  # the budget (1000) spent
+    # Then the budget's own evaluation runs all 10, on its own seeds.
+    assert evaluated == [(10, None)]

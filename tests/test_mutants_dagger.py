@@ -6,8 +6,9 @@ steps (roll out, fit, log, evaluate) are replaced by recorders, so a test
 sees what each iteration asks for: the expert's share ``beta ** i``
 (``DaggerConfig.beta``'s docstring), the stopping rule (the learner's own
 rollouts at the target while the expert's share is below
-``BETA_NEGLIGIBLE`` = 0.05, then a confirming evaluation that stops at the
-failure that puts the target out of reach), the seeds, the checkpoints.
+``BETA_NEGLIGIBLE`` = 0.05, then a confirming evaluation on fresh episodes
+that stops at the failure that puts the target out of reach and, falling
+short, joins the aggregate), the seeds, the checkpoints.
 Expected values are literals from the module's and the config's docstrings
 and training/configs/dagger.yaml.
 """
@@ -32,7 +33,7 @@ from bioscara_gym.training.base import RunPlan
 from bioscara_gym.training.checkpoints import write_run_state
 from bioscara_gym.training.dagger import DAgger, Labelled, Rollouts, label_episodes
 from bioscara_gym.training.dagger_config import DaggerConfig
-from bioscara_gym.training.evaluate import EvalStats
+from bioscara_gym.training.evaluate import EpisodeResult, EvalStats
 from bioscara_gym.training.features import PickPlaceExtractor
 from bioscara_gym.training.methods import method_spec
 from bioscara_gym.training.run import TrainArgs
@@ -52,6 +53,12 @@ def rows(n: int, iteration: int, value: float = 0.0) -> Labelled:
 
 def stats(success_rate: float, episodes: int = 10) -> EvalStats:
     return EvalStats(episodes, success_rate, 0.02, 1.0, 0.0, 50.0, 0)
+
+
+def rollouts(data: Labelled, successes: int, episodes: int) -> Rollouts:
+    """``episodes`` episodes of 50 steps, the first ``successes`` of them successful, and ``data``."""
+    results = [EpisodeResult(k < successes, False, 0.02, 1.0, 50) for k in range(episodes)]
+    return Rollouts(data, tuple(results))
 
 
 class Episodes(gym.Env):
@@ -156,13 +163,13 @@ def policy_of(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(dagger, "sb3_policy", lambda model: ("policy of", model))
 
 
-def stub_iteration(d: DAgger, rollouts: Rollouts, final: EvalStats | None = None) -> dict[str, Recorder]:
-    """Replace the steps ``iteration`` calls by recorders."""
+def stub_iteration(d: DAgger, r: Rollouts, check: Rollouts | None = None) -> dict[str, Recorder]:
+    """Replace the steps ``iteration`` calls by recorders: rollouts ``r``, a confirmation ``check``."""
     steps = {
-        "_rollouts": Recorder(rollouts),
+        "_rollouts": Recorder(r),
         "_fit": Recorder(0.125),
         "_log": Recorder(),
-        "evaluation": Recorder(final),
+        "confirmation": Recorder(check),
     }
     for name, recorder in steps.items():
         setattr(d, name, recorder)
@@ -194,7 +201,7 @@ def test_demos_are_iteration_zero() -> None:
 
 
 def test_a_rollouts_success_rate_is_its_successes_over_its_episodes() -> None:
-    assert Rollouts(rows(0, 1), 3, 4).success_rate == 0.75
+    assert rollouts(rows(0, 1), 3, 4).success_rate == 0.75
 
 
 # ------------------------------------------------------------------ label_episodes
@@ -222,6 +229,17 @@ def test_an_episode_ends_on_termination_too_and_without_is_success_it_failed() -
     env = Episodes([2, 1], [None, None], terminate=True)
     r = label_episodes(env, learner, expert, 2, seed=0, iteration=1)
     assert len(r.data) == 3 and r.successes == 0
+
+
+def test_label_episodes_stops_after_the_failure_its_allowance_cannot_take() -> None:
+    # One failure allowed: the second (episode 2, which ends without is_success) stops it.
+    env = Episodes([2, 3, 1, 2, 4], [True, False, None, False, True])
+    r = label_episodes(env, learner, expert, 5, seed=0, iteration=1, max_failures=1)
+    assert env.seeds == [0, 1, 2]
+    assert len(r.data) == 6 and [x.steps for x in r.results] == [2, 3, 1]
+    assert (r.successes, r.episodes) == (1, 3)
+    env = Episodes([2, 3, 1, 2, 4], [True, False, None, False, True])
+    assert label_episodes(env, learner, expert, 5, seed=0, iteration=1).episodes == 5  # no allowance
 
 
 def test_the_expert_acting_itself_acts_in_every_step_whatever_beta() -> None:
@@ -283,7 +301,7 @@ def test_iteration_i_mixes_in_the_expert_with_a_share_of_beta_to_the_i(
     tmp_path: Path, policy_of: None, i: int, beta: float
 ) -> None:
     d = make_dagger(tmp_path, beta=0.5, episodes_per_iteration=20)
-    steps = stub_iteration(d, Rollouts(rows(7, i), 20, 20))
+    steps = stub_iteration(d, rollouts(rows(7, i), 20, 20))
     d.iteration(i, rows(5, 0), 100)
     ((args, _),) = steps["_rollouts"].calls
     assert args[0] == ("policy of", "the model")  # the learner acts
@@ -300,11 +318,11 @@ def test_an_iteration_adds_the_learners_states_and_refits_on_the_aggregate(
 ) -> None:
     d = make_dagger(tmp_path, beta=0.5, bc_steps=7, target_success=0.9)
     new = rows(4, 2, 9.0)
-    steps = stub_iteration(d, Rollouts(new, 9, 20))
+    steps = stub_iteration(d, rollouts(new, 9, 20))
     data, env_steps, final = d.iteration(2, rows(3, 0, 1.0), 100)
     assert (len(data), env_steps, final) == (7, 104, None)
     assert data.iteration.tolist() == [0, 0, 0, 2, 2, 2, 2]  # the old rows first
-    assert steps["evaluation"].calls == []
+    assert steps["confirmation"].calls == []
     ((fit_args, _),) = steps["_fit"].calls
     assert fit_args[0] is data and fit_args[1:] == (7, 2)  # bc_steps, the iteration
     ((log_args, _),) = steps["_log"].calls
@@ -318,9 +336,9 @@ def test_while_the_experts_share_is_not_negligible_even_a_perfect_rollout_does_n
 ) -> None:
     # beta 0.05 ** 1 = 0.05: not below BETA_NEGLIGIBLE, so the expert still carries the learner.
     d = make_dagger(tmp_path, beta=beta, target_success=0.9)
-    steps = stub_iteration(d, Rollouts(rows(4, 1), 20, 20), final=stats(1.0))
+    steps = stub_iteration(d, rollouts(rows(4, 1), 20, 20), check=rollouts(rows(9, 1), 10, 10))
     *_, final = d.iteration(1, rows(3, 0), 100)
-    assert final is None and steps["evaluation"].calls == []
+    assert final is None and steps["confirmation"].calls == []
     assert len(steps["_fit"].calls) == 1
 
 
@@ -329,10 +347,11 @@ def test_the_expert_s_share_becomes_negligible_after_enough_iterations(
 ) -> None:
     # 0.5 ** 4 = 0.0625 still counts; 0.5 ** 5 = 0.03125 is the learner alone.
     d = make_dagger(tmp_path, beta=0.5, target_success=0.9)
-    steps = stub_iteration(d, Rollouts(rows(4, 4), 20, 20), final=stats(1.0))
+    check = rollouts(rows(9, 5), 10, 10)
+    steps = stub_iteration(d, rollouts(rows(4, 4), 20, 20), check=check)
     assert d.iteration(4, rows(3, 0), 100)[2] is None
-    assert d.iteration(5, rows(3, 0), 100)[2] == stats(1.0)
-    assert len(steps["evaluation"].calls) == 1
+    assert d.iteration(5, rows(3, 0), 100)[2] == check.stats
+    assert len(steps["confirmation"].calls) == 1
 
 
 def test_rollouts_at_the_target_ask_for_a_confirming_evaluation_which_stops_training(
@@ -340,11 +359,12 @@ def test_rollouts_at_the_target_ask_for_a_confirming_evaluation_which_stops_trai
 ) -> None:
     d = make_dagger(tmp_path, beta=0.01, target_success=0.9)
     new = rows(4, 1)
-    steps = stub_iteration(d, Rollouts(new, 18, 20), final=stats(0.9))  # 18 of 20: the target exactly
+    check = rollouts(rows(9, 1), 9, 10)  # 90 %: confirmed
+    steps = stub_iteration(d, rollouts(new, 18, 20), check=check)  # 18 of 20: the target exactly
     old = rows(3, 0)
     data, env_steps, final = d.iteration(1, old, 100)
-    assert steps["evaluation"].calls == [((104,), {"confirming": True})]
-    assert final == stats(0.9)  # 90 % confirmed: stop
+    assert steps["confirmation"].calls == [((1, 104), {})]
+    assert final == check.stats  # stop, with the confirmation's figures
     assert data is old and env_steps == 104  # nothing aggregated, nothing refitted
     assert steps["_fit"].calls == [] and steps["_log"].calls == []
     assert d.reached_at == 104 and 0 <= d.reached_after_s < 5
@@ -352,26 +372,31 @@ def test_rollouts_at_the_target_ask_for_a_confirming_evaluation_which_stops_trai
 
 def test_rollouts_below_the_target_are_not_confirmed(tmp_path: Path, policy_of: None) -> None:
     d = make_dagger(tmp_path, beta=0.01, target_success=0.9)
-    steps = stub_iteration(d, Rollouts(rows(4, 1), 17, 20), final=stats(1.0))
+    steps = stub_iteration(d, rollouts(rows(4, 1), 17, 20), check=rollouts(rows(9, 1), 10, 10))
     assert d.iteration(1, rows(3, 0), 100)[2] is None
-    assert steps["evaluation"].calls == [] and d.reached_at is None
+    assert steps["confirmation"].calls == [] and d.reached_at is None
 
 
 def test_an_evaluation_that_does_not_confirm_the_target_goes_on_aggregating(
     tmp_path: Path, policy_of: None
 ) -> None:
     d = make_dagger(tmp_path, beta=0.01, target_success=0.9)
-    steps = stub_iteration(d, Rollouts(rows(4, 1), 20, 20), final=stats(0.89))
+    # 89 % of 100 falls short; its 6 states join the aggregate after the rollouts' 4, and count.
+    check = rollouts(rows(6, 1, 2.0), 89, 100)
+    steps = stub_iteration(d, rollouts(rows(4, 1, 1.0), 20, 20), check=check)
     data, env_steps, final = d.iteration(1, rows(3, 0), 100)
-    assert final is None and len(data) == 7 and env_steps == 104
-    assert len(steps["_fit"].calls) == 1 and d.reached_at is None
+    assert final is None and env_steps == 110 and d.reached_at is None
+    assert data.actions[:, 0].tolist() == [0.0] * 3 + [1.0] * 4 + [2.0] * 6
+    ((fit_args, _),) = steps["_fit"].calls
+    assert fit_args[0] is data
+    assert steps["_log"].calls[0][0][:2] == (1, 110)
 
 
 def test_an_iteration_says_what_the_learner_did(
     tmp_path: Path, policy_of: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
     d = make_dagger(tmp_path, verbose=1, beta=0.5)
-    stub_iteration(d, Rollouts(rows(4, 2), 9, 20))
+    stub_iteration(d, rollouts(rows(4, 2), 9, 20))
     d.start = dagger.time.perf_counter()
     d.iteration(2, rows(3, 0), 100)
     assert (
@@ -384,7 +409,7 @@ def test_an_iteration_without_the_expert_names_the_learner_alone_and_a_reached_t
     tmp_path: Path, policy_of: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
     d = make_dagger(tmp_path, verbose=1, beta=0.0, target_success=0.5)
-    stub_iteration(d, Rollouts(rows(4, 1), 1, 2), final=stats(0.5))
+    stub_iteration(d, rollouts(rows(4, 1), 1, 2), check=rollouts(rows(4, 1), 1, 2))
     d.start = dagger.time.perf_counter()
     d.iteration(1, rows(3, 0), 100)
     assert capsys.readouterr().out == (
@@ -397,7 +422,7 @@ def test_nothing_is_said_unless_verbose(
     tmp_path: Path, policy_of: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
     d = make_dagger(tmp_path, verbose=0, beta=0.0, target_success=0.5)
-    stub_iteration(d, Rollouts(rows(4, 1), 1, 2), final=stats(0.5))
+    stub_iteration(d, rollouts(rows(4, 1), 1, 2), check=rollouts(rows(4, 1), 1, 2))
     d.iteration(1, rows(3, 0), 100)
     assert capsys.readouterr().out == ""
 
@@ -420,7 +445,7 @@ def test_iteration_zero_clones_the_experts_own_episodes(
     d = make_dagger(tmp_path, seed=3, verbose=1, demo_episodes=2, bc_steps_first=11)
     d.expert = expert
     demos = rows(6, 0)
-    steps = stub_iteration(d, Rollouts(demos, 1, 2))
+    steps = stub_iteration(d, rollouts(demos, 1, 2))
     d._fit = Recorder(0.12345)
     data, env_steps = d.first_iteration(None)
     assert data is demos and env_steps == 6
@@ -437,7 +462,7 @@ def test_iteration_zero_from_a_dataset_takes_no_env_step(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     d = make_dagger(tmp_path, verbose=1, bc_steps_first=11)
-    steps = stub_iteration(d, Rollouts(rows(1, 0), 1, 1))
+    steps = stub_iteration(d, rollouts(rows(1, 0), 1, 1))
 
     class Dataset:
         obs = {k: np.zeros((5, 2), dtype=np.float32) for k in KEYS}
@@ -481,7 +506,7 @@ def test_rollouts_in_one_env_report_each_episode_to_the_progress_bar(
 def test_the_mixtures_draws_depend_on_the_run_seed_and_the_iteration_only(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(dagger, "label_episodes", lambda *args: args[7].random(3).tolist())
+    monkeypatch.setattr(dagger, "label_episodes", lambda *args, **kwargs: args[7].random(3).tolist())
 
     def draws(seed: int, iteration: int) -> list[float]:
         d = make_dagger(tmp_path, seed=seed)
@@ -499,13 +524,14 @@ def test_rollouts_on_workers_are_labelled_with_their_iteration(
     d = make_dagger(tmp_path)
     d.env, d.expert, d.venv = "env", expert, "venv"
     obs = [{k: np.array([i, 0.0]) for k in KEYS} for i in range(3)]
-    calls = Recorder((obs, [np.array(EXPERT_ACTION)] * 3, 2))
+    results = [EpisodeResult(k < 2, False, 0.02, 1.0, 50) for k in range(4)]
+    calls = Recorder((obs, [np.array(EXPERT_ACTION)] * 3, results))
     monkeypatch.setattr(dagger, "label_rollouts", calls)
     episodes: list[tuple[int, dict[str, str]]] = []
     d.progress = SimpleNamespace(episode=lambda steps, **postfix: episodes.append((steps, postfix)))
     r = d._rollouts(learner, 4, 500, 6, 0.25)
-    ((args, _),) = calls.calls
-    assert args[:6] == ("venv", learner, expert, 4, 500, 0.25)
+    ((args, kwargs),) = calls.calls
+    assert args[:6] == ("venv", learner, expert, 4, 500, 0.25) and kwargs == {"max_failures": None}
     assert isinstance(args[6], np.random.Generator)  # the mixture's draws
     args[7](False, 30)  # each episode ends on the progress bar
     assert episodes == [(30, {"iteration": "6"})]
@@ -527,27 +553,47 @@ def test_fitting_uses_the_configs_batch_rate_and_threads_and_a_seed_per_iteratio
 
 # ------------------------------------------------------------------ evaluation
 def test_a_confirming_evaluation_allows_the_failures_the_target_leaves(
-    tmp_path: Path, policy_of: None, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, policy_of: None
 ) -> None:
-    runs = Recorder(stats(1.0, 10))
-    monkeypatch.setattr(dagger, "run_episodes", runs)
-
-    def allowed(n: int, target: float, confirming: bool = True) -> int | None:
+    def confirm(n: int, target: float, i: int = 1) -> tuple[tuple[Any, ...], dict[str, Any]]:
         d = make_dagger(tmp_path, seed=3, eval_episodes=n, target_success=target)
-        d.eval_env = "eval env"
-        d.evaluation(0, confirming=confirming)
-        args, kwargs = runs.calls[-1]
-        assert args == ("eval env", ("policy of", "the model"), n)
-        assert kwargs["seed"] == 10_003  # the run's seed + 10000
-        return kwargs["max_failures"]
+        d._rollouts = Recorder(rollouts(rows(2, i), 1, 1))
+        d.confirmation(i, 0)
+        ((call,),) = [d._rollouts.calls]
+        return call
 
-    assert allowed(100, 0.9) == 10
-    assert allowed(10, 0.7) == 3  # 10 x 0.7 is 7.000000000000001 in floating point
-    assert allowed(3, 1.0) == 0
-    assert allowed(100, 0.9, confirming=False) is None
+    # The learner alone (beta 0), labelled as iteration i's rollouts are.
+    args, kwargs = confirm(100, 0.9)
+    assert args == (("policy of", "the model"), 100, 3_300_000, 1, 0.0)
+    assert kwargs == {"max_failures": 10}
+    assert confirm(10, 0.7)[1] == {"max_failures": 3}  # 10 x 0.7 is 7.000000000000001 in floating point
+    assert confirm(3, 1.0)[1] == {"max_failures": 0}
 
 
-def test_an_evaluation_runs_on_the_rollouts_workers_when_there_are_some(
+def test_every_confirmation_runs_episodes_no_other_one_ran(tmp_path: Path, policy_of: None) -> None:
+    # 3,000,000 + 100,000 x run seed 3 + (i - 1) x eval_episodes: fresh seeds in every
+    # iteration, away from the rollouts' (2,030,000...) and the final evaluation's (10,003...).
+    def seed(i: int, n: int) -> int:
+        d = make_dagger(tmp_path, seed=3, eval_episodes=n)
+        d._rollouts = Recorder(rollouts(rows(2, i), 1, 1))
+        d.confirmation(i, 0)
+        return d._rollouts.calls[0][0][2]
+
+    assert [seed(i, 100) for i in (1, 2, 7)] == [3_300_000, 3_300_100, 3_300_600]
+    assert seed(2, 30) == 3_300_030
+
+
+def test_a_confirmation_returns_its_labelled_episodes_and_reports_them(
+    tmp_path: Path, policy_of: None
+) -> None:
+    d = make_dagger(tmp_path, eval_episodes=10)
+    check = rollouts(rows(5, 2), 7, 8)
+    d._rollouts = Recorder(check)
+    assert d.confirmation(2, 4321) is check
+    assert d.logger.dumps == [(4321, {"eval/success_rate": 0.875, "eval/mean_final_distance": 0.02})]
+
+
+def test_the_final_evaluation_runs_on_the_rollouts_workers_when_there_are_some(
     tmp_path: Path, policy_of: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     one, workers = Recorder(stats(1.0, 10)), Recorder(stats(0.9, 10))
@@ -555,11 +601,12 @@ def test_an_evaluation_runs_on_the_rollouts_workers_when_there_are_some(
     monkeypatch.setattr(dagger, "run_episodes_on", workers)
     d = make_dagger(tmp_path, seed=3, eval_episodes=10, target_success=0.9)
     d.eval_env, d.venv = "eval env", "workers"
-    assert d.evaluation(0, confirming=True) == stats(0.9, 10)
+    assert d.evaluation(0) == stats(0.9, 10)
     assert one.calls == []
-    assert workers.calls == [
-        (("workers", ("policy of", "the model"), 10), {"seed": 10_003, "max_failures": 1})
-    ]
+    assert workers.calls == [(("workers", ("policy of", "the model"), 10), {"seed": 10_003})]
+    d.venv = None
+    assert d.evaluation(0) == stats(1.0, 10)
+    assert one.calls == [(("eval env", ("policy of", "the model"), 10), {"seed": 10_003})]
 
 
 def test_an_evaluation_is_logged_at_its_env_step(
@@ -575,13 +622,13 @@ def test_an_evaluation_is_logged_at_its_env_step(
 def test_an_evaluation_says_its_success_and_where_it_stopped(
     tmp_path: Path, policy_of: None, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    runs = Recorder(stats(0.7, 10), stats(3 / 7, 7))
-    monkeypatch.setattr(dagger, "run_episodes", runs)
+    monkeypatch.setattr(dagger, "run_episodes", Recorder(stats(0.7, 10)))
     d = make_dagger(tmp_path, verbose=1, eval_episodes=10)
     d.eval_env = "eval env"
+    d._rollouts = Recorder(rollouts(rows(3, 1), 3, 7))
     d.start = dagger.time.perf_counter()
     d.evaluation(1234)
-    d.evaluation(1300, confirming=True)
+    d.confirmation(1, 1300)
     assert capsys.readouterr().out == (
         "[eval] step    1234  0 s  success 70.0% over 10\n"
         "[eval] step    1300  0 s  success 42.9% over 7 (stopped: 4 failures)\n"

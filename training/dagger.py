@@ -33,7 +33,6 @@ import io
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -48,6 +47,7 @@ from bioscara_gym.training.dagger_config import DaggerConfig
 from bioscara_gym.training.demos import Demos, check_demos, load_demos
 from bioscara_gym.training.evaluate import EvalStats, run_episodes
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.labelling import Labelled, Rollouts, label_episodes, labelled
 from bioscara_gym.training.parallel import label_rollouts, make_vec_envs, run_episodes_on
 from bioscara_gym.training.signals import SignalGuard
 
@@ -66,106 +66,13 @@ with needs_train():
 #: Seeds of the expert's episodes and of the learner's, relative to the run's seed.
 DEMO_SEED = 1_000_000
 ROLLOUT_SEED = 2_000_000
+#: Seeds of the confirming evaluations, 100,000 per run seed: fresh episodes in every one, as a
+#: failed one's states join the aggregate (the final evaluation's, seeds 10000..., never do).
+CONFIRM_SEED = 3_000_000
 #: Mixture shares below this count as the learner alone (its rollouts then serve as a quick evaluation).
 BETA_NEGLIGIBLE = 0.05
 #: The aggregate saved with each checkpoint, beside it.
 CHECKPOINT_DATA = "_dagger.npz"
-
-
-@dataclass(frozen=True)
-class Labelled:
-    """States and the expert's actions in them (DAgger's aggregate dataset).
-
-    Attributes:
-        obs: ``observation``, ``achieved_goal``, ``desired_goal``, one row per state.
-        actions: The expert's action in each state.
-        iteration: The DAgger iteration each row was collected in (0: the expert's own episodes).
-    """
-
-    obs: dict[str, np.ndarray]
-    actions: np.ndarray
-    iteration: np.ndarray
-
-    def __len__(self) -> int:
-        """Number of labelled states."""
-        return len(self.actions)
-
-    def __add__(self, other: Labelled) -> Labelled:
-        """Both datasets, ``self``'s rows first."""
-        return Labelled(
-            obs={k: np.concatenate((self.obs[k], other.obs[k])) for k in GOAL_KEYS},
-            actions=np.concatenate((self.actions, other.actions)),
-            iteration=np.concatenate((self.iteration, other.iteration)),
-        )
-
-    @classmethod
-    def from_demos(cls, demos: Demos) -> Labelled:
-        """A demonstration dataset's states and actions, as iteration 0."""
-        return cls({k: demos.obs[k] for k in GOAL_KEYS}, demos.actions, np.zeros(len(demos), dtype=np.int32))
-
-
-@dataclass(frozen=True)
-class Rollouts:
-    """What :func:`label_episodes` recorded."""
-
-    data: Labelled
-    successes: int
-    episodes: int
-
-    @property
-    def success_rate(self) -> float:
-        """Fraction of the episodes that ended in success."""
-        return self.successes / self.episodes
-
-
-def label_episodes(
-    env: gym.Env,
-    act: Policy,
-    expert: Policy,
-    episodes: int,
-    seed: int,
-    iteration: int,
-    beta: float = 0.0,
-    rng: np.random.Generator | None = None,
-    on_episode: Callable[[bool, int], None] | None = None,
-) -> Rollouts:
-    """Run ``episodes`` seeded episodes acting with ``act``; label every state with ``expert``.
-
-    With ``act`` the expert itself, these are demonstrations; with the
-    learner, DAgger's new data (the states the learner reaches). With
-    ``beta`` > 0 each step takes the expert's action with that probability
-    (drawn from ``rng``): DAgger's mixture policy, which carries a weak
-    learner into the later phases of the task.
-    """
-    rng = rng if rng is not None else np.random.default_rng(seed)
-    obs_rows: list[dict[str, np.ndarray]] = []
-    labels: list[np.ndarray] = []
-    successes = 0
-    for ep in range(episodes):
-        obs, _ = env.reset(seed=seed + ep)
-        done, info, steps = False, {}, 0
-        while not done:
-            steps += 1
-            label = np.asarray(expert(obs), dtype=np.float32)
-            action = label if act is expert or (beta > 0 and rng.random() < beta) else act(obs)
-            obs_rows.append(obs)
-            labels.append(label)
-            obs, _, terminated, truncated, info = env.step(action)
-            done = terminated or truncated
-        success = bool(info.get("is_success", False))
-        successes += success
-        if on_episode is not None:
-            on_episode(success, steps)
-    return Rollouts(_labelled(obs_rows, labels, iteration), successes, episodes)
-
-
-def _labelled(obs_rows: list[dict[str, np.ndarray]], labels: list[np.ndarray], iteration: int) -> Labelled:
-    """The states and their expert labels as arrays, tagged with ``iteration``."""
-    return Labelled(
-        obs={k: np.array([o[k] for o in obs_rows], dtype=np.float32) for k in GOAL_KEYS},
-        actions=np.array(labels, dtype=np.float32),
-        iteration=np.full(len(labels), iteration, dtype=np.int32),
-    )
 
 
 def expert_labeller(env: gym.Env) -> Expert:
@@ -237,8 +144,9 @@ class DAgger(TrainingMethod):
     included; ``--demos NAME`` replaces the expert's own episodes by a
     dataset's. A checkpoint (model and aggregate) is written after every
     iteration; ``--resume`` continues from the newest. Training stops once
-    the learner's own rollouts reach the target and a full evaluation
-    (``eval_episodes`` seeded episodes) confirms it.
+    the learner's own rollouts reach the target and a confirmation
+    (:meth:`confirmation`: ``eval_episodes`` fresh episodes of the learner
+    alone) confirms it; a confirmation that falls short joins the aggregate.
     """
 
     data: Labelled | None = None
@@ -369,16 +277,29 @@ class DAgger(TrainingMethod):
         if self.args.verbose:
             self.progress.bar.write(text) if self.args.progress else print(text, flush=True)
 
-    def _rollouts(self, act: Policy, episodes: int, seed: int, iteration: int, beta: float) -> Rollouts:
+    def _rollouts(
+        self,
+        act: Policy,
+        episodes: int,
+        seed: int,
+        iteration: int,
+        beta: float,
+        max_failures: int | None = None,
+    ) -> Rollouts:
         def on_episode(success: bool, steps: int) -> None:
             self.progress.episode(steps, iteration=str(iteration))
 
         rng = np.random.default_rng([self.args.seed, iteration])
         expert = self.expert
         if self.venv is None:
-            return label_episodes(self.env, act, expert, episodes, seed, iteration, beta, rng, on_episode)
-        rows, labels, wins = label_rollouts(self.venv, act, expert, episodes, seed, beta, rng, on_episode)
-        return Rollouts(_labelled(rows, labels, iteration), wins, episodes)
+            env = self.env
+            return label_episodes(
+                env, act, expert, episodes, seed, iteration, beta, rng, on_episode, max_failures=max_failures
+            )
+        rows, labels, results = label_rollouts(
+            self.venv, act, expert, episodes, seed, beta, rng, on_episode, max_failures=max_failures
+        )
+        return Rollouts(labelled(rows, labels, iteration), tuple(results))
 
     def _fit(self, data: Labelled, steps: int, iteration: int) -> float:
         cfg, seed = self.cfg, self.args.seed * 1000 + iteration
@@ -421,31 +342,49 @@ class DAgger(TrainingMethod):
             f"[dagger] iteration {i}: learner{mixed} {r.success_rate:.0%} success over "
             f"{r.episodes} episodes, {elapsed:.0f} s"
         )
+        new = r.data
         if beta < BETA_NEGLIGIBLE and r.success_rate >= cfg.target_success:
-            final = self.evaluation(env_steps, confirming=True)
-            if final.success_rate >= cfg.target_success:
+            check = self.confirmation(i, env_steps)
+            if check.success_rate >= cfg.target_success:
                 self.reached_at, self.reached_after_s = env_steps, time.perf_counter() - self.start
                 self._say(f"[dagger] target reached after {env_steps} steps, {self.reached_after_s:.0f} s")
-                return data, env_steps, final
-        data = data + r.data
+                return data, env_steps, check.stats
+            new, env_steps = new + check.data, env_steps + len(check.data)
+        data = data + new
         loss = self._fit(data, cfg.bc_steps, i)
         self._log(i, env_steps, data, loss, r.success_rate, beta)
         return data, env_steps, None
 
-    def evaluation(self, env_steps: int, confirming: bool = False) -> EvalStats:
-        """Success over ``eval_episodes`` seeded episodes (seeds from the run's seed + 10000).
+    def confirmation(self, i: int, env_steps: int) -> Rollouts:
+        """The learner alone on ``eval_episodes`` fresh, labelled episodes, cut once the target is lost.
 
-        ``confirming`` the target: stopped at the failure that puts it out of
-        reach (the decision is the same; on Stack the full evaluations were
-        half of a 14-minute run).
+        Fresh seeds in every iteration (``CONFIRM_SEED``): when it fails, its
+        states join the aggregate as the iteration's rollouts do, rather than
+        being thrown away (on Stack the confirmations were a third of a run),
+        and no confirmation sees an episode the learner was fitted on. The
+        decision is the one-env evaluation's: at most the failures the target
+        leaves.
         """
         n = self.cfg.eval_episodes
-        allowed = n - math.ceil(n * self.cfg.target_success - 1e-9) if confirming else None
+        allowed = n - math.ceil(n * self.cfg.target_success - 1e-9)
+        seed = CONFIRM_SEED + 100_000 * self.args.seed + (i - 1) * n
+        check = self._rollouts(sb3_policy(self.model), n, seed, i, 0.0, max_failures=allowed)
+        self._report(check.stats, env_steps, n)
+        return check
+
+    def evaluation(self, env_steps: int) -> EvalStats:
+        """Success over ``eval_episodes`` seeded episodes (seeds from the run's seed + 10000)."""
+        n = self.cfg.eval_episodes
         seed, act = self.args.seed + EVAL_SEED_OFFSET, sb3_policy(self.model)
         if self.venv is None:
-            stats = run_episodes(self.eval_env, act, n, seed=seed, max_failures=allowed)
+            stats = run_episodes(self.eval_env, act, n, seed=seed)
         else:  # on the rollouts' workers: the same episodes, the same stats
-            stats = run_episodes_on(self.venv, act, n, seed=seed, max_failures=allowed)
+            stats = run_episodes_on(self.venv, act, n, seed=seed)
+        self._report(stats, env_steps, n)
+        return stats
+
+    def _report(self, stats: EvalStats, env_steps: int, n: int) -> None:
+        """An evaluation's success to tensorboard and (verbose) the console; ``n``: the episodes asked for."""
         elapsed = time.perf_counter() - self.start
         self.logger.record("eval/success_rate", stats.success_rate)
         self.logger.record("eval/mean_final_distance", stats.mean_final_distance)
@@ -455,7 +394,6 @@ class DAgger(TrainingMethod):
             f"[eval] step {env_steps:>7}  {elapsed:.0f} s  success {stats.success_rate * 100:.1f}% "
             f"over {stats.episodes}{cut if stats.episodes < n else ''}"
         )
-        return stats
 
     def _log(
         self, i: int, env_steps: int, data: Labelled, loss: float, success: float | None, beta: float

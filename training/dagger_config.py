@@ -39,7 +39,9 @@ class DaggerConfig:
         batch_size: Labelled states per gradient step.
         learning_rate: Adam's learning rate.
         beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
-        eval_episodes: Episodes of the confirming success evaluation.
+        eval_episodes: Episodes of the confirming success evaluation (fresh
+            ones each time; their states join the aggregate when it falls
+            short) and of the final one when the budget runs out.
         target_success: Success rate at which training stops.
         n_envs: Envs the rollouts run in, each in a subprocess when more
             than 1 (SB3's ``SubprocVecEnv``); 1: one env, in this process.

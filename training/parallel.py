@@ -69,14 +69,6 @@ def env_maker(env_id: str) -> Callable[..., gym.Env]:
     return make
 
 
-def _ended(info: dict[str, Any], steps: int, on_episode: EpisodeLog | None) -> bool:
-    """An episode's success (``is_success`` after its last step), told to ``on_episode``."""
-    success = bool(info.get("is_success", False))
-    if on_episode is not None:
-        on_episode(success, steps)
-    return success
-
-
 def label_rollouts(
     venv: VecEnv,
     act: Policy,
@@ -86,57 +78,32 @@ def label_rollouts(
     beta: float,
     rng: np.random.Generator,
     on_episode: EpisodeLog | None = None,
-) -> tuple[list[dict[str, np.ndarray]], list[np.ndarray], int]:
+    max_failures: int | None = None,
+) -> tuple[list[dict[str, np.ndarray]], list[np.ndarray], list[EpisodeResult]]:
     """Run ``episodes`` seeded episodes on ``venv``'s workers with ``act``; label every state with ``expert``.
 
     As the one-env loop: each step takes the expert's action with probability
     ``beta`` (DAgger's mixture), and the expert labels every state the
-    acting policy reaches. A worker without an episode left to run idles (its
-    steps are neither acted on by the learner nor kept).
+    acting policy reaches. ``max_failures`` stops it as it stops
+    :func:`run_episodes_on`; the states of the episodes still running then
+    are kept, their results are not.
 
     Returns:
-        The observations, their labels, and how many episodes succeeded.
+        The observations, their labels, and the results of the episodes the
+        one-env loop counts, in seed order.
     """
-    n = venv.num_envs
-    steps = [0] * n
-    obs: list[dict[str, np.ndarray] | None] = [None] * n  # None: the worker idles
-    started = 0
-
-    def start(i: int) -> None:
-        """Worker ``i`` resets for the next seeded episode, or idles when none is left."""
-        nonlocal started
-        obs[i], steps[i] = None, 0
-        if started < episodes:
-            obs[i] = venv.env_method("reset", seed=seed + started, indices=[i])[0][0]
-            started += 1
-
-    for i in range(n):
-        start(i)
     rows: list[dict[str, np.ndarray]] = []
     labels: list[np.ndarray] = []
-    successes = 0
-    idle = np.zeros(venv.action_space.shape, dtype=np.float32)
-    while any(o is not None for o in obs):
-        actions = np.repeat(idle[None], n, axis=0)
-        for i, o in enumerate(obs):
-            if o is None:
-                continue
-            label = np.asarray(expert(o), dtype=np.float32)
-            mixed = act is expert or (beta > 0 and rng.random() < beta)
-            actions[i] = label if mixed else act(o)
-            rows.append(o)
-            labels.append(label)
-        next_obs, _, dones, infos = venv.step(actions)
-        for i in range(n):
-            if obs[i] is None:
-                continue
-            steps[i] += 1
-            if dones[i]:
-                successes += _ended(infos[i], steps[i], on_episode)
-                start(i)
-            else:
-                obs[i] = {k: np.asarray(next_obs[k][i]) for k in GOAL_KEYS}
-    return rows, labels, successes
+
+    def choose(obs: dict[str, np.ndarray]) -> np.ndarray:
+        label = np.asarray(expert(obs), dtype=np.float32)
+        mixed = act is expert or (beta > 0 and rng.random() < beta)
+        rows.append(obs)
+        labels.append(label)
+        return label if mixed else act(obs)
+
+    results = _play_on(venv, choose, episodes, seed, max_failures, on_episode)
+    return rows, labels, results
 
 
 def _settled(results: dict[int, EpisodeResult], episodes: int, max_failures: int | None) -> int | None:
@@ -165,6 +132,22 @@ def run_episodes_on(
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    return EvalStats.over(_play_on(venv, policy, episodes, seed, max_failures))
+
+
+def _play_on(
+    venv: VecEnv,
+    policy: Policy,
+    episodes: int,
+    seed: int,
+    max_failures: int | None,
+    on_episode: EpisodeLog | None = None,
+) -> list[EpisodeResult]:
+    """Episodes ``seed``, ``seed + 1``, ... on ``venv``'s workers, ``policy`` called in worker order.
+
+    A worker without an episode left to run idles (its steps are not acted
+    on). Returns the results of the episodes the one-env loop counts.
+    """
     n = venv.num_envs
     results: dict[int, EpisodeResult] = {}
     running: list[int | None] = [None] * n  # the episode each worker runs; None: it idles
@@ -197,9 +180,11 @@ def run_episodes_on(
             steps[i] += 1
             if dones[i]:
                 results[k] = EpisodeResult.ended(infos[i], totals[i], steps[i])
+                if on_episode is not None:
+                    on_episode(results[k].success, steps[i])
                 start(i)
             else:
                 obs[i] = {key: np.asarray(next_obs[key][i]) for key in GOAL_KEYS}
     last = _settled(results, episodes, max_failures)
     assert last is not None  # every started episode has finished, and none is left to start
-    return EvalStats.over([results[k] for k in range(last)])
+    return [results[k] for k in range(last)]
