@@ -292,10 +292,8 @@ class DAgger(TrainingMethod):
         rng = np.random.default_rng([self.args.seed, iteration])
         expert = self.expert
         if self.venv is None:
-            env = self.env
-            return label_episodes(
-                env, act, expert, episodes, seed, iteration, beta, rng, on_episode, max_failures=max_failures
-            )
+            args = (self.env, act, expert, episodes, seed, iteration, beta, rng, on_episode)
+            return label_episodes(*args, max_failures=max_failures)
         rows, labels, results = label_rollouts(
             self.venv, act, expert, episodes, seed, beta, rng, on_episode, max_failures=max_failures
         )
