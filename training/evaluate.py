@@ -21,6 +21,9 @@ from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import PolicyShapes, check_metadata, check_policy_shapes, read_metadata
 
+#: The callback told of each finished episode: (success, steps).
+EpisodeLog = Callable[[bool, int], None]
+
 
 @dataclass(frozen=True)
 class EvalStats:
@@ -117,6 +120,7 @@ def play_episodes(
     on_frame: Callable[[np.ndarray], None] | None = None,
     video_episodes: int | None = None,
     max_failures: int | None = None,
+    on_episode: EpisodeLog | None = None,
 ) -> list[EpisodeResult]:
     """Run ``episodes`` seeded episodes (seeds ``seed``, ``seed+1``, ...); their results in order.
 
@@ -132,6 +136,7 @@ def play_episodes(
             headless software rendering costs far more than simulating.
         max_failures: Stop after the episode that fails once more than this
             (a target out of reach); the results are of the episodes run.
+        on_episode: Told of each finished episode: its success and steps.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -152,6 +157,8 @@ def play_episodes(
             if record is not None:
                 record(env.render())
         results.append(EpisodeResult.ended(info, total, steps))
+        if on_episode is not None:
+            on_episode(results[-1].success, steps)
         if stopped_after(results, max_failures) is not None:
             break
     return results

@@ -2,14 +2,15 @@
 
 :func:`label_episodes` runs seeded episodes with one policy acting (the
 expert, the learner, or DAgger's mixture of both) and labels every state
-with the expert's action; :class:`Rollouts` holds what it recorded, each
+with the expert's action (:class:`Labeller`, which
+:func:`~bioscara_gym.training.parallel.label_rollouts` runs on its workers
+too); :class:`Rollouts` holds what it recorded, each
 counted episode's result included, so a confirming evaluation's episodes can
 join the aggregate (training/dagger.py).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -17,9 +18,9 @@ import numpy as np
 
 from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.demos import Demos
-from bioscara_gym.training.evaluate import EpisodeResult, EvalStats, stopped_after
+from bioscara_gym.training.evaluate import EpisodeLog, EpisodeResult, EvalStats, play_episodes
 
-__all__ = ["Labelled", "Rollouts", "label_episodes", "labelled"]
+__all__ = ["Labelled", "Labeller", "Rollouts", "label_episodes", "labelled"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,30 @@ class Rollouts:
         return EvalStats.over(self.results)
 
 
+class Labeller:
+    """The acting policy of a labelled rollout: it records each state and the expert's label for it.
+
+    Each step takes the expert's action with probability ``beta`` (drawn
+    from ``rng``; always when ``act`` is the expert): DAgger's mixture
+    policy, which carries a weak learner into the later phases of the task.
+    Otherwise ``act`` acts; the expert labels every state either way.
+    """
+
+    def __init__(self, act: Policy, expert: Policy, beta: float, rng: np.random.Generator) -> None:
+        """Nothing recorded yet."""
+        self.act, self.expert, self.beta, self.rng = act, expert, beta, rng
+        self.rows: list[dict[str, np.ndarray]] = []
+        self.labels: list[np.ndarray] = []
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The action in ``obs``, its state and label recorded."""
+        label = np.asarray(self.expert(obs), dtype=np.float32)
+        mixed = self.act is self.expert or (self.beta > 0 and self.rng.random() < self.beta)
+        self.rows.append(obs)
+        self.labels.append(label)
+        return label if mixed else self.act(obs)
+
+
 def label_episodes(
     env: gym.Env,
     act: Policy,
@@ -91,41 +116,21 @@ def label_episodes(
     iteration: int,
     beta: float = 0.0,
     rng: np.random.Generator | None = None,
-    on_episode: Callable[[bool, int], None] | None = None,
+    on_episode: EpisodeLog | None = None,
     max_failures: int | None = None,
 ) -> Rollouts:
     """Run ``episodes`` seeded episodes acting with ``act``; label every state with ``expert``.
 
     With ``act`` the expert itself, these are demonstrations; with the
     learner, DAgger's new data (the states the learner reaches). With
-    ``beta`` > 0 each step takes the expert's action with that probability
-    (drawn from ``rng``): DAgger's mixture policy, which carries a weak
-    learner into the later phases of the task. ``max_failures`` stops after
-    the episode that fails once more than that, as an evaluation does
-    (:func:`~bioscara_gym.training.evaluate.play_episodes`).
+    ``beta`` > 0 the expert acts in some steps (:class:`Labeller`).
+    ``max_failures`` stops after the episode that fails once more than
+    that, as an evaluation does
+    (:func:`~bioscara_gym.training.evaluate.play_episodes`, which runs them).
     """
-    rng = rng if rng is not None else np.random.default_rng(seed)
-    obs_rows: list[dict[str, np.ndarray]] = []
-    labels: list[np.ndarray] = []
-    results: list[EpisodeResult] = []
-    for ep in range(episodes):
-        obs, _ = env.reset(seed=seed + ep)
-        done, info, steps, total = False, {}, 0, 0.0
-        while not done:
-            steps += 1
-            label = np.asarray(expert(obs), dtype=np.float32)
-            action = label if act is expert or (beta > 0 and rng.random() < beta) else act(obs)
-            obs_rows.append(obs)
-            labels.append(label)
-            obs, reward, terminated, truncated, info = env.step(action)
-            total += float(reward)
-            done = terminated or truncated
-        results.append(EpisodeResult.ended(info, total, steps))
-        if on_episode is not None:
-            on_episode(results[-1].success, steps)
-        if stopped_after(results, max_failures) is not None:
-            break
-    return Rollouts(labelled(obs_rows, labels, iteration), tuple(results))
+    choose = Labeller(act, expert, beta, rng if rng is not None else np.random.default_rng(seed))
+    results = play_episodes(env, choose, episodes, seed, max_failures=max_failures, on_episode=on_episode)
+    return Rollouts(labelled(choose.rows, choose.labels, iteration), tuple(results))
 
 
 def labelled(obs_rows: list[dict[str, np.ndarray]], labels: list[np.ndarray], iteration: int) -> Labelled:

@@ -25,16 +25,14 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.tasks import GOAL_KEYS, Policy
-from bioscara_gym.training.evaluate import EpisodeResult, EvalStats, stopped_after
+from bioscara_gym.training.evaluate import EpisodeLog, EpisodeResult, EvalStats, stopped_after
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.labelling import Labeller
 
 with needs_train():
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 __all__ = ["EpisodeLog", "env_maker", "label_rollouts", "make_vec_envs", "run_episodes_on"]
-
-#: The callback told of each finished episode: (success, steps).
-EpisodeLog = Callable[[bool, int], None]
 
 
 def make_vec_envs(env_id: str, n_envs: int, env_kwargs: dict[str, Any] | None = None) -> VecEnv:
@@ -92,18 +90,9 @@ def label_rollouts(
         The observations, their labels, and the results of the episodes the
         one-env loop counts, in seed order.
     """
-    rows: list[dict[str, np.ndarray]] = []
-    labels: list[np.ndarray] = []
-
-    def choose(obs: dict[str, np.ndarray]) -> np.ndarray:
-        label = np.asarray(expert(obs), dtype=np.float32)
-        mixed = act is expert or (beta > 0 and rng.random() < beta)
-        rows.append(obs)
-        labels.append(label)
-        return label if mixed else act(obs)
-
+    choose = Labeller(act, expert, beta, rng)
     results = _play_on(venv, choose, episodes, seed, max_failures, on_episode)
-    return rows, labels, results
+    return choose.rows, choose.labels, results
 
 
 def _settled(results: dict[int, EpisodeResult], episodes: int, max_failures: int | None) -> int | None:
