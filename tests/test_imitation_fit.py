@@ -155,3 +155,40 @@ def test_the_threads_come_back_when_the_fit_fails(env: gym.Env) -> None:
     with pytest.raises(RuntimeError, match="size"):  # labels of 3 actions for an actor of 5
         imitation.fit_actor(model_of(env), obs, actions[:, :3], steps=5, batch_size=8, threads=before + 1)
     assert th.get_num_threads() == before
+
+
+def one_state_two_labels(env: gym.Env) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """One state, 400 times: three of four rows labelled +0.6 in every action, one -0.6."""
+    obs, _ = labelled(env, 1)
+    rows = {k: np.repeat(v, 400, axis=0) for k, v in obs.items()}
+    n = env.action_space.shape[0]
+    actions = np.where(np.arange(400)[:, None] % 4 == 0, -0.6, 0.6) * np.ones((1, n))
+    return rows, actions.astype(np.float32)
+
+
+def fitted(env: gym.Env, loss: str) -> np.ndarray:
+    """The action fitted, with ``loss``, to :func:`one_state_two_labels`."""
+    obs, actions = one_state_two_labels(env)
+    model = model_of(env)
+    imitation.fit_actor(model, obs, actions, steps=400, batch_size=64, learning_rate=3e-3, loss=loss)
+    with th.no_grad():
+        action, _ = imitation._deterministic(model.actor, {k: th.as_tensor(v[:1]) for k, v in obs.items()})
+    return action.numpy()[0]
+
+
+# Where the expert's labels of like states disagree (the edge between two of a task's
+# phases), the squared error fits their mean (0.75 x 0.6 - 0.25 x 0.6 = 0.3), the
+# absolute error their median: one of the labels (0.6), not a blend of them.
+def test_the_squared_error_fits_the_labels_mean(env: gym.Env) -> None:
+    np.testing.assert_allclose(fitted(env, "mse"), 0.3, atol=0.05)
+
+
+def test_the_absolute_error_fits_the_labels_median(env: gym.Env) -> None:
+    action = fitted(env, "l1")
+    assert (action > 0.45).all() and (action < 0.65).all(), action  # nearer 0.6 than the mean's 0.3
+
+
+def test_a_fit_refuses_a_loss_it_does_not_know(env: gym.Env) -> None:
+    obs, actions = labelled(env, 16)
+    with pytest.raises(ValueError, match="loss 'huber': expected one of mse, l1"):
+        imitation.fit_actor(model_of(env), obs, actions, steps=1, batch_size=8, loss="huber")

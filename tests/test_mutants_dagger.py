@@ -540,15 +540,16 @@ def test_rollouts_on_workers_are_labelled_with_their_iteration(
     assert r.data.obs["observation"][:, 0].tolist() == [0.0, 1.0, 2.0]
 
 
-def test_fitting_uses_the_configs_batch_rate_and_threads_and_a_seed_per_iteration(
+def test_fitting_uses_the_configs_batch_rate_threads_and_loss_and_a_seed_per_iteration(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    d = make_dagger(tmp_path, seed=3, batch_size=64, learning_rate=0.01, fit_threads=3)
+    d = make_dagger(tmp_path, seed=3, batch_size=64, learning_rate=0.01, fit_threads=3, loss="l1")
     calls = Recorder(0.5)
     monkeypatch.setattr(dagger, "fit_actor", calls)
     data = rows(2, 1)
     assert d._fit(data, 9, 2) == 0.5
-    assert calls.calls == [(("the model", data.obs, data.actions, 9, 64, 0.01), {"seed": 3002, "threads": 3})]
+    kwargs = {"seed": 3002, "threads": 3, "loss": "l1"}
+    assert calls.calls == [(("the model", data.obs, data.actions, 9, 64, 0.01), kwargs)]
 
 
 # ------------------------------------------------------------------ evaluation

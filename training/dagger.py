@@ -310,6 +310,7 @@ class DAgger(TrainingMethod):
             cfg.learning_rate,
             seed=seed,
             threads=cfg.fit_threads,
+            loss=cfg.loss,
         )
 
     def first_iteration(self, demos: Demos | None) -> tuple[Labelled, int]:

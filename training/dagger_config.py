@@ -15,6 +15,7 @@ from typing import Any
 
 from bioscara_gym.errors import HyperparamError
 from bioscara_gym.training.hyperparams import read_entry, refuse_unknown_keys
+from bioscara_gym.training.literals import ACTION_LOSSES
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,10 @@ class DaggerConfig:
         bc_steps: Gradient steps after each aggregation (warm-started).
         batch_size: Labelled states per gradient step.
         learning_rate: Adam's learning rate.
+        loss: The fit's action loss, ``mse`` (squared error) or ``l1``
+            (absolute error: where the expert's labels change abruptly, as
+            between two phases of a task, the fit keeps one of them rather
+            than their mean, which can be a standstill).
         beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
         eval_episodes: Episodes of the confirming success evaluation (fresh
             ones each time; their states join the aggregate when it falls
@@ -61,6 +66,7 @@ class DaggerConfig:
     bc_steps: int = 2000
     batch_size: int = 256
     learning_rate: float = 1e-3
+    loss: str = "mse"
     beta: float = 0.5
     eval_episodes: int = 100
     target_success: float = 0.9
@@ -93,6 +99,9 @@ class DaggerConfig:
             raise HyperparamError(f"{where}: target_success is {self.target_success!r}; expected (0, 1]")
         if not 0.0 <= self.beta < 1.0:
             raise HyperparamError(f"{where}: beta is {self.beta!r}; expected [0, 1)")
+        if self.loss not in ACTION_LOSSES:
+            expected = ", ".join(ACTION_LOSSES)
+            raise HyperparamError(f"{where}: loss is {self.loss!r}; expected one of {expected}")
         if not self.learning_rate > 0:
             raise HyperparamError(f"{where}: learning_rate is {self.learning_rate!r}; expected > 0")
         if not self.net_arch or any(

@@ -32,6 +32,7 @@ import numpy as np
 from bioscara_gym.tasks import GOAL_KEYS
 from bioscara_gym.training.demos import Demos
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.literals import ACTION_LOSSES
 
 with needs_train():
     import torch as th
@@ -142,17 +143,26 @@ def fit_actor(
     init_std: float = 0.1,
     seed: int = 0,
     threads: int | None = None,
+    loss: str = "mse",
 ) -> float:
     """Fit ``model``'s actor to ``actions`` in ``obs`` (rows of :data:`GOAL_KEYS` arrays); the final loss.
 
-    The loss is the mean squared error of the deterministic action, plus, for
-    SAC, ``log_std`` pulled to ``log(init_std)``. Uses its own Adam optimizer
-    (the model's keeps its state); for TD3 the target actor is synced afterwards.
-    ``threads``: torch's CPU threads during the fit (then back to what they
-    were); ``None``: as they are. The fit's numbers depend on the count.
+    The loss is the deterministic action's error, squared (``loss="mse"``)
+    or absolute (``"l1"``: where the labels of like states disagree, the fit
+    takes their median, not their mean), plus, for SAC, ``log_std`` pulled
+    to ``log(init_std)``. Uses its own Adam optimizer (the model's keeps its
+    state); for TD3 the target actor is synced afterwards. ``threads``:
+    torch's CPU threads during the fit (then back to what they were);
+    ``None``: as they are. The fit's numbers depend on the count.
+
+    Raises:
+        ValueError: ``loss`` is not one of
+            :data:`~bioscara_gym.training.literals.ACTION_LOSSES`.
     """
+    if loss not in ACTION_LOSSES:
+        raise ValueError(f"loss {loss!r}: expected one of {', '.join(ACTION_LOSSES)}")
     with torch_threads(threads):
-        return _fit_actor(model, obs, actions, steps, batch_size, learning_rate, init_std, seed)
+        return _fit_actor(model, obs, actions, steps, batch_size, learning_rate, init_std, seed, loss)
 
 
 @contextlib.contextmanager
@@ -178,8 +188,10 @@ def _fit_actor(
     learning_rate: float,
     init_std: float,
     seed: int,
+    loss_name: str,
 ) -> float:
     actor = model.actor
+    action_loss = getattr(F, f"{loss_name}_loss")
     actor.set_training_mode(True)
     obs_t = {k: th.as_tensor(np.asarray(obs[k]), dtype=th.float32) for k in GOAL_KEYS}
     act_t = th.as_tensor(np.asarray(actions), dtype=th.float32)
@@ -197,7 +209,7 @@ def _fit_actor(
             pred, log_std = _deterministic(actor, {k: v[idx] for k, v in obs_t.items()})
         else:
             pred, log_std = _deterministic_of_features(actor, features[idx])
-        loss = F.mse_loss(pred, act_t[idx])
+        loss = action_loss(pred, act_t[idx])
         if log_std is not None:
             loss = loss + 0.1 * F.mse_loss(log_std, th.full_like(log_std, target_log_std))
         opt.zero_grad()

@@ -23,6 +23,10 @@ NAMES = {
     "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
 }
 
+#: The action losses of an imitation fit (a DAgger entry's ``loss``), as torch names them
+#: (``torch.nn.functional.<name>_loss``).
+ACTION_LOSSES = ("mse", "l1")
+
 
 def parse_literal_call(text: str, where: str) -> Any:
     """Parse ``"dict(a=1, b=[2, 3])"`` or a literal; names only from :data:`NAMES`.
