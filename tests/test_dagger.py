@@ -315,8 +315,20 @@ def test_pickplace_trains_with_dagger_by_default_and_reach_does_not(tmp_path: Pa
 
 def test_the_packaged_config_loads() -> None:
     cfg = load_dagger_config(default_config_path("dagger"), PICK)
-    assert cfg.target_success == 0.9 and cfg.eval_episodes == 100
+    assert cfg.target_success == 0.93 and cfg.eval_episodes == 100
     assert cfg.env_kwargs["control_mode"] == "cartesian"
+
+
+@pytest.mark.parametrize("env_id", [PICK, "Bioscara-Push-v0", "Bioscara-Stack-v0", "Bioscara-Insert-v0"])
+def test_every_packaged_task_fits_the_absolute_error_and_confirms_above_90_percent(env_id: str) -> None:
+    # issue #27's 90 % on the benchmark's own 100 episodes, with a margin of a
+    # 100-episode estimate's standard error (3 points) on the confirmation's
+    cfg = load_dagger_config(default_config_path("dagger"), env_id)
+    assert (cfg.loss, cfg.target_success, cfg.eval_episodes) == ("l1", 0.93, 100)
+
+
+def test_a_config_without_a_loss_fits_the_squared_error_as_runs_before_it_did() -> None:
+    assert DaggerConfig(source="x.yaml").loss == "mse"
 
 
 def test_a_misspelt_config_key_is_refused_with_the_closest_one(tmp_path: Path) -> None:
@@ -328,7 +340,14 @@ def test_a_misspelt_config_key_is_refused_with_the_closest_one(tmp_path: Path) -
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("demo_episodes", 0), ("target_success", 1.5), ("beta", 1.0), ("net_arch", []), ("fit_threads", 0)],
+    [
+        ("demo_episodes", 0),
+        ("target_success", 1.5),
+        ("beta", 1.0),
+        ("net_arch", []),
+        ("fit_threads", 0),
+        ("loss", "huber"),
+    ],
 )
 def test_a_bad_config_value_is_refused(key: str, value: object) -> None:
     with pytest.raises(HyperparamError, match=key):

@@ -395,7 +395,7 @@ def test_insert_trains_with_dagger_by_default_on_its_extractor(tmp_path: Path) -
     from bioscara_gym.training.train import TrainArgs, choose_method, train
 
     packaged = load_dagger_config(default_config_path("dagger"), INSERT)
-    assert packaged.env_kwargs == {"control_mode": "cartesian"} and packaged.target_success == 0.9
+    assert packaged.env_kwargs == {"control_mode": "cartesian"} and packaged.target_success == 0.93
     assert choose_method(TrainArgs(env="Bioscara-Insert", out=tmp_path), INSERT).name == "dagger"
     config = tmp_path / "dagger.yaml"
     config.write_text(yaml.safe_dump({INSERT: TINY_DAGGER}), encoding="utf-8")
