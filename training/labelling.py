@@ -2,7 +2,7 @@
 
 :func:`label_episodes` runs seeded episodes with one policy acting (the
 expert, the learner, or DAgger's mixture of both) and labels every state
-with the expert's action (:class:`Labeller`, which
+with the expert's action (:class:`LabellingPolicy`, which
 :func:`~bioscara_gym.training.parallel.label_rollouts` runs on its workers
 too); :class:`Rollouts` holds what it recorded, each
 counted episode's result included, so a confirming evaluation's episodes can
@@ -20,7 +20,7 @@ from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.demos import Demos
 from bioscara_gym.training.evaluate import EpisodeLog, EpisodeResult, EvalStats, play_episodes
 
-__all__ = ["Labelled", "Labeller", "Rollouts", "label_episodes", "labelled"]
+__all__ = ["Labelled", "LabellingPolicy", "Rollouts", "label_episodes", "labelled"]
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,7 @@ class Rollouts:
         return EvalStats.over(self.results)
 
 
-class Labeller:
+class LabellingPolicy:
     """The acting policy of a labelled rollout: it records each state and the expert's label for it.
 
     Each step takes the expert's action with probability ``beta`` (drawn
@@ -123,12 +123,15 @@ def label_episodes(
 
     With ``act`` the expert itself, these are demonstrations; with the
     learner, DAgger's new data (the states the learner reaches). With
-    ``beta`` > 0 the expert acts in some steps (:class:`Labeller`).
+    ``beta`` > 0 the expert acts in some steps (:class:`LabellingPolicy`).
     ``max_failures`` stops after the episode that fails once more than
     that, as an evaluation does
     (:func:`~bioscara_gym.training.evaluate.play_episodes`, which runs them).
+
+    Raises:
+        ValueError: ``episodes`` below 1.
     """
-    choose = Labeller(act, expert, beta, rng if rng is not None else np.random.default_rng(seed))
+    choose = LabellingPolicy(act, expert, beta, rng if rng is not None else np.random.default_rng(seed))
     results = play_episodes(env, choose, episodes, seed, max_failures=max_failures, on_episode=on_episode)
     return Rollouts(labelled(choose.rows, choose.labels, iteration), tuple(results))
 

@@ -27,12 +27,12 @@ import numpy as np
 from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.evaluate import EpisodeLog, EpisodeResult, EvalStats, stopped_after
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.labelling import Labeller
+from bioscara_gym.training.labelling import LabellingPolicy
 
 with needs_train():
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-__all__ = ["EpisodeLog", "env_maker", "label_rollouts", "make_vec_envs", "run_episodes_on"]
+__all__ = ["env_maker", "label_rollouts", "make_vec_envs", "run_episodes_on"]
 
 
 def make_vec_envs(env_id: str, n_envs: int, env_kwargs: dict[str, Any] | None = None) -> VecEnv:
@@ -89,8 +89,13 @@ def label_rollouts(
     Returns:
         The observations, their labels, and the results of the episodes the
         one-env loop counts, in seed order.
+
+    Raises:
+        ValueError: ``episodes`` below 1, as the one-env loop.
     """
-    choose = Labeller(act, expert, beta, rng)
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    choose = LabellingPolicy(act, expert, beta, rng)
     results = _play_on(venv, choose, episodes, seed, max_failures, on_episode)
     return choose.rows, choose.labels, results
 
