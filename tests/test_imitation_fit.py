@@ -188,6 +188,14 @@ def test_the_absolute_error_fits_the_labels_median(env: gym.Env) -> None:
     assert (action > 0.45).all() and (action < 0.65).all(), action  # nearer 0.6 than the mean's 0.3
 
 
+def test_every_loss_a_config_may_name_has_its_torch_function() -> None:
+    from bioscara_gym.training.literals import ACTION_LOSSES
+
+    functions = imitation.LOSS_FUNCTIONS
+    assert functions["mse"] is th.nn.functional.mse_loss and functions["l1"] is th.nn.functional.l1_loss
+    assert tuple(imitation.LOSS_FUNCTIONS) == ACTION_LOSSES
+
+
 def test_a_fit_refuses_a_loss_it_does_not_know(env: gym.Env) -> None:
     obs, actions = labelled(env, 16)
     with pytest.raises(ValueError, match="loss 'huber': expected one of mse, l1"):

@@ -42,7 +42,9 @@ class DaggerConfig:
         loss: The fit's action loss, ``mse`` (squared error) or ``l1``
             (absolute error: where the expert's labels change abruptly, as
             between two phases of a task, the fit keeps one of them rather
-            than their mean, which can be a standstill).
+            than their mean, which can be a standstill). The default is the
+            squared error, as before the key existed, so an older config or
+            a resumed run fits as it did; every packaged entry asks ``l1``.
         beta: The expert acts a share ``beta ** i`` of iteration ``i``'s steps.
         eval_episodes: Episodes of the confirming success evaluation (fresh
             ones each time; their states join the aggregate when it falls

@@ -133,6 +133,10 @@ def bc_pretrain(
     return fit_actor(model, demos.obs, demos.actions, steps, batch_size, learning_rate, init_std, seed)
 
 
+#: torch's function of each action loss a fit knows (:data:`~bioscara_gym.training.literals.ACTION_LOSSES`).
+LOSS_FUNCTIONS = {"mse": F.mse_loss, "l1": F.l1_loss}
+
+
 def fit_actor(
     model: Any,
     obs: dict[str, np.ndarray],
@@ -191,7 +195,7 @@ def _fit_actor(
     loss_name: str,
 ) -> float:
     actor = model.actor
-    action_loss = getattr(F, f"{loss_name}_loss")
+    action_loss = LOSS_FUNCTIONS[loss_name]
     actor.set_training_mode(True)
     obs_t = {k: th.as_tensor(np.asarray(obs[k]), dtype=th.float32) for k in GOAL_KEYS}
     act_t = th.as_tensor(np.asarray(actions), dtype=th.float32)

@@ -23,8 +23,8 @@ NAMES = {
     "GoalErrorExtractor": "bioscara_gym.training.features:GoalErrorExtractor",
 }
 
-#: The action losses of an imitation fit (a DAgger entry's ``loss``), as torch names them
-#: (``torch.nn.functional.<name>_loss``).
+#: The action losses of an imitation fit, by name (a DAgger entry's ``loss``; their torch
+#: functions: ``imitation.LOSS_FUNCTIONS``). Here, so a config is checked without torch.
 ACTION_LOSSES = ("mse", "l1")
 
 
