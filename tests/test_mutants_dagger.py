@@ -36,7 +36,7 @@ from bioscara_gym.training.dagger_config import DaggerConfig
 from bioscara_gym.training.evaluate import EpisodeResult, EvalStats
 from bioscara_gym.training.features import PickPlaceExtractor
 from bioscara_gym.training.methods import method_spec
-from bioscara_gym.training.parallel import label_rollouts
+from bioscara_gym.training.parallel import label_rollouts, run_episodes_on
 from bioscara_gym.training.run import TrainArgs
 
 PICK = "Bioscara-PickPlace-v1"
@@ -243,13 +243,15 @@ def test_label_episodes_stops_after_the_failure_its_allowance_cannot_take() -> N
     assert label_episodes(env, learner, expert, 5, seed=0, iteration=1).episodes == 5  # no allowance
 
 
-def test_both_rollout_loops_refuse_zero_episodes_before_anything_runs() -> None:
+def test_every_episode_loop_refuses_zero_episodes_before_anything_runs() -> None:
     env = Episodes([2], [True])
     with pytest.raises(ValueError, match="episodes must be >= 1, got 0"):
         label_episodes(env, learner, expert, 0, seed=0, iteration=1)
     assert env.seeds == []
     with pytest.raises(ValueError, match="episodes must be >= 1, got 0"):  # before the workers are asked
         label_rollouts(None, learner, expert, 0, 0, 0.0, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="episodes must be >= 1, got 0"):
+        run_episodes_on(None, learner, 0)
 
 
 def test_the_expert_acting_itself_acts_in_every_step_whatever_beta() -> None:

@@ -93,8 +93,6 @@ def label_rollouts(
     Raises:
         ValueError: ``episodes`` below 1, as the one-env loop.
     """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
     choose = LabellingPolicy(act, expert, beta, rng)
     results = _play_on(venv, choose, episodes, seed, max_failures, on_episode)
     return choose.rows, choose.labels, results
@@ -124,8 +122,6 @@ def run_episodes_on(
     Raises:
         ValueError: ``episodes`` below 1.
     """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
     return EvalStats.over(_play_on(venv, policy, episodes, seed, max_failures))
 
 
@@ -141,7 +137,12 @@ def _play_on(
 
     A worker without an episode left to run idles (its steps are not acted
     on). Returns the results of the episodes the one-env loop counts.
+
+    Raises:
+        ValueError: ``episodes`` below 1 (before a worker is asked).
     """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
     n = venv.num_envs
     results: dict[int, EpisodeResult] = {}
     running: list[int | None] = [None] * n  # the episode each worker runs; None: it idles
