@@ -305,6 +305,11 @@ KICK_TIME_S = 0.042
 KICK_PERIOD_S = 0.086
 
 
+#: Fields of :class:`DriveParams` added after configurations were saved
+#: (their default keeps the model as it was).
+_ADDED_LATER = frozenset({"slip_corner"})
+
+
 @dataclass(frozen=True)
 class DriveParams:
     """A joint's motor and drive as the recordings identify them (motor side).
@@ -327,7 +332,15 @@ class DriveParams:
         friction_coulomb: Dry friction as a deceleration.
         friction_viscous: Viscous friction, 1/s (deceleration per rad/s).
         slip_fraction: The asynchronous torque of a slipping rotor, as a
-            fraction of the pull-out torque at its speed.
+            fraction of the pull-out torque at its speed, while the field
+            barely outruns it.
+        slip_corner: Slip speed (field minus rotor, motor rad/s) at which
+            that torque has halved: ``1 / (1 + (slip / slip_corner)²)`` of
+            it. A rotor the field only just laps is still dragged along; one
+            it laps fast feels the torque's sign flip too often to follow
+            and coasts on friction alone (``maxAccel/j1_3``: the real j1
+            gained speed for 0.2 s after its first slips, then stopped
+            dead while its field ran on). ``inf``: the same torque at every slip.
         pullin_speed: A slipping rotor locks back onto the field once their
             speeds differ by less than this, rad/s (ideal: at once).
         kick_accel: The field's torque over the rotor's own inertia at full
@@ -356,6 +369,7 @@ class DriveParams:
     friction_coulomb: float = 0.0
     friction_viscous: float = 0.0
     slip_fraction: float = 0.0
+    slip_corner: float = math.inf
     pullin_speed: float = math.inf
     kick_accel: float = KICK_ACCEL
     kick_time_s: float = KICK_TIME_S
@@ -371,10 +385,26 @@ class DriveParams:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v) or v < 0:
                 raise ValueError(f"drive: {f.name}={v!r} must be a number >= 0")
-        if self.pullout_accel <= 0 or self.corner_speed <= 0 or self.corner_exponent <= 0:
-            raise ValueError("drive: pullout_accel, corner_speed and corner_exponent must be > 0")
+        if min(self.pullout_accel, self.corner_speed, self.corner_exponent, self.slip_corner) <= 0:
+            raise ValueError(
+                "drive: pullout_accel, corner_speed, corner_exponent and slip_corner must be > 0"
+            )
         if self.slip_fraction > 1:
             raise ValueError(f"drive: slip_fraction={self.slip_fraction} must be within 0-1")
+
+    def __repr__(self) -> str:
+        """The dataclass's repr, less the fields added since that still keep the model as it was.
+
+        A console state names the configuration it was saved with by a hash of
+        this text (``console.state.config_fingerprint``): a field added at the
+        value that reproduces the older model leaves that hash as it was.
+        """
+        shown = [
+            f"{f.name}={getattr(self, f.name)!r}"
+            for f in fields(self)
+            if not (f.name in _ADDED_LATER and getattr(self, f.name) == f.default)
+        ]
+        return f"{type(self).__name__}({', '.join(shown)})"
 
     def pullout(self, torque_fraction: float, speed_rad_s: float) -> float:
         """Pull-out acceleration at ``torque_fraction`` of full current and motor speed, rad/s²."""
@@ -382,6 +412,11 @@ class DriveParams:
             return math.inf
         ratio = abs(speed_rad_s) / self.corner_speed
         return self.pullout_accel * torque_fraction / (1.0 + ratio**self.corner_exponent)
+
+    def slip_push(self, torque_fraction: float, speed_rad_s: float, slip_rad_s: float) -> float:
+        """Torque on a slipping rotor at a motor speed and slip speed (field minus rotor), rad/s² (>= 0)."""
+        ratio = abs(slip_rad_s) / self.slip_corner
+        return self.slip_fraction * self.pullout(torque_fraction, speed_rad_s) / (1.0 + ratio * ratio)
 
     def friction(self, speed_rad_s: float) -> float:
         """Friction deceleration at a motor speed (signed against the motion), rad/s²."""

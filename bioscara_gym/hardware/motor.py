@@ -606,8 +606,8 @@ class KinematicStepper:
         drive = self.drive
         omega = self._rotor_dps * _RAD
         if not (self.blocked or self._held):
-            push = drive.slip_fraction * drive.pullout(self._torque_fraction, omega)
             direction = v_field - self._rotor_dps
+            push = drive.slip_push(self._torque_fraction, omega, direction * _RAD)
             drive_acc = math.copysign(push, direction) if direction and math.isfinite(push) else 0.0
             outer = drive_acc + self.load_accel
             if omega == 0.0:
