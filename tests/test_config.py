@@ -350,6 +350,13 @@ def _set_homing(name: str, key: str, value: object) -> Mutation:
     return mutate
 
 
+def _set_drive(name: str, key: str, value: object) -> Mutation:
+    def mutate(data: dict[str, Any]) -> None:
+        _joint(data, name)["drive"][key] = value
+
+    return mutate
+
+
 def _del_joint(name: str, key: str) -> Mutation:
     def mutate(data: dict[str, Any]) -> None:
         del _joint(data, name)[key]
@@ -408,6 +415,22 @@ def _set_group(group: str, members: object) -> Mutation:
 
 
 INVALID_CASES = [
+    # The drive model's fields.
+    pytest.param(
+        _set_drive("j1", "slip_corner", 0),
+        r"config\.yaml: joint j1: drive: slip_corner=0 must be > 0$",
+        id="drive-slip-corner-zero",
+    ),
+    pytest.param(
+        _set_drive("j3", "corner_speed", 0.0),
+        r"config\.yaml: joint j3: drive: corner_speed=0 must be > 0$",
+        id="drive-corner-speed-zero",
+    ),
+    pytest.param(
+        _set_drive("j2", "slip_corner", -5.0),
+        r"config\.yaml: joint j2: drive: slip_corner=-5\.0 must be a number >= 0$",
+        id="drive-slip-corner-negative",
+    ),
     # Missing and unknown fields.
     pytest.param(
         _del_joint("j2", "hold_current"),

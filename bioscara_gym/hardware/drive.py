@@ -385,10 +385,9 @@ class DriveParams:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v) or v < 0:
                 raise ValueError(f"drive: {f.name}={v!r} must be a number >= 0")
-        if min(self.pullout_accel, self.corner_speed, self.corner_exponent, self.slip_corner) <= 0:
-            raise ValueError(
-                "drive: pullout_accel, corner_speed, corner_exponent and slip_corner must be > 0"
-            )
+        for name in ("pullout_accel", "corner_speed", "corner_exponent", "slip_corner"):
+            if getattr(self, name) == 0:
+                raise ValueError(f"drive: {name}=0 must be > 0")
         if self.slip_fraction > 1:
             raise ValueError(f"drive: slip_fraction={self.slip_fraction} must be within 0-1")
 
