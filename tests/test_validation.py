@@ -675,6 +675,22 @@ def test_the_drive_fit_searches_the_slipped_rotors_fields_again_on_their_own(
     assert calls[0][0].slip_fraction == 0.0
 
 
+def test_the_drive_fit_keeps_the_second_stage_when_the_polish_ends_worse(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Nelder-Mead may end on a point that costs more than its start (bounds
+    # clip it): then the second stage's drive is the fit.
+    import scipy.optimize
+    from bioscara_gym.validation import calibrate as cal
+
+    monkeypatch.setattr(cal, "_evolve", lambda cost, base, *rest: base.with_values(pullout_accel=1234.0))
+    monkeypatch.setattr(cal, "drive_cost", lambda config, runs, limits: 0.0)
+    worse = scipy.optimize.OptimizeResult(x=np.full(8, 0.5), fun=1.0)
+    monkeypatch.setattr(scipy.optimize, "minimize", lambda *args, **kwargs: worse)
+    runs = [r for r in find_recordings(None).max_accel if r.joint == "j1"]
+    assert cal.fit_drive(CONFIG, "j1", runs).pullout_accel == 1234.0
+
+
 def test_calibrate_names_each_hypothesis_cost_and_the_one_kept() -> None:
     from bioscara_gym.validation.calibrate import DRIVE_HYPOTHESES, hypotheses_line
 
