@@ -681,6 +681,7 @@ def test_the_drive_fit_keeps_the_second_stage_when_the_polish_ends_worse(
     # Nelder-Mead may end on a point that costs more than its start (bounds
     # clip it): then the second stage's drive is the fit.
     import scipy.optimize
+
     from bioscara_gym.validation import calibrate as cal
 
     monkeypatch.setattr(cal, "_evolve", lambda cost, base, *rest: base.with_values(pullout_accel=1234.0))
