@@ -319,12 +319,18 @@ def test_the_packaged_config_loads() -> None:
     assert cfg.env_kwargs["control_mode"] == "cartesian"
 
 
-@pytest.mark.parametrize("env_id", [PICK, "Bioscara-Push-v0", "Bioscara-Stack-v0", "Bioscara-Insert-v0"])
-def test_every_packaged_task_fits_the_absolute_error_and_confirms_above_90_percent(env_id: str) -> None:
+@pytest.mark.parametrize(
+    ("env_id", "confirm"),
+    [(PICK, 0.93), ("Bioscara-Push-v0", 0.95), ("Bioscara-Stack-v0", 0.93), ("Bioscara-Insert-v0", 0.93)],
+)
+def test_every_packaged_task_fits_the_absolute_error_and_confirms_above_90_percent(
+    env_id: str, confirm: float
+) -> None:
     # issue #27's 90 % on the benchmark's own 100 episodes, with a margin of a
-    # 100-episode estimate's standard error (3 points) on the confirmation's
+    # 100-episode estimate's standard error (3 points) on the confirmation's;
+    # Push, whose learners plateau near 93 %, two of them (dagger.yaml)
     cfg = load_dagger_config(default_config_path("dagger"), env_id)
-    assert (cfg.loss, cfg.target_success, cfg.eval_episodes) == ("l1", 0.93, 100)
+    assert (cfg.loss, cfg.target_success, cfg.eval_episodes) == ("l1", confirm, 100)
 
 
 def test_a_config_without_a_loss_fits_the_squared_error_as_runs_before_it_did() -> None:
