@@ -431,6 +431,16 @@ INVALID_CASES = [
         r"config\.yaml: joint j2: drive: slip_corner=-5\.0 must be a number >= 0$",
         id="drive-slip-corner-negative",
     ),
+    pytest.param(
+        _set_drive("j2", "self_locking", "yes"),
+        r"config\.yaml: joint j2: drive: self_locking='yes' must be true or false$",
+        id="drive-self-locking-not-a-bool",
+    ),
+    pytest.param(
+        _set_drive("j2", "self_locking", 1),
+        r"config\.yaml: joint j2: drive: self_locking=1 must be true or false$",
+        id="drive-self-locking-a-number",
+    ),
     # Missing and unknown fields.
     pytest.param(
         _del_joint("j2", "hold_current"),

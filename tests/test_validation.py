@@ -293,6 +293,75 @@ def test_a_slipping_rotor_under_one_push_at_every_slip_catches_any_field() -> No
     assert math.radians(motor.position_deg - before) == pytest.approx(50.0, rel=0.01)
 
 
+def _lost_at_20_rad_s(self_locking: bool) -> tuple[KinematicStepper, float]:
+    """A rotor at 20 rad/s whose field jumps to 100 rad/s within one tick; where it is then."""
+    drive = DriveParams(
+        pullout_accel=1000.0, friction_coulomb=20.0, pullin_speed=2.0, self_locking=self_locking
+    )
+    motor = KinematicStepper(0.0, drive=drive)
+    for v in range(2, 21, 2):  # 200 rad/s^2: 0.42 of the 500 at half current
+        motor.command(math.degrees(v), 0.5)
+        motor.advance(0.01)
+    assert motor.lost_sync == 0
+    before = motor.position_deg
+    motor.command(math.degrees(100.0), 0.5)  # 8,000 rad/s^2 asked: it loses its field
+    return motor, before
+
+
+def test_a_self_locking_joint_stops_within_its_first_pole_slips() -> None:
+    # Each pole slip's kick at half current: the reversed torque's mean,
+    # 2.2e4 x 0.5 x 2/pi = 7,003 rad/s^2, over the time the lead takes to
+    # cross two full steps (0.0628 rad) at the slip speed, some 80 rad/s
+    # here: 7,003 x 0.0628 / 80 = 5.5 rad/s a slip, every 1.6 ms or sooner.
+    # Behind a lead screw that comes off the joint's 20 rad/s: it stops
+    # within 10 ms and stays, its field running on (maxAccel/j2_2: the real
+    # j2 froze within one 10 ms sample).
+    assert KICK_ACCEL == 2.2e4
+    motor, before = _lost_at_20_rad_s(self_locking=True)
+    motor.advance(0.01)
+    assert motor.lost_sync == 1 and 2 <= motor.pole_slips <= 6
+    assert motor.rotor_velocity_dps == 0.0
+    stopped = motor.position_deg - motor.swing_deg
+    assert 0.0 < math.radians(stopped - before) < 20.0 * 0.01  # less than 10 ms at 20 rad/s
+    motor.advance(1.0)
+    assert motor.resyncs == 0 and motor.position_deg - motor.swing_deg == stopped
+
+
+@pytest.mark.parametrize(
+    ("self_locking", "rotor_after", "swing_after"), [(True, 0.0, -2.0), (False, 3.0, -5.0)]
+)
+def test_a_pole_slips_kick_comes_off_a_self_locking_joints_speed_and_only_the_rest_swings(
+    self_locking: bool, rotor_after: float, swing_after: float
+) -> None:
+    # A kick of 5 rad/s on a rotor turning at 3 behind its field: a lead screw
+    # stops it and swings it back by the 2 left; otherwise it swings by all 5.
+    motor = KinematicStepper(0.0, drive=DriveParams(pullout_accel=1000.0, self_locking=self_locking))
+    motor._rotor_dps, motor._slip_deg = math.degrees(3.0), 10.0
+    motor._kick(math.degrees(5.0))
+    assert math.radians(motor.rotor_velocity_dps) == pytest.approx(rotor_after)
+    assert math.radians(motor._swing_dps) == pytest.approx(swing_after)
+
+
+def test_a_joint_the_load_drives_back_coasts_on_after_its_pole_slips() -> None:
+    # The same rotor without the lead screw: its kicks swing it about its
+    # path, and it coasts from 20 rad/s against 20 rad/s^2 of friction:
+    # 10 rad/s after 0.5 s, at rest after 1 s, 20^2 / (2 x 20) = 10 rad on.
+    motor, before = _lost_at_20_rad_s(self_locking=False)
+    motor.advance(0.5)
+    assert motor.lost_sync == 1 and motor.pole_slips > 100
+    assert math.radians(motor.rotor_velocity_dps) == pytest.approx(10.0, rel=0.02)
+    motor.advance(1.0)
+    assert motor.rotor_velocity_dps == 0.0 and motor.resyncs == 0
+    assert math.radians(motor.position_deg - motor.swing_deg - before) == pytest.approx(10.0, rel=0.02)
+
+
+def test_a_drive_without_self_locking_keeps_its_console_fingerprint() -> None:
+    # Like slip_corner: False (the default) leaves the repr, so a console
+    # state saved before the field keeps its fingerprint.
+    assert "self_locking" not in repr(DriveParams(pullout_accel=1000.0))
+    assert "self_locking=True" in repr(DriveParams(pullout_accel=1000.0, self_locking=True))
+
+
 def test_a_drive_without_slip_corner_keeps_its_console_fingerprint() -> None:
     # tests/traces/console_session.jsonl holds a state saved before slip_corner:
     # its default (inf) must not change the configuration's fingerprint; any
@@ -633,6 +702,16 @@ def test_the_drive_fit_starts_from_the_configurations_drive_and_ends_no_worse() 
     # An ideal drive's unbounded fields start at their bounds, log-scaled ones as log10.
     ideal = cal._start(DriveParams(), cal.DRIVE_BOUNDS)
     assert ideal.tolist() == [5.0, math.log10(3000.0), 1.0, 0.0, 0.0, 0.0, 3.0, 30.0]
+
+
+def test_the_drive_fit_keeps_a_self_locking_transmission_as_the_configuration_says() -> None:
+    # self_locking is the joint's build (a lead screw), not a number the fit searches.
+    from bioscara_gym.validation import calibrate as cal
+
+    assert "self_locking" not in [name for name, *_ in cal.DRIVE_BOUNDS]
+    x = cal._start(DriveParams(pullout_accel=1000.0), cal.DRIVE_BOUNDS)
+    assert cal._drive_at(DriveParams(self_locking=True), cal.DRIVE_BOUNDS, x).self_locking is True
+    assert cal._drive_at(DriveParams(), cal.DRIVE_BOUNDS, x).self_locking is False
 
 
 def test_the_drive_fit_searches_the_slipped_rotors_fields_again_on_their_own(

@@ -307,7 +307,7 @@ KICK_PERIOD_S = 0.086
 
 #: Fields of :class:`DriveParams` added after configurations were saved
 #: (their default keeps the model as it was).
-_ADDED_LATER = frozenset({"slip_corner"})
+_ADDED_LATER = frozenset({"slip_corner", "self_locking"})
 
 
 @dataclass(frozen=True)
@@ -359,6 +359,14 @@ class DriveParams:
             10 ms samples of a blocked rotor's error range from a few
             microsteps to hundreds, and its measured speed drops faster
             than the rotor's mean, as the real ones do.
+        self_locking: A transmission the load cannot drive back (j2's lead
+            screw): a pole slip's reversed torque takes the kick off the
+            joint's own speed, since the load's momentum goes into the
+            screw's friction instead of carrying the rotor on, so the joint
+            stops within a few pole slips (``maxAccel/j2_2``: the real j2
+            froze within one 10 ms sample at 0.049 m/s while its field ran
+            on). Only a kick beyond the joint's speed swings the rotor. False
+            (the default): the load carries the rotor on; every kick swings.
         noise: PID error jitter of a following rotor, or None.
         noise_scale: Factor on the profile's medians (per joint).
     """
@@ -374,13 +382,16 @@ class DriveParams:
     kick_accel: float = KICK_ACCEL
     kick_time_s: float = KICK_TIME_S
     kick_period_s: float = KICK_PERIOD_S
+    self_locking: bool = False
     noise: PidNoiseProfile | None = None
     noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
         """Check every value (one line naming the field)."""
+        if not isinstance(self.self_locking, bool):
+            raise ValueError(f"drive: self_locking={self.self_locking!r} must be true or false")
         for f in fields(self):
-            if f.name == "noise":
+            if f.name in ("noise", "self_locking"):
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v) or v < 0:

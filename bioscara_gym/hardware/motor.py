@@ -635,7 +635,7 @@ class KinematicStepper:
             # The field passed a pole the rotor did not: it throws the rotor
             # back, away from the field (kick_accel).
             self.pole_slips += laps
-            self._swing_dps -= math.copysign(self._kick_dps(v_field), self._slip_deg)
+            self._kick(self._kick_dps(v_field))
         if self._can_lock(v_field, accel):
             self.resyncs += 1
             self._synced = True
@@ -643,6 +643,21 @@ class KinematicStepper:
             self._rotor_dps = v_field
             self._slip_deg = 0.0
             self._lag_deg = 0.0  # on the field: it takes up its load angle from here
+
+    def _kick(self, kick_dps: float) -> None:
+        """Throw the rotor back from the field by ``kick_dps``.
+
+        Behind a self-locking transmission, free to move, the kick first
+        comes off the joint's speed towards the field (it does not reverse
+        it: the screw's friction holds); whatever is left, and every kick
+        elsewhere, swings the rotor about its path.
+        """
+        away = -math.copysign(1.0, self._slip_deg)
+        if self.drive.self_locking and not (self.blocked or self._held) and self._rotor_dps * away < 0.0:
+            taken = min(kick_dps, abs(self._rotor_dps))
+            self._rotor_dps += away * taken
+            kick_dps -= taken
+        self._swing_dps += away * kick_dps
 
     def _kick_dps(self, v_field: float) -> float:
         """The speed one pole slip throws the rotor back with, deg/s (``DriveParams.kick_accel``).
