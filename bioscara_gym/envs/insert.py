@@ -73,10 +73,10 @@ class BioscaraInsertEnv(BioscaraEnv):
     to the joint as the arm's configuration (SETMAXVELOCITY,
     ENABLESTALLGUARD). Held at 6 mm/s the rotor's field runs on by 77
     microsteps a millisecond, under the spike filter's 100, so the low-pass
-    error climbs past 40 within 0.16-0.23 s of contact (16 of 16 contact
+    error climbs past 40 within 0.14-0.18 s of contact (16 of 16 contact
     phases, ``benchmarks/insert_jam.py``). At the arm's own settings the
     firmware would not notice: its j2 sensitivity 12 (threshold 120) catches
-    no jam at 6 or 10 mm/s and 7 of 16 at 15 mm/s, and at the lift's
+    no jam at 6 or 10 mm/s and 9 of 16 at 15 mm/s, and at the lift's
     30 mm/s the blocked error, 384 a pass, is always dropped by the spike
     filter. Until the STALL the lift presses with its drive's full force,
     314 N at its 40 % current (329 N on the fixture with the 15 N it
