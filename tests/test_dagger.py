@@ -328,7 +328,7 @@ def test_every_packaged_task_fits_the_absolute_error_and_confirms_above_90_perce
 ) -> None:
     # issue #27's 90 % on the benchmark's own 100 episodes, with a margin of a
     # 100-episode estimate's standard error (3 points) on the confirmation's;
-    # Push, whose learners plateau near 93 %, two of them (dagger.yaml)
+    # Push a wider one (95 %: its seed 1 passed at 93 and scored 87, dagger.yaml)
     cfg = load_dagger_config(default_config_path("dagger"), env_id)
     assert (cfg.loss, cfg.target_success, cfg.eval_episodes) == ("l1", confirm, 100)
 

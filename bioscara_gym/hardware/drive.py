@@ -409,12 +409,16 @@ class DriveParams:
         this text (``console.state.config_fingerprint``): a field added at the
         value that reproduces the older model leaves that hash as it was.
         """
-        shown = [
-            f"{f.name}={getattr(self, f.name)!r}"
+        shown = [f"{name}={getattr(self, name)!r}" for name in self.stated_fields()]
+        return f"{type(self).__name__}({', '.join(shown)})"
+
+    def stated_fields(self) -> list[str]:
+        """The fields, less those added since configurations were first saved that keep their default."""
+        return [
+            f.name
             for f in fields(self)
             if not (f.name in _ADDED_LATER and getattr(self, f.name) == f.default)
         ]
-        return f"{type(self).__name__}({', '.join(shown)})"
 
     def pullout(self, torque_fraction: float, speed_rad_s: float) -> float:
         """Pull-out acceleration at ``torque_fraction`` of full current and motor speed, rad/s²."""
@@ -491,6 +495,11 @@ def drive_from_dict(data: object, noise: PidNoiseProfile | None) -> DriveParams:
     return DriveParams(**values, noise=noise)
 
 
-def drive_to_dict(drive: DriveParams) -> dict[str, float]:
-    """Plain data of a joint's drive (the shared noise profile left out)."""
-    return {k: getattr(drive, k) for k in DRIVE_FIELDS}
+def drive_to_dict(drive: DriveParams) -> dict[str, float | bool]:
+    """Plain data of a joint's drive (the shared noise profile left out).
+
+    A field added since configurations were first saved is left out while
+    it keeps its default, as in ``repr``: a file written here then loads in
+    a version without that field, and means the same there.
+    """
+    return {k: getattr(drive, k) for k in drive.stated_fields() if k in DRIVE_FIELDS}
