@@ -253,14 +253,20 @@ def _slipped_at(field_rad_s: float, slip_corner: float) -> tuple[KinematicSteppe
         slip_corner=slip_corner,
         pullin_speed=2.0,
     )
+    motor = _at_20_rad_s(drive)
+    motor.command(math.degrees(field_rad_s), 0.5)  # 2,000-8,000 rad/s^2: it loses its field
+    motor.advance(2.5)
+    return motor, motor.position_deg
+
+
+def _at_20_rad_s(drive: DriveParams) -> KinematicStepper:
+    """A rotor ramped to 20 rad/s at half current, following its field."""
     motor = KinematicStepper(0.0, drive=drive)
     for v in range(2, 21, 2):  # 200 rad/s^2: 0.42 of the 500 at half current
         motor.command(math.degrees(v), 0.5)
         motor.advance(0.01)
     assert motor.lost_sync == 0
-    motor.command(math.degrees(field_rad_s), 0.5)  # 2,000-8,000 rad/s^2: it loses its field
-    motor.advance(2.5)
-    return motor, motor.position_deg
+    return motor
 
 
 @pytest.mark.parametrize(("field_rad_s", "caught"), [(40.0, True), (60.0, False), (100.0, False)])
@@ -298,11 +304,7 @@ def _lost_at_20_rad_s(self_locking: bool) -> tuple[KinematicStepper, float]:
     drive = DriveParams(
         pullout_accel=1000.0, friction_coulomb=20.0, pullin_speed=2.0, self_locking=self_locking
     )
-    motor = KinematicStepper(0.0, drive=drive)
-    for v in range(2, 21, 2):  # 200 rad/s^2: 0.42 of the 500 at half current
-        motor.command(math.degrees(v), 0.5)
-        motor.advance(0.01)
-    assert motor.lost_sync == 0
+    motor = _at_20_rad_s(drive)
     before = motor.position_deg
     motor.command(math.degrees(100.0), 0.5)  # 8,000 rad/s^2 asked: it loses its field
     return motor, before
