@@ -98,7 +98,8 @@ def _settled(
     for _ in range(n):
         if x or v:
             b = v + a * x
-            x, v = decay * (x + b * h), decay * (b - a * (x + b * h))
+            y = x + b * h
+            x, v = decay * y, decay * (b - a * y)
             if (abs(x) + abs(v) / a) * USTEPS_PER_DEG < 1.0:
                 x = v = 0.0
         offsets.append(x)
@@ -465,31 +466,31 @@ class KinematicStepper:
         step = v * h
         field = self._field
         before = self._position
+        lower, upper = self.lower_stop_deg, self.upper_stop_deg
         offsets, xd = _settled(x, xd, pullout, h, n) if x or xd else ([0.0] * n, 0.0)
-        places = []
-        for x in offsets:
-            field += step
-            place = field - lag + x
-            if v * (place - before) < 0.0:
-                return False  # it waits for the field to pull ahead (see _follow)
-            places.append(place)
-            before = place
-        if min(places) < self.lower_stop_deg or max(places) > self.upper_stop_deg:
-            return False
-        self._demand(needed, pullout)
+        # The closed loop over the passes, kept local until every place is
+        # known to be a following rotor's.
         loop = self._loop
         xactual = loop.xactual_deg
         error = loop.error
-        for place in places:
+        counts = []
+        for x in offsets:
+            field += step
+            place = field - lag + x
+            if v * (place - before) < 0.0 or place < lower or place > upper:
+                return False  # it waits for the field to pull ahead (see _follow), or at a stop
+            before = place
             xactual += step
             error = (xactual - place) * USTEPS_PER_DEG
             if abs(error) >= CONTROL_THRESHOLD_USTEPS:
                 xactual = place
-        self._estimator.update_many([place * _COUNTS_PER_DEG for place in places])
+            counts.append(place * _COUNTS_PER_DEG)
+        self._demand(needed, pullout)
+        self._estimator.update_many(counts)
         loop.xactual_deg = xactual
         loop.error = self._pid_error = error
         self._field = field
-        self._position = places[-1]
+        self._position = before
         self._settle_deg, self._settle_dps = offsets[-1], xd
         self._rotor_dps = v
         self._lag_deg = lag
