@@ -231,6 +231,31 @@ def test_the_many_pass_shortcut_gives_what_the_1_ms_passes_give(monkeypatch: pyt
     assert max(abs(f[2]) for f in fast) > 0.1  # the closed loop rewrote XACTUAL on the way
 
 
+def _into_the_stop(direction: float) -> list[tuple[float, float, float]]:
+    """A following rotor run at 1000 deg/s toward its end stop 25 deg away: every tick's readings."""
+    motor = KinematicStepper(0.0, lower_stop_deg=-25.0, upper_stop_deg=25.0)
+    out = []
+    for _ in range(10):
+        motor.command(direction * 1000.0, 0.5)
+        motor.advance(0.01)
+        out.append((motor.position_deg, motor.setpoint_deg, motor.velocity_dps))
+    return out
+
+
+@pytest.mark.parametrize("direction", [1.0, -1.0])
+def test_the_many_pass_shortcut_stops_at_the_end_stop_as_the_passes_do(
+    monkeypatch: pytest.MonkeyPatch, direction: float
+) -> None:
+    # 100 deg asked of a rotor with 25 deg of room: the third tick, which reaches the
+    # stop must not carry it past, whichever way it runs (the field runs on and
+    # slips its poles; their kicks throw the rotor back from the stop).
+    fast = _into_the_stop(direction)
+    monkeypatch.setattr(KinematicStepper, "_follow_passes", lambda self, n, h: False)
+    slow = _into_the_stop(direction)
+    assert np.allclose(fast, slow, rtol=0, atol=1e-9)
+    assert 20.0 < max(direction * p for p, _, _ in fast) <= 25.0  # at the stop, never past it
+
+
 def test_the_largest_share_of_the_pull_out_torque_asked_for_is_kept() -> None:
     # Pull-out 1000 rad/s^2 at full current, no fall with speed, no friction: 500 at 50 %.
     # 0 -> 1 rad/s within one 10 ms tick asks 100 rad/s^2, a fifth of it.
