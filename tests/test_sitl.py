@@ -377,6 +377,28 @@ def test_sitl_arm_teleport_moves_the_encoder_without_a_velocity_spike(source: st
         backend.close()
 
 
+def test_the_final_state_after_the_arm_is_closed_is_the_firmwares_own(source: str) -> None:
+    # `bioscara deploy --backend sitl` reads the joints' final flags for its
+    # summary after the arm's shutdown has unloaded the firmware copies: it
+    # failed there ("the firmware in the loop was closed", exit 2) after a
+    # run that had gone well.
+    from bioscara_gym.hardware.backends import make_backend
+    from bioscara_gym.hardware.safety import final_state
+
+    backend = make_backend("sitl", firmware=source)
+    try:
+        joint = backend.joints["j1"]
+        joint.init()
+        joint.enable(20, 10)
+    finally:
+        backend.close()
+    state = final_state(backend)
+    assert state["j1"]["enabled"] and not state["j2"]["enabled"]  # j1's SETUP cleared NOT_ENABLED
+    assert {s["source"] for s in state.values()} == {"firmware in the loop"}
+    # The firmware's currents are variables no register reads back.
+    assert {(s["drive_current"], s["hold_current"]) for s in state.values()} == {(None, None)}
+
+
 # --------------------------------------------------------------------- cli
 @pytest.mark.parametrize(
     ("argv", "message"),

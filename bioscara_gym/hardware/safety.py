@@ -43,7 +43,12 @@ from bioscara_gym.hardware.transmission import velocity_to_rpm
 
 #: Where :func:`final_state` reads a joint's flags from, by backend name, when the
 #: backend can see the device; otherwise they are the flags of the joint's last reply.
-FLAG_SOURCES = {"sim": "emulator", "emulated": "emulator", "mock": "mock device"}
+FLAG_SOURCES = {
+    "sim": "emulator",
+    "emulated": "emulator",
+    "sitl": "firmware in the loop",
+    "mock": "mock device",
+}
 LAST_REPLY = "last reply"
 
 

@@ -210,6 +210,14 @@ class SitlBackend(Backend):
         gripper = SimGripper(config.gripper, sim, gripper_state_file(config, state_file, default=False))
         super().__init__(config, joints, gripper, sim.clock, sim, sim.schedule)
 
+    def device_currents(self, name: str) -> tuple[int, int] | None:
+        """``None``: the firmware keeps its currents in variables no register reads back.
+
+        (:meth:`Backend.device_currents` reads the emulator's; the stand-in
+        chip's run and hold currents are in 31ths, not the percent sent.)
+        """
+        return None
+
     def close(self) -> None:
         """Close the emulated bus and unload the firmware copies."""
         self.bus.close()

@@ -255,6 +255,7 @@ class SitlFirmware:
         self._serial_chunks: list[str] = []
         self._offset_us = 0
         self._closed = False
+        self._final_flags: Flag | None = None
         self.power_cycle()
 
     # ------------------------------------------------------------------ state
@@ -280,8 +281,16 @@ class SitlFirmware:
         The firmware keeps its flags in static variables; they are read by
         answering a PING on a saved image of the joint, which is then put
         back (so nothing the handler does, such as feeding the deadman,
-        stays).
+        stays). Once closed, the flags it held when its copy was unloaded:
+        nothing changes them after that (a deployment's summary reads them
+        after the arm is shut down).
+
+        Raises:
+            OSError: Closed, and its flags could not be read when it was.
         """
+        final = self._final_flags
+        if self._closed and final is not None:
+            return final
         self._check_open()
         image = self._library.save()
         try:
@@ -318,7 +327,16 @@ class SitlFirmware:
         self._library.load(image)
 
     def close(self) -> None:
-        """Unload the firmware's copy; the device answers no more transactions (an ``OSError``)."""
+        """Unload the firmware's copy; the device answers no more transactions (an ``OSError``).
+
+        Its flags as they stand are kept (:attr:`flags`).
+        """
+        if self._closed:
+            return
+        try:
+            self._final_flags = self.flags
+        except (OSError, SitlError):
+            self._final_flags = None  # not known: looking at them after raises
         self._closed = True
         self._library.close()
 
