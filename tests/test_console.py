@@ -38,6 +38,7 @@ from bioscara_gym.console.state import STATE_FORMAT, lock_path
 from bioscara_gym.console.targets import ConsoleOptions, resolve_target
 from bioscara_gym.fsutil import LockFile
 from bioscara_gym.hardware.config import load_config
+from bioscara_gym.hardware.errors import MissingExtraError
 from bioscara_gym.hardware.registers import Flag
 
 CONFIG = load_config()
@@ -124,6 +125,21 @@ def test_status_counts_bus_transactions(bioscara: Run) -> None:
     _, out, _ = bioscara("status")
     # configure: PING, then one read of position and velocity per joint
     assert rows(out)["j1"][-2:] == ["3", "0"]
+
+
+def test_status_names_the_extra_the_bus_budget_needs(bioscara: Run, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Without MuJoCo the budget cannot be measured; the line says which extra gives it.
+    # Printed as markup, "[sim]" was taken for a style tag and vanished.
+    def missing(config: object) -> None:
+        raise MissingExtraError("the emulated backend", "sim")
+
+    monkeypatch.setattr(commands, "bus_budget", missing)
+    code, out, _ = bioscara("status")
+    assert code == 0
+    assert (
+        "bus time per cycle: not counted (the emulated backend needs the [sim] extra: "
+        "pip install 'bioscara-gym[sim]')" in out
+    )
 
 
 # -------------------------------------------------------------------- ping

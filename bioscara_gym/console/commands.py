@@ -340,7 +340,7 @@ def cmd_status(args: argparse.Namespace) -> int:
             con.print(note, markup=False)
         budget = budget_line(session)
         if budget is not None:
-            con.print(budget)
+            con.print(budget, markup=False)  # "[sim]" in a missing extra's name is no style tag
         loops = loop_table(session)
         if loops is not None:
             session.backend.step(0.0)  # one pass of the loops, so that they have something to show
