@@ -71,6 +71,25 @@ def test_mujoco_backend_without_mujoco_names_the_extra(backend: str) -> None:
     )
 
 
+def test_collect_without_minari_names_the_train_extra(tmp_path: Path) -> None:
+    # minari comes with [train]; without it `bioscara collect` printed a traceback.
+    result = run_blocked(
+        f"""
+        import os
+        os.environ["MINARI_DATASETS_PATH"] = {str(tmp_path)!r}
+        from bioscara_gym.cli import main
+        raise SystemExit(main(["collect", "--expert", "--env", "Bioscara-Reach", "--episodes", "1",
+                               "--dataset", "reach-blocked"]))
+        """,
+        ("minari",),
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == (
+        "bioscara collect: error: bioscara collect needs the [train] extra: "
+        "pip install 'bioscara-gym[train]'\n"
+    )
+
+
 def test_importing_the_package_has_no_side_effects() -> None:
     result = subprocess.run(
         [

@@ -87,17 +87,18 @@ def cmd_collect(args: argparse.Namespace) -> int:
             env_kwargs["control_mode"] = args.control_mode
         if args.backend:
             env_kwargs["backend"] = args.backend
-        result = collect(
-            env_id,
-            args.episodes,
-            args.dataset,
-            factory,
-            env_kwargs=env_kwargs,
-            seed=args.seed,
-            overwrite=args.overwrite,
-            progress=not args.no_progress,
-            algorithm_name=who,
-        )
+        with needed_by("bioscara collect"):
+            result = collect(
+                env_id,
+                args.episodes,
+                args.dataset,
+                factory,
+                env_kwargs=env_kwargs,
+                seed=args.seed,
+                overwrite=args.overwrite,
+                progress=not args.no_progress,
+                algorithm_name=who,
+            )
     except TrainingError as e:
         raise CliError(str(e)) from e
     from bioscara_gym.cli import _console

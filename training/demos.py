@@ -55,10 +55,14 @@ def dataset_id(name: str) -> str:
     return full
 
 
+#: What needs Minari, as a missing [train] extra's message names it.
+DATASET_USE = "a demonstration dataset (Minari)"
+
+
 @contextlib.contextmanager
 def _minari() -> Iterator[Any]:
     """``minari.dataset.minari_dataset`` (imported on demand, naming the extra if missing)."""
-    with needs_extra("demonstration datasets", "train"):
+    with needs_extra(DATASET_USE, "train"):
         from minari.dataset import minari_dataset
     yield minari_dataset
 
@@ -269,7 +273,7 @@ def load_demos(name: str, env: gym.Env | None = None, successful_only: bool = Fa
             f"no dataset {full_id} in {datasets_root()}; record one with "
             f"`bioscara collect --expert --env ENV --dataset {name}`"
         )
-    with needs_extra("demonstration datasets", "train"):
+    with needs_extra(DATASET_USE, "train"):
         import minari
     dataset = minari.load_dataset(full_id)
     spec = dataset.spec.env_spec

@@ -1,8 +1,8 @@
 """Optional dependencies: an import of a missing extra becomes a one-line install hint.
 
-``bioscara train``, evaluating an SB3 model and exporting need the ``[train]``
-extra (torch, stable-baselines3); running an ONNX policy needs ``[onnx]``
-(onnxruntime). Wrap their imports::
+``bioscara train``, evaluating an SB3 model, exporting and demonstration
+datasets need the ``[train]`` extra (torch, stable-baselines3, Minari);
+running an ONNX policy needs ``[onnx]`` (onnxruntime). Wrap their imports::
 
     with needs_train():
         import torch
@@ -15,9 +15,9 @@ from collections.abc import Iterator
 
 from bioscara_gym.errors import MissingExtraError
 
-#: Top-level modules of each extra the training package uses.
+#: Top-level modules of each extra the training package uses (``pyproject.toml``'s extras).
 EXTRA_MODULES = {
-    "train": ("torch", "stable_baselines3"),
+    "train": ("torch", "stable_baselines3", "tensorboard", "tqdm", "minari"),
     "onnx": ("onnx", "onnxruntime"),
 }
 
