@@ -11,8 +11,10 @@ RUN ?= runs/reach
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	# The CPU build of torch that pip finds on this machine; never a CUDA wheel.
-	$(PY) -m pip install --quiet torch==2.13.0
+	# The CPU build of torch, never a CUDA wheel (PyPI's Linux torch brings CUDA):
+	# from the wheels pip already finds here, else from PyTorch's CPU index.
+	$(PY) -m pip install --quiet "torch==2.13.0+cpu" 2>/dev/null || \
+		$(PY) -m pip install --quiet "torch==2.13.0+cpu" --index-url https://download.pytorch.org/whl/cpu
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 

@@ -200,7 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--algo",
         metavar="{" + ",".join(METHODS) + "}",  # checked by the registry: one line naming them
         help=", ".join(f"{name}: {spec.help}" for name, spec in METHODS.items())
-        + " (default: the task's: dagger on PickPlace without --config, else sac; on --resume the run's)",
+        + " (default: the task's without --config: dagger on PickPlace, Push, Stack and Insert, sac on Reach;"
+        + " sac with --config; on --resume the run's)",
     )
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")

@@ -63,7 +63,7 @@ def check_n_envs(n_envs: int | None) -> None:
 def choose_method(args: TrainArgs, env_id: str) -> MethodSpec:
     """The method ``bioscara train`` runs: ``--algo``; on ``--resume`` the run's; else the task's default.
 
-    The task's default (DAgger on PickPlace) applies only without ``--config``:
+    The task's default (DAgger on PickPlace, Push, Stack and Insert) applies only without ``--config``:
     a hyperparameter file of rl-zoo3's format trains SAC.
 
     Raises:
