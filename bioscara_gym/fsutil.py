@@ -6,7 +6,8 @@ evaluation results, training checkpoints): a crash leaves either the old
 file or the new one. :class:`LockFile` keeps a second process off a file
 while one works on it (the console's ``--state`` file). :func:`read_json`
 reads such a file back, refusing what is not one (a device, a FIFO, a huge
-or absurdly nested file) in one line instead of hanging or overflowing.
+or absurdly nested file) in one line instead of hanging or overflowing;
+:func:`read_bytes` is its check for any file read whole (traces, configurations).
 """
 
 from __future__ import annotations
@@ -36,6 +37,22 @@ def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> 
         ValueError: It is not UTF-8 (``UnicodeDecodeError``), not JSON
             (``json.JSONDecodeError``) or nested too deeply to parse.
     """
+    data = read_bytes(path, max_bytes)
+    try:
+        return json.loads(data.decode("utf-8"))
+    except RecursionError as e:
+        raise ValueError("nested too deeply to be one of this package's files") from e
+
+
+def read_bytes(path: str | os.PathLike[str], max_bytes: int) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes``, read whole.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        OSError: It is not a regular file (a directory, a device such as
+            ``/dev/zero``, which would fill the memory, a FIFO that would
+            block), is larger than ``max_bytes``, or cannot be read.
+    """
     path = Path(path)
     mode = os.stat(path).st_mode
     if not stat.S_ISREG(mode):
@@ -44,10 +61,7 @@ def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> 
         data = f.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes", str(path))
-    try:
-        return json.loads(data.decode("utf-8"))
-    except RecursionError as e:
-        raise ValueError("nested too deeply to be one of this package's files") from e
+    return data
 
 
 @contextlib.contextmanager

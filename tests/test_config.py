@@ -866,6 +866,20 @@ def test_directory_is_unreadable_config(tmp_path: Path) -> None:
     assert isinstance(info.value.__cause__, OSError)
 
 
+def test_a_device_is_refused_before_it_is_read() -> None:
+    """/dev/zero never ends: read whole, it filled the memory (a MemoryError after 3 GB)."""
+    with pytest.raises(ConfigError, match=r"^/dev/zero: cannot read config file: not a regular file$"):
+        load_config("/dev/zero")
+
+
+def test_a_huge_file_is_refused(tmp_path: Path) -> None:
+    """A configuration is some 10 kB; one of more than a megabyte is not one."""
+    path = tmp_path / "huge.yaml"
+    path.write_bytes(b"#" * (1024 * 1024 + 1))
+    with pytest.raises(ConfigError, match=r"cannot read config file: larger than 1048576 bytes$"):
+        load_config(path)
+
+
 def test_invalid_yaml_names_path_and_chains_yaml_error(tmp_path: Path) -> None:
     """Broken YAML raises ConfigError naming the path, from the YAMLError."""
     path = tmp_path / "broken.yaml"

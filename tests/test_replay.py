@@ -286,6 +286,13 @@ def test_a_missing_trace_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert err.startswith("bioscara replay: error:") and "no such trace file" in err
 
 
+def test_a_device_is_not_read_as_a_trace(capsys: pytest.CaptureFixture) -> None:
+    # /dev/zero never ends: read whole, it grew to 24 GB before the kernel killed it.
+    code, err = _replay_error(Path("/dev/zero"), capsys)
+    assert code == 2
+    assert err == "bioscara replay: error: /dev/zero: cannot be read (not a regular file)"
+
+
 def test_a_line_that_is_not_json_names_the_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     docs = lines(TRACES / "console_session.jsonl")[:8]
     path = tmp_path / "trace.jsonl"

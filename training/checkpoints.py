@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, BinaryIO, TypeVar
 
 from bioscara_gym.errors import CheckpointWarning, TrainingError
-from bioscara_gym.fsutil import atomic_open, atomic_write_bytes, atomic_write_text
+from bioscara_gym.fsutil import atomic_open, atomic_write_bytes, atomic_write_text, read_json
 
 #: The run's state file in its output directory (what ``--resume`` reads).
 STATE_NAME = "train_state.json"
@@ -76,8 +76,8 @@ def read_run_state(out: Path) -> dict[str, Any]:
     if not path.exists():
         raise TrainingError(f"nothing to resume in {out}: no {STATE_NAME}")
     try:
-        state = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        state = read_json(path)
+    except (OSError, ValueError) as e:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         raise TrainingError(f"cannot resume from {path}: not readable JSON ({e})") from e
     if not isinstance(state, dict):
         raise TrainingError(f"cannot resume from {path}: expected a JSON object, got {type(state).__name__}")

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import math
 from collections.abc import Iterable
 from types import TracebackType
 
 from bioscara_gym.console.state import HostFacts, load_state, lock_state, save_state
 from bioscara_gym.console.targets import ConsoleOptions, Target
-from bioscara_gym.fsutil import LockFile
+from bioscara_gym.fsutil import LockFile, read_json
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, load_config
@@ -140,8 +139,8 @@ class Session:
         if record is not None:
             context: dict[str, object] = {}
             if path is not None and path.exists():
-                with contextlib.suppress(OSError, UnicodeDecodeError, json.JSONDecodeError):
-                    context["state"] = json.loads(path.read_text(encoding="utf-8"))
+                with contextlib.suppress(OSError, ValueError):  # the restore says what is wrong
+                    context["state"] = read_json(path)
             options["record"] = dataclasses.replace(record, context=context)
         return options
 

@@ -69,6 +69,7 @@ from typing import Any
 
 import yaml
 
+from bioscara_gym.fsutil import read_bytes
 from bioscara_gym.hardware.drive import (
     IDEAL_DRIVE,
     DriveParams,
@@ -132,6 +133,8 @@ DYNAMIXEL_LOOP_RATES = {"pvl_reader": 100.0, "tv_reader": 1.0, "pv_writer": 100.
 
 _PACKAGE = "bioscara_gym.hardware"
 _DEFAULT_CONFIG = "default_config.yaml"
+#: Largest configuration file read, bytes (the packaged one is about 10 kB).
+MAX_CONFIG_BYTES = 1024 * 1024
 _DEFAULT_SOURCE = f"{_PACKAGE}/{_DEFAULT_CONFIG}"
 
 
@@ -951,8 +954,7 @@ def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
     else:
         source = os.fspath(path)
         try:
-            with open(path, encoding="utf-8") as file:
-                text = file.read()
+            text = read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8")
         except OSError as e:
             raise ConfigError(f"{source}: cannot read config file: {e.strerror or e}") from e
         except UnicodeDecodeError as e:

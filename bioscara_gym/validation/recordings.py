@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bioscara_gym.errors import RecordingError
+from bioscara_gym.fsutil import read_bytes
 
 __all__ = [
     "DATA_DIR",
@@ -52,13 +53,19 @@ def _data_dir() -> Path:
 DATA_DIR = _data_dir()
 
 
+#: Largest recording read, bytes (the packaged ones are under 0.4 MB gzipped).
+MAX_RECORDING_BYTES = 256 * 1024 * 1024
+
+
 def _open_text(path: Path) -> str:
     try:
+        data = read_bytes(path, MAX_RECORDING_BYTES)  # never a device such as /dev/zero
         if path.name.endswith(".gz"):
-            with gzip.open(path, "rt", encoding="utf-8", errors="replace") as f:
-                return f.read()
-        return path.read_text(encoding="utf-8", errors="replace")
-    except (OSError, EOFError, gzip.BadGzipFile) as e:
+            data = gzip.decompress(data)
+        return data.decode("utf-8", errors="replace")
+    except OSError as e:
+        raise RecordingError(path, f"cannot be read ({e.strerror or e})") from e
+    except (EOFError, gzip.BadGzipFile) as e:
         raise RecordingError(path, f"cannot be read ({e})") from e
 
 
