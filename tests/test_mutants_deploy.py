@@ -792,7 +792,7 @@ def test_env_kwargs_the_env_does_not_take_are_refused_naming_what_it_takes() -> 
 
 
 def test_keyword_parameters_follow_kwargs_up_the_bases_and_stop_where_they_end() -> None:
-    from bioscara_gym.training.deploy_checks import keyword_parameters
+    from bioscara_gym.training.metadata import keyword_parameters
 
     class Base:
         def __init__(self, a: int, *args: int, b: int = 1) -> None: ...
@@ -1016,7 +1016,7 @@ def test_an_output_after_one_left_to_the_backend_is_still_checked(tmp_path: Path
 
 
 def test_keyword_parameters_are_the_constructors_even_with_a_new_of_its_own() -> None:
-    from bioscara_gym.training.deploy_checks import keyword_parameters
+    from bioscara_gym.training.metadata import keyword_parameters
 
     class WithNew:
         def __new__(cls, *args: Any, **kwargs: Any) -> Any:

@@ -257,6 +257,34 @@ CASES = [
         r"Bioscara-Reach-v0\.learning_starts is -5; expected a whole number >= 0",
         id="learning-starts-negative",
     ),
+    # Seen (a hostile test, 2026-11-29): tracebacks of 32 and 47 lines, and os.system called.
+    pytest.param(
+        new_run(env_kwargs={"control_mode": "cartesian", "bogus_env_kw": 1}),
+        r"cfg\.yaml: Bioscara-Reach-v0\.env_kwargs has 'bogus_env_kw', which Bioscara-Reach-v0 "
+        r"does not take; it takes .*control_mode",
+        id="env-kwarg-unknown",
+    ),
+    pytest.param(
+        new_run(policy_kwargs="dict(net_arch=[-64, 64])"),
+        r"Bioscara-Reach-v0\.policy_kwargs\.net_arch is \[-64, 64\]; expected layer widths, "
+        r"whole numbers >= 1",
+        id="net-arch-negative",
+    ),
+    pytest.param(
+        new_run(policy_kwargs="dict(net_arch=dict(pi=[64], qf=[0]))"),
+        r"\.net_arch is \{'pi': \[64\], 'qf': \[0\]\}; expected layer widths",
+        id="net-arch-zero-in-a-mapping",
+    ),
+    pytest.param(
+        new_run(policy="os.system"),
+        r"cfg\.yaml: Bioscara-Reach-v0\.policy: os\.system is not a stable-baselines3 policy class$",
+        id="policy-not-a-policy-class",
+    ),
+    pytest.param(
+        lambda root: ["train", "--out", str(root / "run"), "--config", "/dev/zero", "--no-progress"],
+        r"cannot read config /dev/zero: not a regular file$",
+        id="config-a-device",
+    ),
     pytest.param(new_run(gamma=1.5), r"\.gamma is 1\.5; expected a number in \(0, 1\]", id="gamma"),
     pytest.param(new_run(tau=0), r"\.tau is 0; expected a number in \(0, 1\]", id="tau-zero"),
 ]

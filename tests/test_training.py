@@ -8,6 +8,7 @@ tests are module-scoped fixtures; tests that edit a run work on a copy.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import signal
@@ -746,6 +747,28 @@ def test_eval_model_whose_metadata_action_space_differs_is_a_one_line_error(
     model = edit_metadata(sac_run, tmp_path, **{"action_space.shape": [5]})
     assert main(["eval", "--model", str(model), "--episodes", "1"]) != 0
     assert "action_space differs" in one_line_error(capsys, "eval")
+
+
+def test_eval_model_whose_metadata_has_a_setting_the_env_does_not_take_is_a_one_line_error(
+    sac_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): a 29-line traceback ending in gym.make's TypeError.
+    model = edit_metadata(sac_run, tmp_path, **{"env_kwargs.bogus_kw": 1})
+    assert main(["eval", "--model", str(model), "--episodes", "1"]) == 2
+    line = one_line_error(capsys, "eval")
+    assert "env_kwargs (metadata.json) has 'bogus_kw', which Bioscara-Reach-v0 does not take" in line
+
+
+def test_the_eval_env_ignores_the_render_mode_training_recorded() -> None:
+    # Seen (a hostile test): render_mode 5 in metadata.json, a traceback from gymnasium.
+    # How the training env rendered is none of the policy's business: eval renders for --video only.
+    from bioscara_gym.training.evaluate import make_eval_env
+
+    metadata = {"env_id": "Bioscara-Reach-v0", "env_kwargs": {"render_mode": 5}}
+    with contextlib.closing(make_eval_env(metadata)) as env:
+        assert env.unwrapped.render_mode is None
+    with contextlib.closing(make_eval_env(metadata, render=True)) as env:
+        assert env.unwrapped.render_mode == "rgb_array"
 
 
 def test_eval_model_whose_metadata_control_mode_is_invalid_is_a_one_line_error(

@@ -35,7 +35,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from bioscara_gym.errors import TrainingError
+from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.training.checkpoints import (
     checkpoint_dir,
     newest_checkpoint,
@@ -44,7 +44,7 @@ from bioscara_gym.training.checkpoints import (
 )
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.metadata import build_metadata, save_policy
+from bioscara_gym.training.metadata import build_metadata, env_kwargs_problem, save_policy
 from bioscara_gym.training.methods import MethodSpec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
 from bioscara_gym.training.signals import Interrupted, SignalGuard
@@ -165,9 +165,13 @@ class TrainingMethod(abc.ABC):
 
         Raises:
             TrainingError: Bad input (nothing trained, nothing written).
+            HyperparamError: The config's env_kwargs has a keyword the env does not take.
             TrainingInterrupted: SIGINT or SIGTERM (a checkpoint saved, if there was a model).
         """
         plan = self.plan()
+        problem = env_kwargs_problem(self.env_id, plan.env_kwargs)
+        if problem is not None:  # before an env is made: the file named, not a traceback
+            raise HyperparamError(f"config {plan.config.source}: {self.env_id}.env_kwargs {problem}")
         torch.set_num_threads(self.args.threads or 1)
         self.start = time.perf_counter()
         with SignalGuard() as guard, contextlib.ExitStack() as stack:

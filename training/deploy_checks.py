@@ -11,7 +11,6 @@ observation (:func:`probe_policy`). A refusal is one
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +18,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.envs.registration import load_env_creator
 
 from bioscara_gym.errors import DeployError, TrainingError
 from bioscara_gym.hardware.arm import check_control_freq
@@ -29,7 +27,7 @@ from bioscara_gym.hardware.errors import SitlError
 from bioscara_gym.hardware.registry import backend_names
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
-from bioscara_gym.training.metadata import PolicyShapes, read_metadata, resolve_env_id
+from bioscara_gym.training.metadata import PolicyShapes, env_kwargs_problem, read_metadata, resolve_env_id
 
 #: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
 #: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
@@ -176,32 +174,11 @@ def check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
         DeployError: Unknown env id, or a kwarg the env's constructor lacks.
     """
     try:
-        spec = gym.spec(env_id)
+        problem = env_kwargs_problem(env_id, kwargs)
     except gym.error.Error as e:
         raise DeployError(f"cannot make env {env_id!r}: {e}") from e
-    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
-    known = keyword_parameters(creator)
-    unknown = [k for k in kwargs if k not in known]
-    if unknown:
-        settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
-        raise DeployError(
-            f"the policy's env_kwargs has {unknown[0]!r}, which {env_id} does not take; it takes {settings}"
-        )
-
-
-def keyword_parameters(creator: Any) -> list[str]:
-    """The keyword parameters an env class takes, following ``**kwargs`` up its bases."""
-    classes = creator.__mro__ if isinstance(creator, type) else (creator,)
-    names: list[str] = []
-    for cls in classes:
-        target = cls.__init__ if isinstance(creator, type) else cls
-        if isinstance(creator, type) and "__init__" not in vars(cls):
-            continue
-        params = inspect.signature(target).parameters.values()
-        names += [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-        if not any(p.kind is p.VAR_KEYWORD for p in params):
-            break
-    return [n for n in dict.fromkeys(names) if n != "self"]
+    if problem is not None:
+        raise DeployError(f"the policy's env_kwargs {problem}")
 
 
 def check_files(args: DeployArgs, log: Path, state_file: Path | None) -> None:

@@ -19,7 +19,13 @@ from bioscara_gym.errors import MetadataError
 from bioscara_gym.fsutil import atomic_write_text
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
-from bioscara_gym.training.metadata import PolicyShapes, check_metadata, check_policy_shapes, read_metadata
+from bioscara_gym.training.metadata import (
+    PolicyShapes,
+    check_metadata,
+    check_policy_shapes,
+    env_kwargs_problem,
+    read_metadata,
+)
 
 #: The callback told of each finished episode: (success, steps).
 EpisodeLog = Callable[[bool, int], None]
@@ -171,13 +177,16 @@ def make_eval_env(
     kwargs = dict(metadata.get("env_kwargs", {}))
     if backend is not None:
         kwargs["backend"] = backend
-    if render:
-        kwargs["render_mode"] = "rgb_array"
+    kwargs["render_mode"] = "rgb_array" if render else None  # how training rendered is not the policy's
     kwargs.update(overrides)
+    env_id = metadata["env_id"]
     try:
-        return gym.make(metadata["env_id"], **kwargs)
-    except gym.error.Error as e:
-        raise MetadataError(f"policy's env {metadata.get('env_id')!r} cannot be made: {e}") from e
+        problem = env_kwargs_problem(env_id, kwargs)
+        if problem is None:
+            return gym.make(env_id, **kwargs)
+    except (gym.error.Error, TypeError) as e:  # a setting of the wrong type (metadata edited by hand)
+        raise MetadataError(f"policy's env {env_id!r} cannot be made: {e}") from e
+    raise MetadataError(f"the policy's env_kwargs (metadata.json) {problem}")
 
 
 def evaluate_model(

@@ -40,7 +40,10 @@ from typing import Any
 import yaml
 
 from bioscara_gym.errors import HyperparamError
+from bioscara_gym.fsutil import read_bytes
+from bioscara_gym.hardware.config import MAX_CONFIG_BYTES
 from bioscara_gym.hardware.errors import closest_name
+from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.literals import import_dotted, parse_literal_call
 
 #: Keys of an entry that are not the algorithm's constructor arguments.
@@ -158,7 +161,9 @@ def read_entry(path: str | Path, env_id: str, kind: str = "") -> dict[str, Any]:
     """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.safe_load(read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise HyperparamError(f"config {path} is not a UTF-8 text file: {e}") from e
     except OSError as e:
         raise HyperparamError(f"cannot read config {path}: {e.strerror or e}") from e
     except yaml.YAMLError as e:
@@ -224,7 +229,7 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
         raise HyperparamError(f"config {path}: {env_id}.env_kwargs must be a mapping")
     where = f"config {path}: {env_id}"
     if isinstance(extras.get("policy"), str) and "." in extras["policy"]:
-        extras["policy"] = import_dotted(extras["policy"], f"{where}.policy")
+        extras["policy"] = _policy_class(extras["policy"], f"{where}.policy")
     eval_kwargs, callbacks = _split_callbacks(extras.pop("callback", None), f"{where}.callback")
     legacy = {k: extras.pop(k) for k in EVAL_FIELDS if k in extras}
     if legacy and set(legacy) & set(eval_kwargs):
@@ -258,6 +263,22 @@ POSITIVE_COUNTS = {
 
 #: How the message names a key of the success callback given inside ``callback``.
 IN_CALLBACK = "callback.SuccessEvalCallback."
+
+
+def _policy_class(name: str, where: str) -> type:
+    """The policy class a dotted path names, checked to be one before anything calls it.
+
+    Raises:
+        HyperparamError: Not importable, or not a stable-baselines3 policy
+            class (``os.system`` was imported and called with the policy's
+            arguments).
+    """
+    cls = import_dotted(name, where)
+    with needs_train("a policy class"):
+        from stable_baselines3.common.policies import BasePolicy
+    if not (isinstance(cls, type) and issubclass(cls, BasePolicy)):
+        raise HyperparamError(f"{where}: {name} is not a stable-baselines3 policy class")
+    return cls
 
 
 def _check_schedule(
@@ -343,6 +364,26 @@ def check_algo_counts(hp: Hyperparams, env_id: str) -> None:
             if number is None or not 0 < number <= 1:
                 value = hp.algo_kwargs[key]
                 raise HyperparamError(f"{where}.{key} is {value!r}; expected a number in (0, 1]")
+    policy_kwargs = hp.algo_kwargs.get("policy_kwargs")
+    if isinstance(policy_kwargs, dict) and "net_arch" in policy_kwargs:
+        _check_net_arch(policy_kwargs["net_arch"], f"{where}.policy_kwargs.net_arch")
+
+
+def _check_net_arch(net_arch: Any, where: str) -> None:
+    """SB3's ``net_arch``: a list of layer widths, or a mapping of such lists (``pi``, ``qf``, ``vf``).
+
+    Raises:
+        HyperparamError: A width that is not a whole number >= 1 (torch
+            failed on a negative one with a 47-line traceback).
+    """
+    layers = [w for widths in net_arch.values() for w in widths] if isinstance(net_arch, dict) else net_arch
+    if not isinstance(layers, list | tuple) or any(
+        isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in layers
+    ):
+        raise HyperparamError(
+            f"{where} is {net_arch!r}; expected layer widths, whole numbers >= 1 "
+            "(a list, or a mapping of pi, qf or vf to lists)"
+        )
 
 
 def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:

@@ -13,6 +13,7 @@ copy and is refused (:func:`check_embedded_metadata`).
 
 from __future__ import annotations
 
+import inspect
 import io
 import json
 import math
@@ -26,6 +27,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import load_env_creator
 
 import bioscara_gym
 from bioscara_gym.errors import MetadataError, TrainingError
@@ -362,3 +364,39 @@ def resolve_env_id(env: str) -> str:
         return get_env_id(ns, name, latest)
     known = ", ".join(sorted(k for k in gym.registry if k.startswith("Bioscara")))
     raise TrainingError(f"unknown env {env!r}; registered: {known}")
+
+
+def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
+    """What is wrong with ``kwargs`` for ``gym.make(env_id, **kwargs)``, or ``None``.
+
+    A keyword the env's constructor does not take, named with those it
+    does: ``has 'bogus', which Bioscara-Reach-v0 does not take; it takes ...``.
+    Checked before an env is made from a file's kwargs (a config's, a
+    policy's metadata), so the file is named instead of a traceback.
+
+    Raises:
+        gymnasium.error.Error: ``env_id`` is not registered.
+    """
+    spec = gym.spec(env_id)
+    creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
+    known = keyword_parameters(creator)
+    unknown = [k for k in kwargs if k not in known]
+    if not unknown:
+        return None
+    settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
+    return f"has {unknown[0]!r}, which {env_id} does not take; it takes {settings}"
+
+
+def keyword_parameters(creator: Any) -> list[str]:
+    """The keyword parameters an env class takes, following ``**kwargs`` up its bases."""
+    classes = creator.__mro__ if isinstance(creator, type) else (creator,)
+    names: list[str] = []
+    for cls in classes:
+        target = cls.__init__ if isinstance(creator, type) else cls
+        if isinstance(creator, type) and "__init__" not in vars(cls):
+            continue
+        params = inspect.signature(target).parameters.values()
+        names += [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return [n for n in dict.fromkeys(names) if n != "self"]
