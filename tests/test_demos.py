@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import gymnasium as gym
@@ -208,6 +209,29 @@ def test_train_with_demos_learns_from_the_dataset_and_saves_a_plain_sac(
     model = SAC.load(out / "model.zip", custom_objects=act_only)
     assert model.num_timesteps == 260
     assert not hasattr(model, "demo_buffer") or model.demo_buffer is None
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated"])
+def test_train_with_a_bad_dataset_is_one_line_and_writes_nothing(
+    pick_dataset: Path, tmp_path: Path, damage: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): train_state.json and the TensorBoard folder left in --out, and
+    # h5py's 'Unable to synchronously open file (truncated file: ...)' naming no dataset.
+    root = tmp_path / "minari"
+    shutil.copytree(pick_dataset, root)
+    if damage == "truncated":
+        data = next(root.glob("pick-v0/data/*.hdf5"))
+        data.write_bytes(data.read_bytes()[:2000])
+        expected = r"dataset pick-v0 in .*minari cannot be read: .*truncated"
+    else:
+        shutil.rmtree(root / "pick-v0")
+        expected = r"no dataset pick-v0 in .*minari; record one with"
+    out = tmp_path / "run"
+    args = ["train", "--env", "Bioscara-PickPlace", "--algo", "sac", "--demos", "pick", "--timesteps", "260"]
+    assert main([*args, "--config", str(tiny_config(tmp_path)), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and re.match(rf"bioscara train: error: {expected}", err), err
+    assert not out.exists()
 
 
 def test_q_filtered_bc_update_logs_its_losses() -> None:

@@ -42,6 +42,7 @@ from bioscara_gym.training.checkpoints import (
     read_run_state,
     write_run_state,
 )
+from bioscara_gym.training.demos import load_demos
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.metadata import build_metadata, env_kwargs_problem, save_policy
@@ -172,6 +173,8 @@ class TrainingMethod(abc.ABC):
         problem = env_kwargs_problem(self.env_id, plan.env_kwargs)
         if problem is not None:  # before an env is made: the file named, not a traceback
             raise HyperparamError(f"config {plan.config.source}: {self.env_id}.env_kwargs {problem}")
+        if self.args.demos:  # read once before anything is written: a missing or damaged one is one line
+            load_demos(self.args.demos)
         torch.set_num_threads(self.args.threads or 1)
         self.start = time.perf_counter()
         with SignalGuard() as guard, contextlib.ExitStack() as stack:

@@ -275,7 +275,16 @@ def load_demos(name: str, env: gym.Env | None = None, successful_only: bool = Fa
         )
     with needs_extra(DATASET_USE, "train"):
         import minari
-    dataset = minari.load_dataset(full_id)
+    try:
+        return _read_demos(minari.load_dataset(full_id), full_id, env, successful_only)
+    except TrainingError:
+        raise
+    except (OSError, ValueError, KeyError) as e:  # a damaged file: h5py's OSError, a JSON error
+        raise TrainingError(f"dataset {full_id} in {datasets_root()} cannot be read: {e}") from e
+
+
+def _read_demos(dataset: Any, full_id: str, env: gym.Env | None, successful_only: bool) -> Demos:
+    """:func:`load_demos` once the dataset is open."""
     spec = dataset.spec.env_spec
     if spec is None:
         raise TrainingError(f"dataset {full_id} has no env spec")
