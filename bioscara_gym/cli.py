@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
+from bioscara_gym.fsutil import output_problem
 from bioscara_gym.hardware.errors import JointError, SitlError
 
 
@@ -126,14 +127,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise CliError(f"--video-episodes must be >= 1, got {args.video_episodes}")
     if args.expert and args.model is not None:
         raise CliError("--expert and --model both name a policy; give one")
-    for option, path in (("--json", args.json), ("--video", args.video)):
-        if path is None:
-            continue
-        if option == "--json" and Path(path).is_dir():  # refused before the episodes run
-            raise CliError(f"--json {path} is a directory; give a file")
-        above = next((p for p in Path(path).parents if p.exists()), None)
-        if above is not None and not above.is_dir():
-            raise CliError(f"{option} {path}: {above} is a file, not a folder")
+    for option, path in (("--json", args.json), ("--video", args.video)):  # refused before the episodes run
+        problem = None if path is None else output_problem(path)
+        if problem is not None:
+            raise CliError(f"{option} {path}: {problem}")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id

@@ -419,7 +419,7 @@ def test_eval_refuses_the_same_policy_files_in_one_line(
         (["--episodes", "0"], "episodes must be >= 1, got 0"),
         # Seen (a hostile test): --model was ignored; a directory failed after every episode ran.
         (["--model", "model.zip"], "--expert and --model both name a policy; give one"),
-        (["--json", "."], "--json . is a directory; give a file"),
+        (["--json", "."], "--json .: is a folder; give a file name"),
         (["--json", f"{__file__}/x.json"], f"{__file__} is a file, not a folder"),
     ],
     ids=[

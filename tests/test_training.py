@@ -712,6 +712,16 @@ def test_eval_without_model_or_expert_is_a_one_line_error(capsys: pytest.Capture
     assert "--model" in one_line_error(capsys, "eval")
 
 
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="no /proc: a folder that refuses files")
+def test_eval_refuses_a_json_it_cannot_write_before_the_episodes(capsys: pytest.CaptureFixture[str]) -> None:
+    # Seen (a hostile test): the episodes ran, then a temporary file in /proc was named.
+    args = ["eval", "--expert", "--env", "Bioscara-Reach", "--episodes", "1", "--json", "/proc/x.json"]
+    assert main(args) == 2
+    assert one_line_error(capsys, "eval").endswith(
+        "--json /proc/x.json: cannot write in /proc: No such file or directory"
+    )
+
+
 def test_eval_expert_on_unknown_env_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--expert", "--env", "Bioscara-Nope", "--episodes", "1"]) != 0
     assert "Bioscara-Nope" in one_line_error(capsys, "eval")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bioscara_gym.cli import main
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.hardware import load_config
 from bioscara_gym.hardware.arm import Arm
@@ -642,6 +643,26 @@ def test_calibrate_refuses_an_output_under_a_file_naming_it_a_file(tmp_path: Pat
     assert proc.returncode == 2
     expected = f"bioscara calibrate: error: --out {out}: {out.parent} is a file, not a folder"
     assert proc.stderr.strip() == expected
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "path", "problem"),
+    [
+        ("calibrate", "--out", "/proc/arm.yaml", "cannot write in /proc: No such file or directory"),
+        ("validate", "--json", "/proc/rows.json", "cannot write in /proc: No such file or directory"),
+        ("validate", "--plots", "/proc/plots", "cannot write in /proc: No such file or directory"),
+        ("validate", "--json", "/dev/null", "is not a regular file"),
+    ],
+)
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(
+    command: str, option: str, path: str, problem: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): calibrate --out /proc/c.yaml fitted on both CPUs for 10 minutes
+    # and more; validate --json /proc/... replayed everything, then named a temporary file.
+    if not Path("/proc").is_dir():
+        pytest.skip("no /proc: a folder that refuses files")
+    assert main([command, option, path]) == 2
+    assert capsys.readouterr().err.strip() == f"bioscara {command}: error: {option} {path}: {problem}"
 
 
 def test_calibrate_refuses_zero_workers_in_one_line(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 from rich.console import Console
 
 from bioscara_gym.errors import CliError
+from bioscara_gym.fsutil import output_problem
 from bioscara_gym.hardware.config import load_config
 
 
@@ -16,16 +17,11 @@ def _console() -> Console:
     return Console(highlight=False, soft_wrap=True)
 
 
-def _check_output(path: Path | None, what: str) -> None:
-    """Refuse an output path whose folder does not exist or that is a folder (before any work)."""
-    if path is None:
-        return
-    if path.is_dir():
-        raise CliError(f"{what} {path} is a folder; give a file name")
-    if path.parent.exists() and not path.parent.is_dir():
-        raise CliError(f"{what} {path}: {path.parent} is a file, not a folder")
-    if not path.parent.is_dir():
-        raise CliError(f"{what} {path}: folder {path.parent} does not exist")
+def _check_output(path: Path | None, what: str, folder: bool = False) -> None:
+    """Refuse, before any work, an output that cannot be written (``fsutil.output_problem``)."""
+    problem = None if path is None else output_problem(path, folder)
+    if problem is not None:
+        raise CliError(f"{what} {path}: {problem}")
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -34,8 +30,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from bioscara_gym.validation.report import print_table, rows_to_json, summary
 
     _check_output(args.json, "--json")
-    if args.plots is not None and args.plots.exists() and not args.plots.is_dir():
-        raise CliError(f"--plots {args.plots} is a file; give a folder")
+    _check_output(args.plots, "--plots", folder=True)
     if args.plots is not None:
         from bioscara_gym.hardware.errors import require_extra
 
