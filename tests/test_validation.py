@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -581,6 +582,26 @@ def test_a_malformed_csv_names_the_file_and_line(tmp_path: Path) -> None:
     bad = tmp_path / "maxAccel" / "j1_1.csv"
     bad.write_text("\n".join(lines))
     with pytest.raises(RecordingError, match=r"j1_1\.csv: line 13: not a number"):
+        find_recordings(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("folder", "name", "row", "cell"),
+    [("maxAccel", "j1_1.csv", 12, "nan"), ("settingMaxVal", "accel_test_5000_200000.csv", 10, "1e400")],
+)
+def test_a_value_that_is_not_finite_names_the_file_and_line(
+    tmp_path: Path, folder: str, name: str, row: int, cell: str
+) -> None:
+    # Seen (a hostile test): NaN rows gave "zero-size array to reduction operation maximum",
+    # naming nothing, or were compared and failed as "nan deg/s"; 1e400 a numpy warning.
+    (tmp_path / folder).mkdir()
+    lines = (DATA_DIR / folder / name).read_text().splitlines()
+    fields = lines[row].split(",")
+    lines[row] = ",".join([fields[0], cell, *fields[2:]])
+    (tmp_path / folder / name).write_text("\n".join(lines))
+    with pytest.raises(
+        RecordingError, match=rf"{re.escape(name)}: line {row + 1}: '{cell}' is not a finite number$"
+    ):
         find_recordings(tmp_path)
 
 

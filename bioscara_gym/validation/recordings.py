@@ -87,9 +87,13 @@ def _floats(path: Path, rows: list[list[str]], first_line: int, width: int | Non
         if width is not None and len(cells) < width:
             raise RecordingError(path, f"line {first_line + i}: {len(cells)} columns, expected {width}")
         try:
-            out.append([float(c) for c in (cells[:width] if width else cells)])
+            values = [float(c) for c in (cells[:width] if width else cells)]
         except ValueError as e:
             raise RecordingError(path, f"line {first_line + i}: not a number ({e})") from e
+        bad = next((c for c, v in zip(cells, values, strict=False) if not math.isfinite(v)), None)
+        if bad is not None:  # NaN or beyond float's range: no measurement (it broke every figure after)
+            raise RecordingError(path, f"line {first_line + i}: {bad!r} is not a finite number")
+        out.append(values)
     if not out:
         raise RecordingError(path, "no data rows")
     return np.asarray(out, dtype=float)
