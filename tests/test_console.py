@@ -513,6 +513,22 @@ def test_corrupt_state_file_is_refused_and_kept(bioscara: Run, state: Path) -> N
     assert state.read_text() == '{"format": "bioscara-console-state", "version": 1'
 
 
+def test_a_state_whose_simulation_is_not_finite_is_refused_and_kept(bioscara: Run, state: Path) -> None:
+    # Seen (a hostile test): NaN in 'mujoco' was restored; the joints then read NaN, the
+    # error blamed the wiring, and the file was rewritten though the command failed.
+    bioscara("enable", "--state", str(state))
+    doc = json.loads(state.read_text())
+    doc["mujoco"][1] = float("nan")
+    state.write_text(json.dumps(doc))
+    saved = state.read_text()
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert err.strip().endswith(
+        f"state file {state}: 'mujoco' must be a list of {len(doc['mujoco'])} finite numbers"
+    )
+    assert state.read_text() == saved
+
+
 def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:
     code, _, err = bioscara("status", "--backend", "mock", "--state", str(state))
     assert code == 2

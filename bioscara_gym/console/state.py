@@ -250,9 +250,10 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     if (
         not isinstance(mj, list)
         or len(mj) != len(fresh_state)
-        or not all(isinstance(x, (int, float)) for x in mj)
+        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in mj)
     ):
-        raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} numbers")
+        # NaN here made MuJoCo's state NaN: the joints then read NaN, blamed on the wiring.
+        raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} finite numbers")
     saved_cores = doc.get("firmware")
     if not isinstance(saved_cores, dict) or set(saved_cores) != set(fresh_cores):
         raise StateFileError(f"{where}: 'firmware' must hold the joints {', '.join(fresh_cores)}")
