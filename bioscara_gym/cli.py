@@ -14,6 +14,7 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from rich.console import Console
 from rich.table import Table
@@ -182,11 +183,22 @@ def eval_backend_options(args: argparse.Namespace) -> dict[str, object] | None:
 
 
 # ---------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors are one line naming the command (``--help`` shows the usage).
+
+    argparse prints its usage block above the error: five to seven lines
+    for ``--episodes abc``, where a value refused by a command's own check
+    is one. Subcommands' parsers are of this class too.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Print ``PROG: error: MESSAGE`` and exit 2."""
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``bioscara`` argument parser."""
-    parser = argparse.ArgumentParser(
-        prog="bioscara", description="Bioscara SCARA arm: train, evaluate and deploy policies."
-    )
+    parser = _Parser(prog="bioscara", description="Bioscara SCARA arm: train, evaluate and deploy policies.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     from bioscara_gym.training.methods import METHODS  # names only: no torch

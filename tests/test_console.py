@@ -486,6 +486,27 @@ def test_interrupt_disables_every_joint(state: Path, bioscara: Run) -> None:
     assert all_disabled(status(bioscara, state))
 
 
+@pytest.mark.parametrize(
+    ("argv", "line"),
+    [
+        (
+            ["eval", "--episodes", "abc"],
+            "bioscara eval: error: argument --episodes: invalid int value: 'abc'",
+        ),
+        (["move", "j1", "abc"], "bioscara move: error: argument VALUE: invalid float value: 'abc'"),
+        ([], "bioscara: error: the following arguments are required: command"),
+    ],
+)
+def test_a_value_argparse_refuses_is_one_line_too(
+    argv: list[str], line: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): argparse's usage block, 5-7 lines, above the error.
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == line + "\n"
+
+
 # -------------------------------------------------------------- state file
 def test_state_file_is_the_documented_json(bioscara: Run, state: Path) -> None:
     bioscara("gripper", "0.06", "--state", str(state))
