@@ -1111,6 +1111,28 @@ def _cli_without(blocked: tuple[str, ...], argv: list[str], cwd: Path) -> subpro
     return run_blocked(f"from bioscara_gym.cli import main\nsys.exit(main({argv!r}))\n", blocked, cwd=cwd)
 
 
+@pytest.mark.parametrize(
+    ("extra", "line"),
+    [
+        (["--check", "-1"], "--check must be >= 0 (0: no check against torch), got -1"),
+        (["--onnx", "{tmp}"], "--onnx {tmp}: is a folder; give a file name"),
+        (["--onnx", "{tmp}/notes/p.onnx"], "--onnx {tmp}/notes/p.onnx: {tmp}/notes is a file, not a folder"),
+    ],
+    ids=["check-negative", "onnx-a-folder", "onnx-under-a-file"],
+)
+def test_export_refuses_bad_arguments_before_exporting(
+    sac_run: Path, tmp_path: Path, extra: list[str], line: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): --check -1 exported and reported a check "over -1 observations";
+    # a folder or a path under a file named a temporary file or metadata.json.
+    (tmp_path / "notes").write_text("x")
+    argv = ["export", "--model", str(sac_run / "model.zip"), "--onnx", str(tmp_path / "p.onnx")]
+    argv += [a.format(tmp=tmp_path) for a in extra]
+    assert main(argv) == 2
+    assert one_line_error(capsys, "export") == f"bioscara export: error: {line.format(tmp=tmp_path)}"
+    assert not (tmp_path / "p.onnx").exists()
+
+
 TRAIN_HINT = "bioscara train needs the [train] extra: pip install 'bioscara-gym[train]'"
 
 

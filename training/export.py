@@ -35,7 +35,8 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from bioscara_gym.errors import ExportError, MetadataError
+from bioscara_gym.errors import CliError, ExportError, MetadataError
+from bioscara_gym.fsutil import output_problem
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
 from bioscara_gym.training.metadata import PolicyShapes, validate_metadata
 
@@ -314,6 +315,11 @@ class OnnxPolicy:
 # ----------------------------------------------------------------------- CLI
 def cmd_export(ns: argparse.Namespace) -> int:
     """``bioscara export``: write the ONNX file and report the check against torch."""
+    if ns.check < 0:
+        raise CliError(f"--check must be >= 0 (0: no check against torch), got {ns.check}")
+    problem = output_problem(ns.onnx)
+    if problem is not None:
+        raise CliError(f"--onnx {ns.onnx}: {problem}")
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
     con = Console(highlight=False, markup=False, soft_wrap=True)
     con.print(f"onnx      {result.path}")
@@ -322,6 +328,8 @@ def cmd_export(ns: argparse.Namespace) -> int:
         con.print(
             f"check     max |onnx - predict| = {result.max_abs_error:.2e} over {result.checked} observations"
         )
+    else:
+        con.print("check     none (--check 0): the graph was not compared with torch")
     return 0
 
 
@@ -330,5 +338,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="export a trained policy to ONNX (checked against torch)")
     p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
     p.add_argument("--onnx", type=Path, required=True, help="ONNX file to write")
-    p.add_argument("--check", type=int, default=256, help="observations to compare with model.predict")
+    p.add_argument(
+        "--check", type=int, default=256, help="observations to compare with model.predict (0: none)"
+    )
     p.set_defaults(func=cmd_export)
