@@ -223,6 +223,10 @@ def replay_session(session: TraceSession) -> SessionResult:
     with tempfile.TemporaryDirectory(prefix="bioscara-replay-") as tmp_name:
         tmp = Path(tmp_name)
         args = dict(session.header["args"])
+        for key in ("episodes", "seed"):  # a hand-edited header (--unchecked): said, not a TypeError
+            value = args.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ReplayError(f"the trace's header gives {key} {value!r}; expected a whole number")
         config_path = tmp / "config.yaml"
         config_path.write_text(yaml.safe_dump(dict(session.header["config"])), encoding="utf-8")
         args["config"] = str(config_path)

@@ -339,6 +339,15 @@ def test_a_monitor_session_is_refused_with_the_reason(tmp_path: Path, capsys: py
     assert code == 1 and "wall clock" in err
 
 
+def test_a_hand_edited_episode_count_is_named(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # Seen (a hostile test): "TypeError: '<' not supported between instances of 'str' and 'int'".
+    docs = lines(TRACES / "eval_reach_expert.jsonl")
+    docs[0]["args"]["episodes"] = "abc"
+    code, err = _replay_error(write_lines(tmp_path / "edited.jsonl", docs), capsys, "--unchecked")
+    assert code == 1
+    assert err.endswith("the trace's header gives episodes 'abc'; expected a whole number")
+
+
 # ------------------------------------------------------------- tampering
 
 
