@@ -49,6 +49,18 @@ def test_fewer_than_one_env_is_refused_in_one_line(value: int) -> None:
     assert str(caught.value) == f"--n-envs {value}: must be >= 1 (omit it for the config's n_envs)"
 
 
+def test_more_workers_than_eight_a_cpu_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Seen (a hostile test): --n-envs 100000 started workers until "Too many open files".
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    check_n_envs(16)
+    with pytest.raises(TrainingError) as caught:
+        check_n_envs(17)
+    assert (
+        str(caught.value)
+        == "--n-envs 17: at most 16 on this machine's 2 CPUs (8 a CPU; each is a process of its own)"
+    )
+
+
 # ------------------------------------------------------------------ the method
 def test_algo_names_the_method_whatever_the_task_or_config(tmp_path: Path) -> None:
     assert choose_method(TrainArgs(algo="td3", out=tmp_path), PICK).name == "td3"

@@ -19,6 +19,7 @@ atomically, and ``--resume`` skips a damaged newest checkpoint with a
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import bioscara_gym  # noqa: F401 - registers the tasks
@@ -50,14 +51,25 @@ def check_timesteps(timesteps: int | None) -> None:
         raise TrainingError(f"--timesteps {timesteps}: must be >= 1 (omit it for the config's n_timesteps)")
 
 
+#: Workers a CPU may run (``--n-envs``): each is a process with a MuJoCo of its own.
+WORKERS_PER_CPU = 8
+
+
 def check_n_envs(n_envs: int | None) -> None:
-    """Refuse ``--n-envs`` below 1 (``None``: the config's ``n_envs``).
+    """Refuse ``--n-envs`` below 1 or above :data:`WORKERS_PER_CPU` a CPU (``None``: the config's).
 
     Raises:
-        TrainingError: ``n_envs`` is 0 or negative.
+        TrainingError: ``n_envs`` is 0 or negative, or more workers than the
+            machine can start (100,000 ended in "Too many open files").
     """
     if n_envs is not None and n_envs < 1:
         raise TrainingError(f"--n-envs {n_envs}: must be >= 1 (omit it for the config's n_envs)")
+    cpus = os.cpu_count() or 1
+    if n_envs is not None and n_envs > WORKERS_PER_CPU * cpus:
+        raise TrainingError(
+            f"--n-envs {n_envs}: at most {WORKERS_PER_CPU * cpus} on this machine's {cpus} CPUs "
+            f"({WORKERS_PER_CPU} a CPU; each is a process of its own)"
+        )
 
 
 def choose_method(args: TrainArgs, env_id: str) -> MethodSpec:
