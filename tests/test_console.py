@@ -550,6 +550,16 @@ def test_a_state_whose_simulation_is_not_finite_is_refused_and_kept(bioscara: Ru
     assert state.read_text() == saved
 
 
+def test_a_state_file_under_a_file_is_refused_naming_it(bioscara: Run, tmp_path: Path) -> None:
+    # Seen (a hostile test): "cannot lock state file notes/s.json: notes/s.json.lock: File exists".
+    (tmp_path / "notes").write_text("x")
+    code, _, err = bioscara("status", "--state", str(tmp_path / "notes" / "s.json"))
+    assert code == 2
+    assert err.strip().endswith(
+        f"state file {tmp_path}/notes/s.json: {tmp_path}/notes is a file, not a folder"
+    )
+
+
 def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:
     code, _, err = bioscara("status", "--backend", "mock", "--state", str(state))
     assert code == 2

@@ -142,6 +142,9 @@ def lock_state(path: Path) -> LockFile:
         StateFileInUseError: Another command holds it (the message names its pid).
         StateFileError: The lock file cannot be created.
     """
+    above = next((p for p in Path(path).parents if p.exists()), None)
+    if above is not None and not above.is_dir():  # the lock's error said "File exists"
+        raise StateFileError(f"state file {path}: {above} is a file, not a folder")
     lock = LockFile(lock_path(path))
     try:
         lock.acquire()
