@@ -12,9 +12,10 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	# The CPU build of torch, never a CUDA wheel (PyPI's Linux torch brings CUDA):
-	# from the wheels pip already finds here, else from PyTorch's CPU index.
+	# 2.13.0+cpu from the wheels pip already finds here, else PyTorch's CPU index
+	# (2.13.0+cpu on Linux; macOS wheels carry no local version and have no CUDA).
 	$(PY) -m pip install --quiet "torch==2.13.0+cpu" 2>/dev/null || \
-		$(PY) -m pip install --quiet "torch==2.13.0+cpu" --index-url https://download.pytorch.org/whl/cpu
+		$(PY) -m pip install --quiet "torch==2.13.0" --index-url https://download.pytorch.org/whl/cpu
 	$(PY) -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 

@@ -129,7 +129,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.expert and args.model is not None:
         raise CliError("--expert and --model both name a policy; give one")
     for option, path in (("--json", args.json), ("--video", args.video)):  # refused before the episodes run
-        problem = None if path is None else output_problem(path)
+        problem = None if path is None else output_problem(path, parents=True)  # eval makes the folders
         if problem is not None:
             raise CliError(f"{option} {path}: {problem}")
     options = eval_backend_options(args)

@@ -64,31 +64,29 @@ def read_bytes(path: str | os.PathLike[str], max_bytes: int) -> bytes:
     return data
 
 
-def output_problem(path: str | os.PathLike[str], folder: bool = False) -> str | None:
+def output_problem(path: str | os.PathLike[str], folder: bool = False, parents: bool = False) -> str | None:
     """Why ``path`` cannot be written (a file, or with ``folder`` a folder to fill), or ``None``.
 
     Checked before the work whose result goes there: a folder that does
-    not exist, a file where a folder must be (or the reverse), a device, or
-    a folder that refuses a file (read-only, ``/proc``), which only trying
-    tells: a hidden temporary file is made there and removed.
+    not exist (unless ``parents``, or ``folder``: the writer makes the
+    missing ones), a file where a folder must be (or the reverse), a
+    device, or a folder that refuses a file (read-only, ``/proc``), which
+    only trying tells: a hidden temporary file is made there and removed.
     """
     path = Path(path)
     if folder:
         if path.exists() and not path.is_dir():
             return "is a file; give a folder"
-        where = next((p for p in (path, *path.parents) if p.exists()), Path("."))
-        if not where.is_dir():
-            return f"{where} is a file, not a folder"
-    else:
-        if path.is_dir():
-            return "is a folder; give a file name"
-        if path.exists() and not path.is_file():
-            return "is not a regular file"
-        where = path.parent
-        if where.exists() and not where.is_dir():
-            return f"{where} is a file, not a folder"
-        if not where.is_dir():
-            return f"folder {where} does not exist"
+    elif path.is_dir():
+        return "is a folder; give a file name"
+    elif path.exists() and not path.is_file():
+        return "is not a regular file"
+    elif not parents and not path.parent.exists():
+        return f"folder {path.parent} does not exist"
+    candidates = (path, *path.parents) if folder else path.parents
+    where = next((p for p in candidates if p.exists()), Path("."))
+    if not where.is_dir():
+        return f"{where} is a file, not a folder"
     try:
         fd, probe = tempfile.mkstemp(dir=where, prefix=".bioscara-", suffix=".probe")
     except OSError as e:

@@ -778,6 +778,7 @@ def test_env_kwargs_the_env_does_not_take_are_refused_naming_what_it_takes() -> 
     from bioscara_gym.training.deploy_checks import check_env_kwargs
 
     check_env_kwargs(REACH, {"control_mode": "velocity", "control_freq": 25.0})
+    check_env_kwargs(REACH, {"max_episode_steps": 60, "disable_env_checker": True})  # gym.make's own
     with pytest.raises(DeployError) as caught:
         check_env_kwargs(REACH, {"control_mode": "velocity", "arm_speed": 1})
     assert str(caught.value) == (

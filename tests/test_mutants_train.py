@@ -51,7 +51,8 @@ def test_fewer_than_one_env_is_refused_in_one_line(value: int) -> None:
 
 def test_more_workers_than_eight_a_cpu_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
     # Seen (a hostile test): --n-envs 100000 started workers until "Too many open files".
-    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr("os.cpu_count", lambda: 2)  # where there is no affinity
     check_n_envs(16)
     with pytest.raises(TrainingError) as caught:
         check_n_envs(17)

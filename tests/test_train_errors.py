@@ -275,6 +275,11 @@ CASES = [
         r"\.net_arch is \{'pi': \[64\], 'qf': \[0\]\}; expected layer widths",
         id="net-arch-zero-in-a-mapping",
     ),
+    pytest.param(  # a reviewer's: a traceback from the check itself
+        new_run(policy_kwargs="dict(net_arch=dict(pi=64, qf=[16]))"),
+        r"\.net_arch is \{'pi': 64, 'qf': \[16\]\}; expected layer widths",
+        id="net-arch-a-width-not-a-list",
+    ),
     pytest.param(
         new_run(policy="os.system"),
         r"cfg\.yaml: Bioscara-Reach-v0\.policy: os\.system is not a stable-baselines3 policy class$",

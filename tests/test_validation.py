@@ -669,9 +669,9 @@ def test_calibrate_refuses_an_output_under_a_file_naming_it_a_file(tmp_path: Pat
 @pytest.mark.parametrize(
     ("command", "option", "path", "problem"),
     [
-        ("calibrate", "--out", "/proc/arm.yaml", "cannot write in /proc: No such file or directory"),
-        ("validate", "--json", "/proc/rows.json", "cannot write in /proc: No such file or directory"),
-        ("validate", "--plots", "/proc/plots", "cannot write in /proc: No such file or directory"),
+        ("calibrate", "--out", "/proc/arm.yaml", "cannot write in /proc: "),
+        ("validate", "--json", "/proc/rows.json", "cannot write in /proc: "),
+        ("validate", "--plots", "/proc/plots", "cannot write in /proc: "),
         ("validate", "--json", "/dev/null", "is not a regular file"),
     ],
 )
@@ -683,7 +683,8 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(
     if not Path("/proc").is_dir():
         pytest.skip("no /proc: a folder that refuses files")
     assert main([command, option, path]) == 2
-    assert capsys.readouterr().err.strip() == f"bioscara {command}: error: {option} {path}: {problem}"
+    err = capsys.readouterr().err.strip()  # after "cannot write in": the system's own words
+    assert "\n" not in err and err.startswith(f"bioscara {command}: error: {option} {path}: {problem}")
 
 
 def test_calibrate_refuses_zero_workers_in_one_line(tmp_path: Path) -> None:

@@ -265,7 +265,8 @@ def load_demos(name: str, env: gym.Env | None = None, successful_only: bool = Fa
         successful_only: Keep only the episodes that ended in success.
 
     Raises:
-        TrainingError: No such dataset, not a goal env's dataset, or another env than ``env``.
+        TrainingError: No such dataset, a damaged one, not a goal env's dataset, or
+            another env than ``env``.
     """
     full_id = dataset_id(name)
     if not (datasets_root() / full_id).exists():
@@ -275,16 +276,18 @@ def load_demos(name: str, env: gym.Env | None = None, successful_only: bool = Fa
         )
     with needs_extra(DATASET_USE, "train"):
         import minari
-    try:
-        return _read_demos(minari.load_dataset(full_id), full_id, env, successful_only)
-    except TrainingError:
-        raise
-    except (OSError, ValueError, KeyError) as e:  # a damaged file: h5py's OSError, a JSON error
+    try:  # the files only: a damaged one is h5py's OSError or a JSON error
+        dataset = minari.load_dataset(full_id)
+        episodes = list(dataset.iterate_episodes())
+    except (OSError, ValueError, KeyError) as e:
         raise TrainingError(f"dataset {full_id} in {datasets_root()} cannot be read: {e}") from e
+    return _read_demos(dataset, episodes, full_id, env, successful_only)
 
 
-def _read_demos(dataset: Any, full_id: str, env: gym.Env | None, successful_only: bool) -> Demos:
-    """:func:`load_demos` once the dataset is open."""
+def _read_demos(
+    dataset: Any, episodes: list[Any], full_id: str, env: gym.Env | None, successful_only: bool
+) -> Demos:
+    """:func:`load_demos` once the dataset's episodes are read."""
     spec = dataset.spec.env_spec
     if spec is None:
         raise TrainingError(f"dataset {full_id} has no env spec")
@@ -292,7 +295,7 @@ def _read_demos(dataset: Any, full_id: str, env: gym.Env | None, successful_only
     parts: dict[str, list[Any]] = {"obs": [], "next": [], "act": [], "done": [], "start": [], "success": []}
     threshold = float(env_kwargs.get("distance_threshold", 0.01))
     n = 0
-    for episode in dataset.iterate_episodes():
+    for episode in episodes:
         observations = episode.observations
         if not isinstance(observations, dict) or any(k not in observations for k in GOAL_KEYS):
             raise TrainingError(f"dataset {full_id} is not a goal env's (no {', '.join(GOAL_KEYS)})")

@@ -184,7 +184,7 @@ def make_eval_env(
         problem = env_kwargs_problem(env_id, kwargs)
         if problem is None:
             return gym.make(env_id, **kwargs)
-    except (gym.error.Error, TypeError) as e:  # a setting of the wrong type (metadata edited by hand)
+    except gym.error.Error as e:
         raise MetadataError(f"policy's env {env_id!r} cannot be made: {e}") from e
     raise MetadataError(f"the policy's env_kwargs (metadata.json) {problem}")
 

@@ -317,7 +317,7 @@ def cmd_export(ns: argparse.Namespace) -> int:
     """``bioscara export``: write the ONNX file and report the check against torch."""
     if ns.check < 0:
         raise CliError(f"--check must be >= 0 (0: no check against torch), got {ns.check}")
-    problem = output_problem(ns.onnx)
+    problem = output_problem(ns.onnx, parents=True)  # export makes the folders
     if problem is not None:
         raise CliError(f"--onnx {ns.onnx}: {problem}")
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)

@@ -376,9 +376,13 @@ def _check_net_arch(net_arch: Any, where: str) -> None:
         HyperparamError: A width that is not a whole number >= 1 (torch
             failed on a negative one with a 47-line traceback).
     """
-    layers = [w for widths in net_arch.values() for w in widths] if isinstance(net_arch, dict) else net_arch
-    if not isinstance(layers, list | tuple) or any(
-        isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in layers
+    if net_arch is None:  # SB3's default network
+        return
+    groups = list(net_arch.values()) if isinstance(net_arch, dict) else [net_arch]
+    if any(
+        not isinstance(layers, list | tuple)
+        or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in layers)
+        for layers in groups
     ):
         raise HyperparamError(
             f"{where} is {net_arch!r}; expected layer widths, whole numbers >= 1 "

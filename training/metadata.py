@@ -366,6 +366,10 @@ def resolve_env_id(env: str) -> str:
     raise TrainingError(f"unknown env {env!r}; registered: {known}")
 
 
+#: Keywords ``gym.make`` takes itself (``max_episode_steps``, ...), not the env's constructor.
+GYM_MAKE_KEYWORDS = frozenset(p for p in inspect.signature(gym.make).parameters if p not in ("id", "kwargs"))
+
+
 def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
     """What is wrong with ``kwargs`` for ``gym.make(env_id, **kwargs)``, or ``None``.
 
@@ -380,7 +384,7 @@ def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
     spec = gym.spec(env_id)
     creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
     known = keyword_parameters(creator)
-    unknown = [k for k in kwargs if k not in known]
+    unknown = [k for k in kwargs if k not in known and k not in GYM_MAKE_KEYWORDS]
     if not unknown:
         return None
     settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))

@@ -51,7 +51,7 @@ def check_timesteps(timesteps: int | None) -> None:
         raise TrainingError(f"--timesteps {timesteps}: must be >= 1 (omit it for the config's n_timesteps)")
 
 
-#: Workers a CPU may run (``--n-envs``): each is a process with a MuJoCo of its own.
+#: Workers (``--n-envs``) per CPU this process may run on: each is a process with a MuJoCo of its own.
 WORKERS_PER_CPU = 8
 
 
@@ -64,7 +64,7 @@ def check_n_envs(n_envs: int | None) -> None:
     """
     if n_envs is not None and n_envs < 1:
         raise TrainingError(f"--n-envs {n_envs}: must be >= 1 (omit it for the config's n_envs)")
-    cpus = os.cpu_count() or 1
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if n_envs is not None and n_envs > WORKERS_PER_CPU * cpus:
         raise TrainingError(
             f"--n-envs {n_envs}: at most {WORKERS_PER_CPU * cpus} on this machine's {cpus} CPUs "

@@ -217,6 +217,16 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
     return HostFacts(bool(enabled), None if width is None else float(width), dict(homing), stats)
 
 
+def _finite_number(x: object) -> bool:
+    """Whether ``x`` is a number a float holds finitely (not a bool; 10**400 is too large)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
 def load_state(path: Path, backend: Backend) -> HostFacts:
     """Restore the simulated arm from ``path`` and return the host facts.
 
@@ -250,11 +260,7 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     sim = backend.sim
     fresh_state, fresh_cores, fresh_drives = sim.snapshot()  # type: ignore[union-attr]
     mj = doc.get("mujoco")
-    if (
-        not isinstance(mj, list)
-        or len(mj) != len(fresh_state)
-        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in mj)
-    ):
+    if not isinstance(mj, list) or len(mj) != len(fresh_state) or not all(_finite_number(x) for x in mj):
         # NaN here made MuJoCo's state NaN: the joints then read NaN, blamed on the wiring.
         raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} finite numbers")
     saved_cores = doc.get("firmware")

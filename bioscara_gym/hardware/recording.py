@@ -609,7 +609,7 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
     except OSError as e:
         raise TraceError(f"{path}: cannot be read ({e.strerror or e})") from e
     except UnicodeDecodeError as e:
-        raise TraceError(f"{path}: not a UTF-8 text file ({e})") from e
+        raise TraceError(f"{path}: cannot be read (not UTF-8 text: {e})") from e
     sessions: list[tuple[Mapping[str, Any], list[Transaction], list[SignalNote]]] = []
     previous = ""
     for number, raw in enumerate(text.splitlines(), start=1):

@@ -319,8 +319,9 @@ def final_state(backend: Backend) -> dict[str, dict[str, Any]]:
     """Each joint's flags after the stop, from the device side where it can be seen.
 
     ``sim`` and ``emulated``: the firmware emulator's flags and its drive and
-    hold currents (percent); ``mock``: the mock device's flags; ``i2c``: the
-    flags of the joint's last reply. The currents are ``None`` where the
+    hold currents (percent); ``sitl``: the firmware's own flags, as it held
+    them when the arm was closed (no currents); ``mock``: the mock device's
+    flags; ``i2c``: the flags of the joint's last reply. The currents are ``None`` where the
     device cannot be looked into. NOT_ENABLED alone does not mean safe: the
     firmware's deadman sets it and keeps the currents (docs/firmware.md).
     """

@@ -15,6 +15,7 @@ import gzip
 import io
 import math
 import re
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib import resources
@@ -65,7 +66,7 @@ def _open_text(path: Path) -> str:
         return data.decode("utf-8", errors="replace")
     except OSError as e:
         raise RecordingError(path, f"cannot be read ({e.strerror or e})") from e
-    except (EOFError, gzip.BadGzipFile) as e:
+    except (EOFError, zlib.error) as e:  # a damaged gzip stream (gzip.BadGzipFile is an OSError)
         raise RecordingError(path, f"cannot be read ({e})") from e
 
 

@@ -295,7 +295,8 @@ class SitlFirmware:
         image = self._library.save()
         try:
             reply = ctypes.create_string_buffer(2)
-            self._lib.sitl_transfer(self._lib.sitl_now_us(), bytes((Reg.PING,)), 1, reply, 2)
+            if self._lib.sitl_transfer(self._lib.sitl_now_us(), bytes((Reg.PING,)), 1, reply, 2):
+                self._raise_fault()  # no flags to read: not padding taken for them
             return Flag(reply.raw[1])
         finally:
             self._library.load(image)
