@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -696,6 +699,46 @@ def test_calibrate_refuses_zero_workers_in_one_line(tmp_path: Path) -> None:
     )
     assert proc.returncode == 2
     assert proc.stderr.strip() == "bioscara calibrate: error: --workers must be >= 1, got 0"
+
+
+def _children(pid: int) -> set[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return {int(c) for c in path.read_text().split()} if path.exists() else set()
+
+
+@pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task").is_dir(), reason="needs Linux's /proc")
+def test_calibrate_stopped_by_sigterm_stops_its_fitting_workers(tmp_path: Path) -> None:
+    # Seen (a hostile test): SIGTERM ended the main process at once; its two forked workers
+    # went on fitting on both CPUs for minutes, until each was killed by hand.
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "bioscara_gym",
+            "calibrate",
+            "--out",
+            str(tmp_path / "a.yml"),
+            "--workers",
+            "2",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(_children(proc.pid)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        workers = _children(proc.pid)
+        assert len(workers) == 2, "the fit's workers never started"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130
+    assert err.strip() == "bioscara calibrate: interrupted"
+    assert not [w for w in workers if Path(f"/proc/{w}").exists()]
+    assert not (tmp_path / "a.yml").exists()
 
 
 def test_calibrate_fits_joints_in_worker_processes_with_the_same_result(

@@ -32,8 +32,8 @@ import dataclasses
 import functools
 import math
 import multiprocessing
+import signal
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -539,6 +539,12 @@ def hypotheses_line(costs: Sequence[float]) -> str:
 _FORKED_FIT: Callable[[tuple[str, int]], DriveParams] | None = None
 
 
+def _worker_signals() -> None:
+    """In a fit's worker: Ctrl-C is the parent's to handle, SIGTERM (the parent's terminate) ends it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _forked_fit(task: tuple[str, int]) -> DriveParams:
     assert _FORKED_FIT is not None, "set by calibrate() before the pool forks"
     return _FORKED_FIT(task)
@@ -614,8 +620,10 @@ def calibrate(
         _FORKED_FIT = functools.partial(fit, progress=plain)
         fork = multiprocessing.get_context("fork")
         try:
-            with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=fork) as pool:
-                fitted = list(pool.map(_forked_fit, tasks))
+            # A Pool, not an executor: leaving the block on an interrupt terminates the
+            # workers, where an executor waits for their fits (minutes each) to end.
+            with fork.Pool(min(workers, len(tasks)), initializer=_worker_signals) as pool:
+                fitted = pool.map(_forked_fit, tasks)
         finally:
             _FORKED_FIT = None
     else:
