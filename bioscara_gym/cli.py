@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
-from bioscara_gym.fsutil import output_problem
+from bioscara_gym.fsutil import output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
 
 
@@ -120,7 +120,7 @@ def _stats_table(title: str, stats: object) -> Table:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """``bioscara eval``."""
-    from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model, write_json
+    from bioscara_gym.training.evaluate import VIDEO_SUFFIXES, evaluate_expert, evaluate_model, write_json
 
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
@@ -132,6 +132,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         problem = None if path is None else output_problem(path, parents=True)  # eval makes the folders
         if problem is not None:
             raise CliError(f"{option} {path}: {problem}")
+    if args.video is not None and Path(args.video).suffix.lower() not in VIDEO_SUFFIXES:
+        raise CliError(f"--video {args.video}: a video file name ends in {', '.join(VIDEO_SUFFIXES)}")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id
@@ -215,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("runs/reach"), help="output directory")
+    p.add_argument("--out", type=path_argument, default=Path("runs/reach"), help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     p.add_argument(
         "--threads", type=int, help="torch CPU threads (default 1; DAgger fits on its config's fit_threads)"
@@ -241,9 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
     )
-    p.add_argument("--video", type=Path, help="write an MP4 of the first --video-episodes episodes")
+    p.add_argument("--video", type=path_argument, help="write an MP4 of the first --video-episodes episodes")
     p.add_argument("--video-episodes", type=int, default=3, help="episodes in the video (default 3)")
-    p.add_argument("--json", type=Path, help="write the results as JSON")
+    p.add_argument("--json", type=path_argument, help="write the results as JSON")
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument(
         "--record", type=Path, metavar="FILE", help="record every bus transaction (docs/traces.md)"

@@ -12,6 +12,7 @@ or absurdly nested file) in one line instead of hanging or overflowing;
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import errno
 import json
@@ -62,6 +63,17 @@ def read_bytes(path: str | os.PathLike[str], max_bytes: int) -> bytes:
     if len(data) > max_bytes:
         raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes", str(path))
     return data
+
+
+def path_argument(text: str) -> Path:
+    """An argparse ``type`` for a path to write: an empty one is refused (``Path("")`` is ``.``).
+
+    ``--plots ""`` wrote its figures into the current folder, ``--out ""`` a
+    whole training run.
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give a file or folder name")
+    return Path(text)
 
 
 def output_problem(path: str | os.PathLike[str], folder: bool = False, parents: bool = False) -> str | None:

@@ -564,6 +564,23 @@ def test_a_state_file_under_a_file_is_refused_naming_it(bioscara: Run, tmp_path:
     )
 
 
+@pytest.mark.skipif(not Path("/dev/null").exists(), reason="no /dev/null")
+def test_a_device_as_state_file_is_refused_without_a_lock_beside_it(bioscara: Run) -> None:
+    # Seen (a hostile test): refused, but /dev/null.lock was made.
+    if Path("/dev/null.lock").exists():
+        pytest.skip("a /dev/null.lock made before")
+    code, _, err = bioscara("status", "--state", "/dev/null")
+    assert code == 2
+    assert "state file /dev/null is not a regular file" in err
+    assert not Path("/dev/null.lock").exists()
+
+
+def test_an_empty_state_path_is_refused(bioscara: Run) -> None:
+    with pytest.raises(SystemExit) as caught:
+        bioscara("status", "--state", "")
+    assert caught.value.code == 2
+
+
 def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:
     code, _, err = bioscara("status", "--backend", "mock", "--state", str(state))
     assert code == 2

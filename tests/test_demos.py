@@ -211,7 +211,7 @@ def test_train_with_demos_learns_from_the_dataset_and_saves_a_plain_sac(
     assert not hasattr(model, "demo_buffer") or model.demo_buffer is None
 
 
-@pytest.mark.parametrize("damage", ["missing", "truncated"])
+@pytest.mark.parametrize("damage", ["missing", "truncated", "metadata-emptied", "another-task"])
 def test_train_with_a_bad_dataset_is_one_line_and_writes_nothing(
     pick_dataset: Path, tmp_path: Path, damage: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -219,16 +219,24 @@ def test_train_with_a_bad_dataset_is_one_line_and_writes_nothing(
     # h5py's 'Unable to synchronously open file (truncated file: ...)' naming no dataset.
     root = tmp_path / "minari"
     shutil.copytree(pick_dataset, root)
+    env_id = "Bioscara-PickPlace"
     if damage == "truncated":
         data = next(root.glob("pick-v0/data/*.hdf5"))
         data.write_bytes(data.read_bytes()[:2000])
         expected = r"dataset pick-v0 in .*minari cannot be read: .*truncated"
+    elif damage == "metadata-emptied":  # a second hostile pass: Minari's own AssertionError
+        (root / "pick-v0" / "data" / "metadata.json").write_text("{}")
+        expected = r"dataset pick-v0 in .*minari cannot be read: Minari's AssertionError$"
+    elif damage == "another-task":  # a second hostile pass: refused after the run's files were made
+        env_id = "Bioscara-Reach"
+        expected = r"dataset pick-v0 was recorded on Bioscara-PickPlace-v1, not Bioscara-Reach-v0$"
     else:
         shutil.rmtree(root / "pick-v0")
         expected = r"no dataset pick-v0 in .*minari; record one with"
     out = tmp_path / "run"
-    args = ["train", "--env", "Bioscara-PickPlace", "--algo", "sac", "--demos", "pick", "--timesteps", "260"]
-    assert main([*args, "--config", str(tiny_config(tmp_path)), "--out", str(out), "--no-progress"]) == 2
+    args = ["train", "--env", env_id, "--algo", "sac", "--demos", "pick", "--timesteps", "260"]
+    config = tiny_config(tmp_path, env_id=f"{env_id}-v1" if env_id.endswith("PickPlace") else f"{env_id}-v0")
+    assert main([*args, "--config", str(config), "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and re.match(rf"bioscara train: error: {expected}", err), err
     assert not out.exists()

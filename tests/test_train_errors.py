@@ -280,6 +280,21 @@ CASES = [
         r"\.net_arch is \{'pi': 64, 'qf': \[16\]\}; expected layer widths",
         id="net-arch-a-width-not-a-list",
     ),
+    pytest.param(  # a second hostile pass: SB3 asserts a list, a traceback
+        new_run(policy_kwargs="dict(net_arch=(64, 64))"),
+        r"\.net_arch is \(64, 64\); expected layer widths",
+        id="net-arch-a-tuple",
+    ),
+    pytest.param(
+        new_run(policy=".foo.Bar"),
+        r"\.policy: '\.foo\.Bar' is not a dotted path package\.module\.Name$",
+        id="policy-a-relative-path",
+    ),
+    pytest.param(
+        new_run(n_envs=1000),
+        r"cfg\.yaml: Bioscara-Reach-v0\.n_envs 1000: at most \d+ on this machine's \d+ CPUs",
+        id="config-n-envs-beyond-the-workers",
+    ),
     pytest.param(
         new_run(policy="os.system"),
         r"cfg\.yaml: Bioscara-Reach-v0\.policy: os\.system is not a stable-baselines3 policy class$",

@@ -712,6 +712,20 @@ def test_eval_without_model_or_expert_is_a_one_line_error(capsys: pytest.Capture
     assert "--model" in one_line_error(capsys, "eval")
 
 
+def test_eval_refuses_a_video_name_it_cannot_write_before_the_episodes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): the episodes ran, then imageio named a temporary file; the folder stayed.
+    video = tmp_path / "new" / "v.txt"
+    assert (
+        main(["eval", "--expert", "--env", "Bioscara-Reach", "--episodes", "1", "--video", str(video)]) == 2
+    )
+    assert one_line_error(capsys, "eval").endswith(
+        f"--video {video}: a video file name ends in .mp4, .mkv, .mov, .avi, .webm, .gif"
+    )
+    assert not (tmp_path / "new").exists()
+
+
 def test_eval_makes_the_folders_of_its_json(tmp_path: Path) -> None:
     # The output check must not refuse what eval makes itself (a reviewer caught that it did).
     report = tmp_path / "new" / "deeper" / "e.json"

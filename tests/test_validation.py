@@ -608,6 +608,21 @@ def test_a_value_that_is_not_finite_names_the_file_and_line(
         find_recordings(tmp_path)
 
 
+def test_a_gzip_that_unpacks_beyond_the_limit_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen (a hostile test): 26 MB of gzipped zeros unpacked to 6 GB: a MemoryError traceback.
+    import gzip
+
+    from bioscara_gym.validation import recordings
+
+    monkeypatch.setattr(recordings, "MAX_RECORDING_BYTES", 1000)
+    (tmp_path / "maxAccel").mkdir()
+    (tmp_path / "maxAccel" / "j1_1.csv.gz").write_bytes(gzip.compress(b"0" * 1001))
+    with pytest.raises(RecordingError, match=r"j1_1\.csv\.gz: unpacks to more than 1000 bytes$"):
+        find_recordings(tmp_path)
+
+
 def test_a_recording_of_an_unknown_joint_is_refused(tmp_path: Path) -> None:
     (tmp_path / "maxAccel").mkdir()
     text = (DATA_DIR / "maxAccel" / "j1_1.csv").read_text().replace("joint: j1", "joint: j9")

@@ -49,6 +49,7 @@ from bioscara_gym.training.metadata import build_metadata, env_kwargs_problem, s
 from bioscara_gym.training.methods import MethodSpec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
 from bioscara_gym.training.signals import Interrupted, SignalGuard
+from bioscara_gym.training.train import check_n_envs
 
 with needs_train():
     import torch
@@ -173,8 +174,16 @@ class TrainingMethod(abc.ABC):
         problem = env_kwargs_problem(self.env_id, plan.env_kwargs)
         if problem is not None:  # before an env is made: the file named, not a traceback
             raise HyperparamError(f"config {plan.config.source}: {self.env_id}.env_kwargs {problem}")
+        if self.args.n_envs is None:  # --n-envs was checked with the arguments; a config's here
+            check_n_envs(
+                getattr(plan.config, "n_envs", None), f"config {plan.config.source}: {self.env_id}.n_envs"
+            )
         if self.args.demos:  # read once before anything is written: a missing or damaged one is one line
-            load_demos(self.args.demos)
+            demos = load_demos(self.args.demos)
+            if demos.env_id != self.env_id:  # the rest of check_demos needs the env, made later
+                raise TrainingError(
+                    f"dataset {demos.dataset_id} was recorded on {demos.env_id}, not {self.env_id}"
+                )
         torch.set_num_threads(self.args.threads or 1)
         self.start = time.perf_counter()
         with SignalGuard() as guard, contextlib.ExitStack() as stack:

@@ -276,11 +276,12 @@ def load_demos(name: str, env: gym.Env | None = None, successful_only: bool = Fa
         )
     with needs_extra(DATASET_USE, "train"):
         import minari
-    try:  # the files only: a damaged one is h5py's OSError or a JSON error
+    try:  # Minari reading its files only: whatever a damaged one makes it raise (OSError, JSON, ...)
         dataset = minari.load_dataset(full_id)
         episodes = list(dataset.iterate_episodes())
-    except (OSError, ValueError, KeyError) as e:
-        raise TrainingError(f"dataset {full_id} in {datasets_root()} cannot be read: {e}") from e
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, AssertionError) as e:
+        why = str(e) or f"Minari's {type(e).__name__}"  # its assertions say nothing
+        raise TrainingError(f"dataset {full_id} in {datasets_root()} cannot be read: {why}") from e
     return _read_demos(dataset, episodes, full_id, env, successful_only)
 
 

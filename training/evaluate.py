@@ -274,6 +274,10 @@ def evaluate_expert(
             )
 
 
+#: Suffixes :func:`video_writer` writes (imageio's ffmpeg formats, and GIF): checked before the episodes.
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".webm", ".gif")
+
+
 @contextlib.contextmanager
 def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray], None] | None]:
     """Stream frames into an MP4 (or GIF, by suffix) through imageio.

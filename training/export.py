@@ -36,7 +36,7 @@ import numpy as np
 from rich.console import Console
 
 from bioscara_gym.errors import CliError, ExportError, MetadataError
-from bioscara_gym.fsutil import output_problem
+from bioscara_gym.fsutil import output_problem, path_argument
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
 from bioscara_gym.training.metadata import PolicyShapes, validate_metadata
 
@@ -337,7 +337,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``export`` subcommand."""
     p = sub.add_parser("export", help="export a trained policy to ONNX (checked against torch)")
     p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
-    p.add_argument("--onnx", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--onnx", type=path_argument, required=True, help="ONNX file to write")
     p.add_argument(
         "--check", type=int, default=256, help="observations to compare with model.predict (0: none)"
     )

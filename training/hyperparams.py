@@ -380,7 +380,7 @@ def _check_net_arch(net_arch: Any, where: str) -> None:
         return
     groups = list(net_arch.values()) if isinstance(net_arch, dict) else [net_arch]
     if any(
-        not isinstance(layers, list | tuple)
+        not isinstance(layers, list)
         or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in layers)
         for layers in groups
     ):

@@ -76,7 +76,7 @@ def import_dotted(name: str, where: str) -> Any:
         HyperparamError: Not a dotted path, or nothing importable by that name.
     """
     module, _, attribute = name.rpartition(".")
-    if not module or not attribute:
+    if not module or not attribute or module.startswith("."):  # ".foo.Bar" is relative: a TypeError
         raise HyperparamError(f"{where}: {name!r} is not a dotted path package.module.Name")
     try:
         return getattr(importlib.import_module(module), attribute)

@@ -55,19 +55,21 @@ def check_timesteps(timesteps: int | None) -> None:
 WORKERS_PER_CPU = 8
 
 
-def check_n_envs(n_envs: int | None) -> None:
+def check_n_envs(n_envs: int | None, what: str = "--n-envs") -> None:
     """Refuse ``--n-envs`` below 1 or above :data:`WORKERS_PER_CPU` a CPU (``None``: the config's).
+
+    ``what`` names the value in the message (a config's ``n_envs``).
 
     Raises:
         TrainingError: ``n_envs`` is 0 or negative, or more workers than the
             machine can start (100,000 ended in "Too many open files").
     """
     if n_envs is not None and n_envs < 1:
-        raise TrainingError(f"--n-envs {n_envs}: must be >= 1 (omit it for the config's n_envs)")
+        raise TrainingError(f"{what} {n_envs}: must be >= 1 (omit it for the config's n_envs)")
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if n_envs is not None and n_envs > WORKERS_PER_CPU * cpus:
         raise TrainingError(
-            f"--n-envs {n_envs}: at most {WORKERS_PER_CPU * cpus} on this machine's {cpus} CPUs "
+            f"{what} {n_envs}: at most {WORKERS_PER_CPU * cpus} on this machine's {cpus} CPUs "
             f"({WORKERS_PER_CPU} a CPU; each is a process of its own)"
         )
 

@@ -77,6 +77,7 @@ from bioscara_gym.console.format import flags_text, format_position, format_velo
 from bioscara_gym.console.session import Session
 from bioscara_gym.console.targets import HOMING_DIRECTIONS, ConsoleOptions, resolve_joints, resolve_target
 from bioscara_gym.errors import ConsoleUsageError
+from bioscara_gym.fsutil import path_argument
 from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import InvalidArgumentError, JointError, MissingExtraError
@@ -540,7 +541,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--state",
-        type=Path,
+        type=path_argument,
         metavar="FILE",
         help="keep the simulated arm's state in FILE between commands (emulated, sim)",
     )

@@ -145,6 +145,10 @@ def lock_state(path: Path) -> LockFile:
     above = next((p for p in Path(path).parents if p.exists()), None)
     if above is not None and not above.is_dir():  # the lock's error said "File exists"
         raise StateFileError(f"state file {path}: {above} is a file, not a folder")
+    if Path(path).exists() and not Path(path).is_file():  # refused before its lock is made beside it
+        raise StateFileError(
+            f"state file {path} is not a regular file (a directory or a device); pick another path"
+        )
     lock = LockFile(lock_path(path))
     try:
         lock.acquire()

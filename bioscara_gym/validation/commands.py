@@ -12,7 +12,7 @@ from pathlib import Path
 from rich.console import Console
 
 from bioscara_gym.errors import CliError
-from bioscara_gym.fsutil import output_problem
+from bioscara_gym.fsutil import output_problem, path_argument
 from bioscara_gym.hardware.config import load_config
 
 
@@ -145,9 +145,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
     )
     p.add_argument("--config", type=Path, help="arm configuration to judge (default: the packaged one)")
-    p.add_argument("--json", type=Path, metavar="FILE", help="write every row as JSON")
+    p.add_argument("--json", type=path_argument, metavar="FILE", help="write every row as JSON")
     p.add_argument(
-        "--plots", type=Path, metavar="DIR", help="write one PNG per recording, simulated over real"
+        "--plots", type=path_argument, metavar="DIR", help="write one PNG per recording, simulated over real"
     )
     p.set_defaults(func=cmd_validate)
 
@@ -159,7 +159,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
     )
     p.add_argument(
-        "--out", type=Path, required=True, metavar="CONFIG", help="where to write the configuration"
+        "--out", type=path_argument, required=True, metavar="CONFIG", help="where to write the configuration"
     )
     p.add_argument("--config", type=Path, help="configuration to start from (default: the packaged one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the optimizer")

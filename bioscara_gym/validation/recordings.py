@@ -62,7 +62,10 @@ def _open_text(path: Path) -> str:
     try:
         data = read_bytes(path, MAX_RECORDING_BYTES)  # never a device such as /dev/zero
         if path.name.endswith(".gz"):
-            data = gzip.decompress(data)
+            with gzip.GzipFile(fileobj=io.BytesIO(data)) as unpacked:
+                data = unpacked.read(MAX_RECORDING_BYTES + 1)  # 26 MB of zeros unpack to 6 GB
+            if len(data) > MAX_RECORDING_BYTES:
+                raise RecordingError(path, f"unpacks to more than {MAX_RECORDING_BYTES} bytes")
         return data.decode("utf-8", errors="replace")
     except OSError as e:
         raise RecordingError(path, f"cannot be read ({e.strerror or e})") from e
