@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -346,6 +347,21 @@ def test_a_hand_edited_episode_count_is_named(tmp_path: Path, capsys: pytest.Cap
     code, err = _replay_error(write_lines(tmp_path / "edited.jsonl", docs), capsys, "--unchecked")
     assert code == 1
     assert err.endswith("the trace's header gives episodes 'abc'; expected a whole number")
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("dur", 1e300), ("dur", -1.0), ("t", float("inf")), ("t", float("nan"))]
+)
+def test_a_time_a_replay_would_wait_for_ever_on_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture, key: str, value: float
+) -> None:
+    # Seen (a second hostile pass): "dur": 1e300 or Infinity, "t": 1e400 hung replay --unchecked.
+    docs = lines(TRACES / "eval_reach_expert.jsonl")
+    tx = next(i for i, d in enumerate(docs) if d.get("type") == "tx")
+    docs[tx][key] = value
+    code, err = _replay_error(write_lines(tmp_path / "edited.jsonl", docs), capsys, "--unchecked")
+    assert code == 2
+    assert re.search(rf"edited\.jsonl line {tx + 1}: '{key}' ", err), err
 
 
 # ------------------------------------------------------------- tampering

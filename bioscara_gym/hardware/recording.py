@@ -487,7 +487,24 @@ def _hex(value: object, where: str, key: str) -> bytes:
 def _number(value: object, where: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TraceError(f"{where}: '{key}' must be a number")
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number):  # a replay would wait for ever on it
+        raise TraceError(f"{where}: '{key}' must be a finite number, got {value!r}")
+    return number
+
+
+#: Longest a recorded transaction may have taken, s: the driver's timeouts are milliseconds.
+MAX_TRANSACTION_S = 60.0
+
+
+def _duration(value: object, where: str) -> float:
+    dur = _number(value, where, "dur")
+    if not 0.0 <= dur <= MAX_TRANSACTION_S:  # 1e300 made a replay wait for ever
+        raise TraceError(f"{where}: 'dur' {value!r} must be 0-{MAX_TRANSACTION_S:g} s")
+    return dur
 
 
 def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
@@ -504,7 +521,7 @@ def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
     common = {
         "line": line,
         "t": _number(doc.get("t"), where, "t"),
-        "dur": _number(doc.get("dur", 0.0), where, "dur"),
+        "dur": _duration(doc.get("dur", 0.0), where),
         "address": addr,
         "write": _hex(doc.get("write"), where, "write"),
         "read_len": read_len,
