@@ -534,7 +534,7 @@ def test_corrupt_state_file_is_refused_and_kept(bioscara: Run, state: Path) -> N
     assert state.read_text() == '{"format": "bioscara-console-state", "version": 1'
 
 
-@pytest.mark.parametrize("value", [float("nan"), 10**400], ids=["nan", "beyond-float"])
+@pytest.mark.parametrize("value", [float("nan"), 10**400, 1e308], ids=["nan", "beyond-float", "beyond-1e9"])
 def test_a_state_whose_simulation_is_not_finite_is_refused_and_kept(
     bioscara: Run, state: Path, value: float
 ) -> None:
@@ -549,7 +549,7 @@ def test_a_state_whose_simulation_is_not_finite_is_refused_and_kept(
     code, _, err = bioscara("status", "--state", str(state))
     assert code == 2
     assert err.strip().endswith(
-        f"state file {state}: 'mujoco' must be a list of {len(doc['mujoco'])} finite numbers"
+        f"state file {state}: 'mujoco' must be a list of {len(doc['mujoco'])} finite numbers, at most 1e+09"
     )
     assert state.read_text() == saved
 
@@ -579,6 +579,30 @@ def test_an_empty_state_path_is_refused(bioscara: Run) -> None:
     with pytest.raises(SystemExit) as caught:
         bioscara("status", "--state", "")
     assert caught.value.code == 2
+
+
+@pytest.mark.parametrize(
+    ("part", "key", "value", "message"),
+    [
+        ("firmware", "flags", 10**30, "j1.flags 1000000000000000000000000000000 is not a byte (0-255)"),
+        ("firmware", "flags", -1, "j1.flags -1 is not a byte (0-255)"),
+        ("drive", "_position", float("nan"), "drive state j1._position is NaN"),
+    ],
+)
+def test_a_state_whose_joint_values_cannot_be_is_refused_and_kept(
+    bioscara: Run, state: Path, part: str, key: str, value: float, message: str
+) -> None:
+    # Seen (a second hostile pass): "byte must be in range(0, 256)" naming nothing, from then on
+    # every command; a NaN rotor: MuJoCo's warnings, and the wiring blamed.
+    bioscara("enable", "--state", str(state))
+    doc = json.loads(state.read_text())
+    doc[part]["j1"][key] = value
+    state.write_text(json.dumps(doc))
+    saved = state.read_text()
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert err.strip().endswith(f"state file {state}: {message}")
+    assert state.read_text() == saved
 
 
 def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:

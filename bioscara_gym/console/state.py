@@ -221,14 +221,28 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
     return HostFacts(bool(enabled), None if width is None else float(width), dict(homing), stats)
 
 
+#: Largest magnitude of a number in a state's simulation (positions, speeds, the time in s).
+MAX_SIM_VALUE = 1e9
+
+
 def _finite_number(x: object) -> bool:
-    """Whether ``x`` is a number a float holds finitely (not a bool; 10**400 is too large)."""
+    """Whether ``x`` is a number of at most :data:`MAX_SIM_VALUE` (not a bool; 10**400 overflows).
+
+    The time 1e308 is finite, yet the firmware's ``millis()`` of it is not.
+    """
     if isinstance(x, bool) or not isinstance(x, int | float):
         return False
     try:
-        return math.isfinite(x)
+        return math.isfinite(x) and abs(x) <= MAX_SIM_VALUE
     except OverflowError:
         return False
+
+
+def _holds_nan(value: object) -> bool:
+    """Whether ``value`` is NaN or a tuple holding one (the drive's closed loop and estimator)."""
+    if isinstance(value, tuple):
+        return any(_holds_nan(v) for v in value)
+    return isinstance(value, float) and math.isnan(value)
 
 
 def load_state(path: Path, backend: Backend) -> HostFacts:
@@ -266,7 +280,8 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
     mj = doc.get("mujoco")
     if not isinstance(mj, list) or len(mj) != len(fresh_state) or not all(_finite_number(x) for x in mj):
         # NaN here made MuJoCo's state NaN: the joints then read NaN, blamed on the wiring.
-        raise StateFileError(f"{where}: 'mujoco' must be a list of {len(fresh_state)} finite numbers")
+        n, most = len(fresh_state), f"{MAX_SIM_VALUE:g}"
+        raise StateFileError(f"{where}: 'mujoco' must be a list of {n} finite numbers, at most {most}")
     saved_cores = doc.get("firmware")
     if not isinstance(saved_cores, dict) or set(saved_cores) != set(fresh_cores):
         raise StateFileError(f"{where}: 'firmware' must hold the joints {', '.join(fresh_cores)}")
@@ -276,6 +291,8 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         if not isinstance(saved, dict) or set(saved) != set(fresh):
             raise StateFileError(f"{where}: firmware state of {name} does not match this firmware emulation")
         cores[name] = {k: _decode(saved[k], fresh[k], f"{where}: {name}.{k}") for k in fresh}
+        if not 0 <= cores[name]["flags"] <= 0xFF:  # type: ignore[operator]  # the reply's flags byte
+            raise StateFileError(f"{where}: {name}.flags {cores[name]['flags']!r} is not a byte (0-255)")
     saved_drives = doc.get("drive")
     if not isinstance(saved_drives, dict) or set(saved_drives) != set(fresh_drives):
         raise StateFileError(f"{where}: 'drive' must hold the joints {', '.join(fresh_drives)}")
@@ -288,6 +305,9 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         if not isinstance(saved, dict) or set(saved) != set(keep):
             raise StateFileError(f"{where}: drive state of {name} does not match this drive model")
         drives[name] = {k: _decode(saved[k], keep[k], f"{where}: {name}.{k}") for k in keep}
+        nan = next((k for k, v in drives[name].items() if _holds_nan(v)), None)
+        if nan is not None:  # (an end stop may be infinite: none on that side)
+            raise StateFileError(f"{where}: drive state {name}.{nan} is NaN")
     facts = _host_facts(doc, fresh_cores, where)
     sim.restore((np.asarray(mj, dtype=float), cores, drives))  # type: ignore[union-attr]
     return facts
