@@ -502,6 +502,12 @@ def test_pick_place_takes_the_base_defaults_25_hz_and_1_cm() -> None:
         ({"reward_type": "shaped"}, "reward_type 'shaped' must be one of 'dense', 'sparse', 'log'"),
         ({"distance_threshold": 0.0}, "distance_threshold 0.0 must be > 0 (m)"),
         ({"distance_threshold": -0.01}, "distance_threshold -0.01 must be > 0 (m)"),
+        # Seen (a second hostile pass, through a config or a metadata.json): TypeErrors, or taken.
+        ({"distance_threshold": "x"}, "distance_threshold 'x' must be a number > 0 (m)"),
+        ({"distance_threshold": float("inf")}, "distance_threshold inf must be > 0 (m)"),
+        ({"cartesian_lead": "x"}, "cartesian_lead 'x' must be true, false or None (the class's)"),
+        ({"width": "x"}, "width 'x' must be a whole number of pixels >= 1"),
+        ({"height": 0}, "height 0 must be a whole number of pixels >= 1"),
     ],
 )
 def test_a_bad_argument_is_refused_in_one_line_naming_the_choices(kwargs: dict, message: str) -> None:

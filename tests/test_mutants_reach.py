@@ -62,6 +62,8 @@ def test_goals_are_within_15_cm_by_default_and_positional_arguments_reach_the_ba
         ({"goal_horizon_s": 0.0}, "goal_horizon_s 0.0 must be > 0 (seconds)"),
         ({"goal_horizon_s": -1.0}, "goal_horizon_s -1.0 must be > 0 (seconds)"),
         ({"goal_radius": 0.0}, "goal_radius 0.0 must be > 0 (m)"),
+        ({"goal_radius": "abc"}, "goal_radius 'abc' must be a number > 0 (m)"),  # was a TypeError
+        ({"goal_horizon_s": float("nan")}, "goal_horizon_s nan must be > 0 (seconds)"),
     ],
 )
 def test_a_goal_horizon_or_radius_of_zero_is_refused(kwargs: dict, message: str) -> None:

@@ -20,6 +20,8 @@ backends that simulate and by a renderer.
 from __future__ import annotations
 
 import contextlib
+import math
+import numbers
 from collections import deque
 from collections.abc import Sequence
 from types import MappingProxyType
@@ -77,6 +79,19 @@ __all__ = [
     "DomainRandomization",
     "check_control_freq",
 ]
+
+
+def check_positive(name: str, value: object, unit: str) -> float:
+    """``value`` as a float if it is a finite number > 0, else a ValueError naming ``name``.
+
+    A string from a config or a hand-edited metadata.json (``goal_radius:
+    "abc"``) was a TypeError from the comparison, a traceback on the command line.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} {value!r} must be a number > 0 ({unit})")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} {value} must be > 0 ({unit})")
+    return float(value)
 
 
 class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
@@ -164,8 +179,12 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if reward_type not in REWARD_TYPES:
             choices = ", ".join(map(repr, REWARD_TYPES))
             raise ValueError(f"reward_type {reward_type!r} must be one of {choices}")
-        if not distance_threshold > 0:
-            raise ValueError(f"distance_threshold {distance_threshold} must be > 0 (m)")
+        check_positive("distance_threshold", distance_threshold, "m")
+        if cartesian_lead is not None and not isinstance(cartesian_lead, bool):
+            raise ValueError(f"cartesian_lead {cartesian_lead!r} must be true, false or None (the class's)")
+        for name, pixels in (("width", width), ("height", height)):
+            if isinstance(pixels, bool) or not isinstance(pixels, int) or pixels < 1:
+                raise ValueError(f"{name} {pixels!r} must be a whole number of pixels >= 1")
         if render_mode is not None:
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from bioscara_gym import kinematics
-from bioscara_gym.envs.base import BioscaraEnv
+from bioscara_gym.envs.base import BioscaraEnv, check_positive
 
 #: Registered episode length (2 s at 25 Hz).
 DEFAULT_EPISODE_STEPS = 50
@@ -165,12 +165,8 @@ class BioscaraReachEnv(BioscaraEnv):
         super().__init__(*args, **kwargs)
         if goal_horizon_s is None:
             goal_horizon_s = GOAL_HORIZON_FRACTION * DEFAULT_EPISODE_STEPS * self.dt
-        if not goal_horizon_s > 0:
-            raise ValueError(f"goal_horizon_s {goal_horizon_s} must be > 0 (seconds)")
-        if not goal_radius > 0:
-            raise ValueError(f"goal_radius {goal_radius} must be > 0 (m)")
-        self.goal_horizon_s = float(goal_horizon_s)
-        self.goal_radius = float(goal_radius)
+        self.goal_horizon_s = check_positive("goal_horizon_s", goal_horizon_s, "seconds")
+        self.goal_radius = check_positive("goal_radius", goal_radius, "m")
         if self.sim is not None:
             take_block_off_the_table(self.sim.model)
 
