@@ -50,7 +50,7 @@ def test_a_spread_outside_0_to_1_is_refused_naming_it(field: str, value: float) 
 
 def test_negative_sensor_noise_is_refused_and_zero_accepted() -> None:
     assert DomainRandomization(sensor_noise=0.0).sensor_noise == 0.0
-    with pytest.raises(ValueError, match=r"^randomization sensor_noise=-0.001 must be >= 0$"):
+    with pytest.raises(ValueError, match=r"^randomization sensor_noise=-0.001 must be >= 0 and finite$"):
         DomainRandomization(sensor_noise=-0.001)
 
 
@@ -83,9 +83,43 @@ def test_coerce_true_is_default_on_a_dict_its_fields_an_instance_itself() -> Non
 
 @pytest.mark.parametrize("bad", [1, 0.2, "on", [0.2]])
 def test_coerce_refuses_anything_else_naming_it(bad: object) -> None:
-    message = f"randomization must be a DomainRandomization, dict, bool or None, not {bad!r}"
-    with pytest.raises(TypeError, match=f"^{re.escape(message)}$"):
+    # A ValueError, as every other bad env setting: the CLI says it in one line.
+    message = (
+        "randomization must be true, false, null or a mapping of "
+        f"mass, friction, damping, sensor_noise, latency_steps; got {bad!r}"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         DomainRandomization.coerce(bad)
+
+
+def test_coerce_refuses_a_field_there_is_not_listing_those_there_are() -> None:
+    message = "randomization has 'bogus'; it takes mass, friction, damping, sensor_noise, latency_steps"
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        DomainRandomization.coerce({"mass": 0.1, "bogus": 1})
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "kind"),
+    [
+        ("mass", "0.2", "a number"),
+        ("friction", None, "a number"),
+        ("damping", True, "a number"),
+        ("sensor_noise", [0.1], "a number"),
+        ("latency_steps", 1.5, "an integer"),
+        ("latency_steps", "2", "an integer"),
+        ("latency_steps", False, "an integer"),
+    ],
+)
+def test_a_field_of_the_wrong_type_is_refused_naming_it(field: str, value: object, kind: str) -> None:
+    message = f"randomization {field}={value!r} must be {kind}"
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        DomainRandomization.coerce({field: value})
+
+
+def test_infinite_sensor_noise_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"^randomization sensor_noise=inf must be >= 0 and finite$"):
+        DomainRandomization(sensor_noise=float("inf"))
+    assert DomainRandomization(sensor_noise=1e6).sensor_noise == 1e6
 
 
 # ------------------------------------------------------------ PhysicsRandomizer

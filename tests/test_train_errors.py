@@ -305,6 +305,29 @@ CASES = [
         r"cannot read config /dev/zero: not a regular file$",
         id="config-a-device",
     ),
+    # Seen (a hostile test, 2026-11-29): a TypeError and an AttributeError traceback from gym.make.
+    pytest.param(
+        new_run(env_kwargs={"control_mode": "cartesian", "randomization": 3}),
+        r"randomization must be true, false, null or a mapping of mass, friction, damping, "
+        r"sensor_noise, latency_steps; got 3$",
+        id="randomization-a-number",
+    ),
+    pytest.param(
+        new_run(env_kwargs={"control_mode": "cartesian", "randomization": {"mas": 0.1}}),
+        r"randomization has 'mas'; it takes mass, friction",
+        id="randomization-a-misspelt-field",
+    ),
+    pytest.param(
+        new_run(env_kwargs={"control_mode": "cartesian", "render_mode": 5}),
+        r"cfg\.yaml: Bioscara-Reach-v0\.env_kwargs has render_mode 5; Bioscara-Reach-v0 renders "
+        r"rgb_array, human or null$",
+        id="render-mode-a-number",
+    ),
+    pytest.param(
+        new_run(env_kwargs={"control_mode": "cartesian", "render_mode": "ansi"}),
+        r"env_kwargs has render_mode 'ansi'; Bioscara-Reach-v0 renders rgb_array, human or null$",
+        id="render-mode-unknown",
+    ),
     pytest.param(new_run(gamma=1.5), r"\.gamma is 1\.5; expected a number in \(0, 1\]", id="gamma"),
     pytest.param(new_run(tau=0), r"\.tau is 0; expected a number in \(0, 1\]", id="tau-zero"),
 ]

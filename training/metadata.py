@@ -385,6 +385,10 @@ def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
     creator = load_env_creator(spec.entry_point) if isinstance(spec.entry_point, str) else spec.entry_point
     known = keyword_parameters(creator)
     unknown = [k for k in kwargs if k not in known and k not in GYM_MAKE_KEYWORDS]
+    render_modes = getattr(creator, "metadata", {}).get("render_modes", [])
+    render_mode = kwargs.get("render_mode")
+    if render_mode is not None and (not isinstance(render_mode, str) or render_mode not in render_modes):
+        return f"has render_mode {render_mode!r}; {env_id} renders {', '.join(render_modes)} or null"
     if not unknown:
         return None
     settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))

@@ -9,7 +9,9 @@ env's loop (:class:`~bioscara_gym.envs.base.BioscaraEnv`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import numbers
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -34,13 +36,19 @@ class DomainRandomization:
     latency_steps: int = 0
 
     def __post_init__(self) -> None:
-        """Validate the ranges."""
+        """Validate the types and ranges (one-line ``ValueError`` naming the field)."""
+        for field in fields(self):
+            value = getattr(self, field.name)
+            wanted = numbers.Integral if field.name == "latency_steps" else numbers.Real
+            if isinstance(value, bool) or not isinstance(value, wanted):
+                kind = "an integer" if wanted is numbers.Integral else "a number"
+                raise ValueError(f"randomization {field.name}={value!r} must be {kind}")
         for name in ("mass", "friction", "damping"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise ValueError(f"randomization {name}={value} must be within [0, 1)")
-        if self.sensor_noise < 0.0:
-            raise ValueError(f"randomization sensor_noise={self.sensor_noise} must be >= 0")
+        if not 0.0 <= self.sensor_noise < math.inf:
+            raise ValueError(f"randomization sensor_noise={self.sensor_noise} must be >= 0 and finite")
         if self.latency_steps < 0:
             raise ValueError(f"randomization latency_steps={self.latency_steps} must be >= 0")
 
@@ -63,18 +71,24 @@ class DomainRandomization:
                 a dict: its fields; a :class:`DomainRandomization`: itself.
 
         Raises:
-            TypeError: ``value`` is none of these.
-            ValueError: A field is out of range.
+            ValueError: ``value`` is none of these, names a field there is
+                not, or a field is of the wrong type or out of range.
         """
         if value is None or value is False:
             return cls()
         if value is True:
             return cls.default_on()
+        names = [field.name for field in fields(cls)]
         if isinstance(value, dict):
+            unknown = [key for key in value if key not in names]
+            if unknown:
+                raise ValueError(f"randomization has {unknown[0]!r}; it takes {', '.join(names)}")
             return cls(**value)
         if isinstance(value, DomainRandomization):
             return value
-        raise TypeError(f"randomization must be a DomainRandomization, dict, bool or None, not {value!r}")
+        raise ValueError(
+            f"randomization must be true, false, null or a mapping of {', '.join(names)}; got {value!r}"
+        )
 
 
 class PhysicsRandomizer:
