@@ -292,6 +292,23 @@ def test_cli_emulate_refuses_a_huge_id_range_in_one_line(capsys: pytest.CaptureF
     assert err == f"bioscara emulate: error: {expected}\n"
 
 
+@pytest.mark.parametrize(
+    ("spec", "expected"),
+    [
+        ("", "--faults names no fault; give KEY=VALUE,... e.g. drop=0.01"),
+        ("drop=0.1,", "fault specification 'drop=0.1,' has an empty item; expected KEY=VALUE,..."),
+    ],
+)
+def test_cli_emulate_refuses_faults_that_name_none(
+    capsys: pytest.CaptureFixture[str], spec: str, expected: str
+) -> None:
+    # Seen (a hostile test): served the servos without faults.
+    from bioscara_gym.cli import main
+
+    assert main(["emulate", "dynamixel", "--ids", "1", "--link", "/nonexistent/dxl", "--faults", spec]) == 2
+    assert capsys.readouterr().err == f"bioscara emulate: error: {expected}\n"
+
+
 # ---------------------------------------------------- driver over the SDK
 
 

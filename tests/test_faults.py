@@ -356,6 +356,10 @@ def test_fault_plan_parse_passes_the_seed() -> None:
         ("latency_ms=nan", r"latency_ms.*must be finite"),
         ("latency_ms=inf", r"latency_ms.*must be finite"),
         ("nack=0.1,nack=0.2", r"given twice"),
+        (",", r"^fault specification ',' has an empty item; expected KEY=VALUE,\.\.\.$"),
+        ("nack=0.1,", r"^fault specification 'nack=0\.1,' has an empty item"),
+        ("nack=0.1,,corrupt=0", r"^fault specification 'nack=0\.1,,corrupt=0' has an empty item"),
+        ("seed=3,", r"^fault specification 'seed=3,' has an empty item"),
     ],
 )
 def test_fault_plan_parse_rejects_bad_specs(spec: str, message: str) -> None:

@@ -847,8 +847,17 @@ def test_output_files_are_each_their_own_regular_file(tmp_path: Path) -> None:
             "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)",
         ),
         ({"backend": "sitl", "faults": "nack=lots"}, "--faults: fault 'nack': 'lots' is not a number"),
+        # Seen (a hostile test): both ran as a rehearsal without faults.
+        (
+            {"backend": "emulated", "faults": " "},
+            "--faults names no fault; give KEY=VALUE,... e.g. nack=0.01",
+        ),
+        (
+            {"backend": "emulated", "faults": ","},
+            "--faults: fault specification ',' has an empty item; expected KEY=VALUE,...",
+        ),
     ],
-    ids=["backend", "bus", "firmware", "faults-on-mock", "faults-on-sitl"],
+    ids=["backend", "bus", "firmware", "faults-on-mock", "faults-on-sitl", "faults-blank", "faults-comma"],
 )
 def test_bad_arguments_are_refused_in_their_words(changes: dict[str, Any], message: str) -> None:
     from bioscara_gym.training.deploy_checks import check_args

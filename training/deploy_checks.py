@@ -248,7 +248,9 @@ def check_args(args: DeployArgs) -> None:
             raise DeployError(str(e)) from e
     if args.firmware is not None and args.backend != "sitl":
         raise DeployError("--firmware needs --backend sitl (the firmware in the loop)")
-    if args.faults:
+    if args.faults is not None:
+        if not args.faults.strip():
+            raise DeployError("--faults names no fault; give KEY=VALUE,... e.g. nack=0.01")
         if args.backend not in ("emulated", "sitl"):
             raise DeployError(
                 "--faults needs --backend emulated or sitl (faults are injected by the emulated bus)"

@@ -31,6 +31,8 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
 
     try:
         ids = parse_ids(args.ids)
+        if args.faults is not None and not args.faults.strip():
+            raise ValueError("--faults names no fault; give KEY=VALUE,... e.g. drop=0.01")
         faults = FaultPlan.parse(args.faults, kinds=RS485_FAULTS) if args.faults else None
     except ValueError as e:
         raise CliError(str(e)) from None

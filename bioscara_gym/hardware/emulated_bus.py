@@ -154,7 +154,7 @@ class FaultPlan:
             ValueError: Unknown key (the message lists the known ones) or a
                 value that is not a number.
         """
-        items = [item.strip() for item in spec.split(",")]
+        items = fault_items(spec)
         seeds = [item for item in items if item.partition("=")[0].strip() == "seed"]
         if seeds:
             if len(seeds) > 1:
@@ -188,6 +188,18 @@ class FaultPlan:
                 raise ValueError(f"the emulated {kinds.bus} bus cannot inject {name}; it injects {injects}")
 
 
+def fault_items(spec: str) -> list[str]:
+    """The stripped ``KEY=VALUE`` items of a fault specification; none if it is blank.
+
+    Raises:
+        ValueError: An empty item (``"nack=0.1,"``, ``","``).
+    """
+    items = [item.strip() for item in spec.split(",")] if spec.strip() else []
+    if "" in items:
+        raise ValueError(f"fault specification {spec!r} has an empty item; expected KEY=VALUE,...")
+    return items
+
+
 def parse_fault_spec(
     spec: str, rates: tuple[str, ...], duration: str | tuple[str, ...], numbers: tuple[str, ...] = ()
 ) -> dict[str, float]:
@@ -201,14 +213,15 @@ def parse_fault_spec(
         numbers: Further keys taken as they are (e.g. ``drift_ppm``).
 
     Raises:
-        ValueError: Not KEY=VALUE, a value that is not a finite number, an
-            unknown key (the message lists the known ones) or a key given twice.
+        ValueError: Not KEY=VALUE, an empty item (``"nack=0.1,"``), a value
+            that is not a finite number, an unknown key (the message lists the
+            known ones) or a key given twice. A blank ``spec`` is no faults.
     """
     durations = (duration,) if isinstance(duration, str) else duration
     known = (*rates, *(f"{d}{unit}" for d in durations for unit in ("_ms", "_s")), *numbers)
     durations_s = {f"{d}_s" for d in durations}
     kwargs: dict[str, float] = {}
-    for item in filter(None, (s.strip() for s in spec.split(","))):
+    for item in fault_items(spec):
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep:
