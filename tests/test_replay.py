@@ -303,6 +303,21 @@ def test_a_line_that_is_not_json_names_the_line(tmp_path: Path, capsys: pytest.C
     assert (code, err) == (2, "bioscara replay: error: trace.jsonl line 7: not JSON")
 
 
+def test_a_number_beyond_pythons_digit_limit_names_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # Seen (a hostile test): 5000 digits of episodes gave a ValueError and exit 1, as a mismatch.
+    docs = lines(TRACES / "console_session.jsonl")[:8]
+    path = tmp_path / "trace.jsonl"
+    text = "".join(json.dumps(d) + "\n" for d in docs[:6]) + '{"type": "tx", "t": ' + "9" * 5000 + "}\n"
+    path.write_text(text, encoding="utf-8")
+    code, err = _replay_error(path, capsys)
+    assert (code, err) == (
+        2,
+        "bioscara replay: error: trace.jsonl line 7: holds a number too long to be a trace's",
+    )
+
+
 def test_a_header_of_another_format_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = write_lines(tmp_path / "log.jsonl", [{"type": "header", "policy": "x"}])
     code, err = _replay_error(path, capsys)

@@ -637,6 +637,8 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
             doc = json.loads(raw)
         except json.JSONDecodeError:
             raise TraceError(f"{where}: not JSON") from None
+        except ValueError:  # Python's limit on the digits of an int (4300)
+            raise TraceError(f"{where}: holds a number too long to be a trace's") from None
         except RecursionError:
             raise TraceError(f"{where}: nested too deeply to be a trace line") from None
         if not isinstance(doc, Mapping):
