@@ -623,6 +623,20 @@ def test_a_gzip_that_unpacks_beyond_the_limit_is_refused(
         find_recordings(tmp_path)
 
 
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_recording_name_on_what_is_no_file_is_refused_not_skipped(tmp_path: Path, kind: str) -> None:
+    # Seen (a hostile test): a FIFO named like a recording was skipped without a word.
+    (tmp_path / "maxAccel").mkdir()
+    shutil.copy(DATA_DIR / "maxAccel" / "j3_6.csv", tmp_path / "maxAccel")
+    odd = tmp_path / "maxAccel" / "j1_1.csv"
+    if kind == "fifo":
+        os.mkfifo(odd)
+    else:
+        odd.mkdir()
+    with pytest.raises(RecordingError, match=r"j1_1\.csv: cannot be read \(not a regular file\)$"):
+        find_recordings(tmp_path)
+
+
 def test_a_recording_of_an_unknown_joint_is_refused(tmp_path: Path) -> None:
     (tmp_path / "maxAccel").mkdir()
     text = (DATA_DIR / "maxAccel" / "j1_1.csv").read_text().replace("joint: j1", "joint: j9")

@@ -573,9 +573,10 @@ class Recordings:
 
 
 def _csvs(folder: Path) -> list[Path]:
+    """Everything in ``folder`` named as a recording: one that is no regular file is refused when read."""
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.name.endswith((".csv", ".csv.gz")))
+    return sorted(p for p in folder.iterdir() if p.name.endswith((".csv", ".csv.gz")))
 
 
 def find_recordings(root: Path | str | None = None) -> Recordings:
