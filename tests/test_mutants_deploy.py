@@ -814,6 +814,36 @@ def test_keyword_parameters_follow_kwargs_up_the_bases_and_stop_where_they_end()
     assert keyword_parameters(creator) == ["x", "y"]
 
 
+def test_env_kwargs_problem_takes_the_render_modes_the_env_renders_and_no_other() -> None:
+    from bioscara_gym.training.metadata import env_kwargs_problem
+
+    for mode in (None, "rgb_array", "human"):  # Reach's metadata["render_modes"], and none
+        assert env_kwargs_problem(REACH, {"render_mode": mode}) is None
+    for mode, shown in ((5, "5"), ("ansi", "'ansi'"), (["rgb_array"], "['rgb_array']")):
+        expected = f"has render_mode {shown}; {REACH} renders rgb_array, human or null"
+        assert env_kwargs_problem(REACH, {"render_mode": mode}) == expected
+
+    def make(render_mode: str | None = None) -> gym.Env:  # an env made by a function: no metadata
+        raise AssertionError("not made")
+
+    # An unknown keyword is named with the settings a user may give: not the backend's plumbing.
+    problem = env_kwargs_problem(REACH, {"bogus": 1})
+    assert problem is not None and problem.startswith(f"has 'bogus', which {REACH} does not take; it takes ")
+    taken = problem.split("it takes ")[1].split(", ")
+    assert all(name.isidentifier() for name in taken), taken
+    assert {"control_mode", "control_freq", "render_mode", "randomization"} <= set(taken)
+    assert not {"backend", "backend_options", "config"} & set(taken)
+
+    gym.register("Bioscara-ByFunction-v0", entry_point=make)
+    try:
+        assert env_kwargs_problem("Bioscara-ByFunction-v0", {"render_mode": None}) is None
+        assert env_kwargs_problem("Bioscara-ByFunction-v0", {"render_mode": "rgb_array"}) == (
+            "has render_mode 'rgb_array'; Bioscara-ByFunction-v0 renders nothing (null)"
+        )
+    finally:
+        del gym.registry["Bioscara-ByFunction-v0"]
+
+
 def test_output_files_are_each_their_own_regular_file(tmp_path: Path) -> None:
     from bioscara_gym.training.deploy_checks import check_outputs
 

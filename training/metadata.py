@@ -388,7 +388,8 @@ def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
     render_modes = getattr(creator, "metadata", {}).get("render_modes", [])
     render_mode = kwargs.get("render_mode")
     if render_mode is not None and (not isinstance(render_mode, str) or render_mode not in render_modes):
-        return f"has render_mode {render_mode!r}; {env_id} renders {', '.join(render_modes)} or null"
+        renders = f"renders {', '.join(render_modes)} or null" if render_modes else "renders nothing (null)"
+        return f"has render_mode {render_mode!r}; {env_id} {renders}"
     if not unknown:
         return None
     settings = ", ".join(n for n in known if n not in ("backend", "backend_options", "config"))
