@@ -441,6 +441,17 @@ INVALID_CASES = [
         r"config\.yaml: joint j2: drive: self_locking=1 must be true or false$",
         id="drive-self-locking-a-number",
     ),
+    # Seen (a hostile test): 1e308 passed, and the motor model's state went NaN.
+    pytest.param(
+        _set_drive("j1", "pullout_accel", 1.0000001e9),
+        r"config\.yaml: joint j1: drive: pullout_accel=1000000100\.0 is beyond 1e\+09; inf is no limit$",
+        id="drive-pullout-beyond-any-motor",
+    ),
+    pytest.param(
+        _set_drive("j3", "friction_coulomb", 1e308),
+        r"joint j3: drive: friction_coulomb=1e\+308 is beyond 1e\+09; inf is no limit$",
+        id="drive-friction-1e308",
+    ),
     # Missing and unknown fields.
     pytest.param(
         _del_joint("j2", "hold_current"),
@@ -614,6 +625,20 @@ INVALID_CASES = [
         _set_joint("j2", "min", 0.338),
         r"config\.yaml: joint j2: min 0\.338 m must be less than max 0\.338 m",
         id="joint-min-equals-max",
+    ),
+    # The firmware's position is a float32 of motor degrees (joint.ino: float q = angleMoved()):
+    # whole degrees to 2^24 = 16,777,216, which j1 (35:1) reaches at 8366.3 rad.
+    # Seen (a hostile test): max 1e308 passed, and MuJoCo's state went NaN.
+    pytest.param(
+        _set_joint("j1", "max", 8367.0),
+        r"config\.yaml: joint j1: max 8367\.0 rad is 1\.678e\+07 deg at the motor; the firmware keeps the "
+        r"motor's angle in a float \(angleMoved\), whole to a degree up to 16,777,216$",
+        id="joint-max-beyond-the-firmwares-float",
+    ),
+    pytest.param(
+        _set_joint("j2", "min", -187.0),  # 4 mm a motor turn: 186.4 m of travel
+        r"joint j2: min -187\.0 m is 1\.683e\+07 deg at the motor",
+        id="joint-min-beyond-the-firmwares-float",
     ),
     pytest.param(
         _set_joint("j1", "max", -3.5),
@@ -830,6 +855,18 @@ def test_invalid_config_raises_config_error_naming_joint_and_field(
     mutate(default_dict)
     with pytest.raises(ConfigError, match=message):
         config_from_dict(default_dict, source="config.yaml")
+
+
+def test_limits_within_the_firmwares_float_and_drive_values_up_to_the_bound_are_accepted(
+    default_dict: dict[str, Any],
+) -> None:
+    _set_joint("j1", "max", 8366.0)(default_dict)  # 16,776,578 motor degrees
+    _set_joint("j2", "min", -186.0)(default_dict)
+    _set_drive("j1", "pullout_accel", 1e9)(default_dict)
+    _set_drive("j3", "corner_speed", float("inf"))(default_dict)
+    config = config_from_dict(default_dict, source="config.yaml")
+    assert (config.joint("j1").max, config.joint("j2").min) == (8366.0, -186.0)
+    assert config.joint("j1").drive.pullout_accel == 1e9
 
 
 def test_config_error_is_a_value_error(default_dict: dict[str, Any]) -> None:

@@ -213,6 +213,12 @@ def _integer(
     return result
 
 
+#: The largest joint limit, in motor degrees: the firmware's position is ``float q =
+#: stepper.angleMoved()`` (joint.ino), a float32 of degrees, which counts every whole
+#: degree up to 2^24 and no further (seen: ``max: 1e308`` passed, and MuJoCo's state went NaN).
+POSITION_MAX_DEG = float(2**24)
+
+
 def _limits(low: object, high: object, unit: str = "") -> tuple[float, float]:
     low_f = _number(low, "min")
     high_f = _number(high, "max")
@@ -422,6 +428,13 @@ class JointConfig:
         unit = _unit(self.joint_type)
         _set(self, "reduction", _nonzero(self.reduction, "reduction"))
         low, high = _limits(self.min, self.max, unit)
+        for name, value in (("min", low), ("max", high)):
+            degrees = abs(rate_to_degrees(value, self.reduction))
+            if degrees > POSITION_MAX_DEG:
+                raise ConfigError(
+                    f"{name} {_fmt(value)}{unit} is {degrees:.4g} deg at the motor; the firmware keeps the "
+                    f"motor's angle in a float (angleMoved), whole to a degree up to {POSITION_MAX_DEG:,.0f}"
+                )
         _set(self, "min", low)
         _set(self, "max", high)
         _set(

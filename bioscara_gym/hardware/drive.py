@@ -293,6 +293,11 @@ class PidNoiseProfile:
         return slope * (speed - knots[j - 1]) + values[j - 1]
 
 
+#: The largest finite drive value. The fitted ones are at most some 10^4 (motor rad/s^2,
+#: rad/s, 1/s); 10^308 overflowed the motor model to NaN, where ``inf`` (no limit) works.
+DRIVE_VALUE_MAX = 1e9
+
+
 #: Half-normal median: |N(0, sigma)| has median 0.6745 sigma.
 HALF_NORMAL_MEDIAN = 0.6744897501960817
 
@@ -396,6 +401,8 @@ class DriveParams:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or math.isnan(v) or v < 0:
                 raise ValueError(f"drive: {f.name}={v!r} must be a number >= 0")
+            if DRIVE_VALUE_MAX < v < math.inf:
+                raise ValueError(f"drive: {f.name}={v!r} is beyond {DRIVE_VALUE_MAX:g}; inf is no limit")
         for name in ("pullout_accel", "corner_speed", "corner_exponent", "slip_corner"):
             if getattr(self, name) == 0:
                 raise ValueError(f"drive: {name}=0 must be > 0")
