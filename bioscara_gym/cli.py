@@ -8,11 +8,14 @@ never leaves the arm enabled behind it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import NoReturn
 
@@ -20,8 +23,12 @@ from rich.console import Console
 from rich.table import Table
 
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
-from bioscara_gym.fsutil import output_problem, path_argument
+from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
+from bioscara_gym.training.signals import Interrupted
+
+#: The env of ``train`` and ``eval --expert`` when none is given.
+DEFAULT_ENV = "Bioscara-Reach"
 
 
 def _console() -> Console:
@@ -124,36 +131,46 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
-    if args.video_episodes < 1:
-        raise CliError(f"--video-episodes must be >= 1, got {args.video_episodes}")
+    if args.video_episodes is not None and args.video is None:
+        raise CliError("--video-episodes needs --video (the file to write them to)")
+    video_episodes = 3 if args.video_episodes is None else args.video_episodes
+    if video_episodes < 1:
+        raise CliError(f"--video-episodes must be >= 1, got {video_episodes}")
     if args.expert and args.model is not None:
         raise CliError("--expert and --model both name a policy; give one")
-    for option, path in (("--json", args.json), ("--video", args.video)):  # refused before the episodes run
+    outputs = {"--json": args.json, "--video": args.video, "--record": args.record}
+    for option, path in outputs.items():  # refused before the episodes run
         problem = None if path is None else output_problem(path, parents=True)  # eval makes the folders
         if problem is not None:
             raise CliError(f"{option} {path}: {problem}")
+    model_inputs = {} if args.model is None else {"--model": args.model, "metadata": _metadata_of(args.model)}
+    clash = output_clash(outputs, model_inputs)
+    if clash is not None:
+        raise CliError(clash)
     if args.video is not None and Path(args.video).suffix.lower() not in VIDEO_SUFFIXES:
         raise CliError(f"--video {args.video}: a video file name ends in {', '.join(VIDEO_SUFFIXES)}")
     options = eval_backend_options(args)
     if args.expert:
         from bioscara_gym.training.metadata import resolve_env_id
 
-        env_id = resolve_env_id(args.env)
+        env_id = resolve_env_id(args.env or DEFAULT_ENV)
         stats = evaluate_expert(
             env_id,
             args.episodes,
             args.backend or "sim",
             args.video,
             args.seed,
-            args.video_episodes,
+            video_episodes,
             backend_options=options,
         )
         title, source = f"scripted expert on {env_id} ({args.backend or 'sim'})", "expert"
     else:
         if args.model is None:
             raise CliError("eval needs --model PATH (or --expert --env ID)")
+        if args.env is not None:
+            _check_model_env(args.model, args.env)
         stats = evaluate_model(
-            args.model, args.episodes, args.backend, args.video, args.seed, args.video_episodes, options
+            args.model, args.episodes, args.backend, args.video, args.seed, video_episodes, options
         )
         title, source = f"{args.model} ({args.backend or 'as trained'})", str(args.model)
     con = _console()
@@ -164,6 +181,22 @@ def cmd_eval(args: argparse.Namespace) -> int:
         write_json(args.json, stats, source=source, backend=args.backend or "sim")
         con.print(f"json      {args.json}")
     return 0
+
+
+def _metadata_of(model: Path) -> Path:
+    """The ``metadata.json`` beside ``model.zip``."""
+    from bioscara_gym.training.metadata import METADATA_NAME
+
+    return Path(model).parent / METADATA_NAME
+
+
+def _check_model_env(model: Path, env: str) -> None:
+    """Refuse ``--env`` naming another env than the one ``model`` was trained on (it was ignored)."""
+    from bioscara_gym.training.metadata import read_metadata, resolve_env_id
+
+    trained = read_metadata(Path(model))["env_id"]
+    if resolve_env_id(env) != resolve_env_id(trained):
+        raise CliError(f"--env {env}: the model was trained on {trained}, where it is evaluated")
 
 
 def eval_backend_options(args: argparse.Namespace) -> dict[str, object] | None:
@@ -206,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     from bioscara_gym.training.methods import METHODS  # names only: no torch
 
     p = sub.add_parser("train", help="train a policy with stable-baselines3 on CPU")
-    p.add_argument("--env", default="Bioscara-Reach", help="env id (default: Bioscara-Reach)")
+    p.add_argument("--env", default=DEFAULT_ENV, help=f"env id (default: {DEFAULT_ENV})")
     p.add_argument(
         "--algo",
         metavar="{" + ",".join(METHODS) + "}",  # checked by the registry: one line naming them
@@ -234,7 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="evaluate a trained policy or the scripted expert")
     p.add_argument("--model", type=Path, help="model.zip (its metadata.json must sit beside it)")
     p.add_argument("--expert", action="store_true", help="evaluate the scripted expert instead")
-    p.add_argument("--env", default="Bioscara-Reach", help="env id for --expert")
+    p.add_argument(
+        "--env", help=f"env id for --expert (default {DEFAULT_ENV}); a model's is the one it was trained on"
+    )
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--backend", choices=("sim", "emulated", "sitl", "mock"), help="default: as trained (sim)")
     p.add_argument(
@@ -244,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
     )
     p.add_argument("--video", type=path_argument, help="write an MP4 of the first --video-episodes episodes")
-    p.add_argument("--video-episodes", type=int, default=3, help="episodes in the video (default 3)")
+    p.add_argument("--video-episodes", type=int, help="episodes in the video (default 3)")
     p.add_argument("--json", type=path_argument, help="write the results as JSON")
     p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
     p.add_argument(
@@ -282,11 +317,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
     warnings.showwarning = _one_line_warnings(args.command, err, warnings.showwarning)
     try:
-        return int(args.func(args) or 0)
+        with _sigterm_as_interrupt():
+            return int(args.func(args) or 0)
     except CliError as e:
         err.print(f"bioscara {args.command}: error: {e}")
         return e.code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM: the command cleaned up on the way out
+        if isinstance(e, Interrupted):
+            err.print(f"bioscara {args.command}: interrupted by {e}")
+            return e.exit_code
         err.print(f"bioscara {args.command}: interrupted")
         return EXIT_INTERRUPTED
     except OSError as e:
@@ -298,6 +337,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file
         err.print(f"bioscara {args.command}: error: an input file is nested too deeply to be read")
         return EXIT_ERROR
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises :class:`Interrupted` (a ``KeyboardInterrupt``) while a command runs.
+
+    By default SIGTERM ends the process at once: temporary files stayed
+    behind (``export``, ``eval --video``, ``collect``) and ``monitor`` left
+    the joints as they were, where Ctrl-C cleans up and makes the arm safe.
+    Now both take the same way out (exit 143 for SIGTERM). ``train`` and
+    ``deploy`` install their own guard inside this one.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise Interrupted(signum)
+
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _os_error(e: OSError) -> str:

@@ -19,7 +19,7 @@ import json
 import os
 import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import BinaryIO
 
@@ -108,6 +108,43 @@ def output_problem(path: str | os.PathLike[str], folder: bool = False, parents: 
     return None
 
 
+def output_clash(
+    outputs: Mapping[str, str | os.PathLike[str] | None],
+    inputs: Mapping[str, str | os.PathLike[str] | None] | None = None,
+) -> str | None:
+    """Why the files a command writes cannot all be written, or ``None``.
+
+    Two options naming one file (a symlink to it counts: paths are compared
+    resolved) would leave neither readable, and an output that is one of
+    the command's inputs (the model being exported, its metadata) would
+    destroy it. ``outputs`` and ``inputs`` map an option (``"--json"``) to
+    its path; ``None`` is an option not given.
+    """
+    read = {Path(p).resolve(): option for option, p in (inputs or {}).items() if p is not None}
+    seen: dict[Path, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            return f"{seen[resolved]} and {option} name the same file {path}; each needs its own"
+        seen[resolved] = option
+        if resolved in read:
+            return f"{option} {path} is the {read[resolved]} file; writing it would destroy it"
+    return None
+
+
+def replaced_path(path: str | os.PathLike[str]) -> Path:
+    """The file a write of ``path`` replaces: ``path``, or a symlink's target.
+
+    Files are written to a temporary file and renamed over their path; a
+    rename over a symlink replaced the link (seen: ``--json /dev/stdout``
+    replaced the system's ``/dev/stdout``), so it is written through.
+    """
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     """A binary file that replaces ``path`` atomically when the ``with`` block ends without error.
@@ -119,12 +156,13 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     directories cannot be opened). Missing parent directories are created.
     The new file has the temporary file's mode (0600, as :func:`tempfile.mkstemp`).
     If the block raises (Ctrl-C included), the temporary file is removed and
-    ``path`` is left as it was.
+    ``path`` is left as it was. A symlink is written through: its target is
+    replaced, not the link (which may be someone else's, as ``/dev/stdout``).
 
     Raises:
         OSError: The file could not be written or replaced.
     """
-    path = Path(path)
+    path = replaced_path(path)
     directory = path.parent
     directory.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")

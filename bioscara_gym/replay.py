@@ -157,10 +157,11 @@ def _run_eval(args: dict[str, Any], options: dict[str, object], tmp: Path) -> No
     from bioscara_gym.training.evaluate import evaluate_expert, evaluate_model
 
     if args.get("expert"):
+        from bioscara_gym.cli import DEFAULT_ENV
         from bioscara_gym.training.metadata import resolve_env_id
 
         evaluate_expert(
-            resolve_env_id(args["env"]),
+            resolve_env_id(args.get("env") or DEFAULT_ENV),  # None: eval's default
             args["episodes"],
             args.get("backend") or "sim",
             None,

@@ -415,7 +415,7 @@ def test_eval_refuses_the_same_policy_files_in_one_line(
     ("argv", "expected"),
     [
         (["--seed", "-1"], "--seed must be >= 0, got -1"),
-        (["--video-episodes", "0"], "--video-episodes must be >= 1, got 0"),
+        (["--video-episodes", "0", "--video", "v.mp4"], "--video-episodes must be >= 1, got 0"),
         (["--episodes", "0"], "episodes must be >= 1, got 0"),
         # Seen (a hostile test): --model was ignored; a directory failed after every episode ran.
         (["--model", "model.zip"], "--expert and --model both name a policy; give one"),

@@ -764,8 +764,8 @@ def test_calibrate_stopped_by_sigterm_stops_its_fitting_workers(tmp_path: Path) 
         _, err = proc.communicate(timeout=30)
     finally:
         proc.kill()
-    assert proc.returncode == 130
-    assert err.strip() == "bioscara calibrate: interrupted"
+    assert proc.returncode == 143
+    assert err.strip() == "bioscara calibrate: interrupted by SIGTERM"
     assert not [w for w in workers if Path(f"/proc/{w}").exists()]
     assert not (tmp_path / "a.yml").exists()
 

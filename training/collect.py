@@ -61,6 +61,12 @@ def model_factory(model_path: Path) -> Any:
     return factory
 
 
+#: The largest seed of an episode (seeds reach numpy's legacy seeding, which takes 32 bits).
+MAX_SEED = 2**32 - 1
+#: The env of ``--expert`` when none is given.
+DEFAULT_ENV = "Bioscara-PickPlace"
+
+
 def cmd_collect(args: argparse.Namespace) -> int:
     """``bioscara collect``."""
     from bioscara_gym.training.demos import collect
@@ -72,14 +78,18 @@ def cmd_collect(args: argparse.Namespace) -> int:
         raise CliError(f"--episodes must be > 0, got {args.episodes}")
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if args.seed + args.episodes - 1 > MAX_SEED:
+        raise CliError(f"--seed {args.seed}: the episodes' seeds must stay within 0-{MAX_SEED}")
     try:
         if args.expert:
-            env_id = resolve_env_id(args.env)
+            env_id = resolve_env_id(args.env or DEFAULT_ENV)
             env_kwargs = default_env_kwargs(env_id)
             factory, who = expert_factory, "scripted expert"
         else:
             metadata = read_metadata(args.model)
             env_id, env_kwargs = metadata["env_id"], dict(metadata.get("env_kwargs", {}))
+            if args.env is not None and resolve_env_id(args.env) != resolve_env_id(env_id):
+                raise CliError(f"--env {args.env}: the model was trained on {env_id}, where it acts")
             if args.control_mode and args.control_mode != env_kwargs.get("control_mode"):
                 raise CliError(f"the model acts in control_mode {env_kwargs.get('control_mode')!r}")
             factory, who = model_factory(args.model), f"{metadata.get('algo', 'model')} {args.model}"
@@ -118,7 +128,7 @@ def register(sub: Any) -> None:
     p = sub.add_parser("collect", help="record demonstrations (expert or model) as a Minari dataset")
     p.add_argument("--expert", action="store_true", help="act with the scripted expert of --env")
     p.add_argument("--model", type=Path, help="act with a trained model.zip instead")
-    p.add_argument("--env", default="Bioscara-PickPlace", help="env id for --expert (default: PickPlace)")
+    p.add_argument("--env", help="env id for --expert (default: PickPlace); a model's is its own")
     p.add_argument("--episodes", type=int, default=100, help="episodes to record (default 100)")
     p.add_argument("--dataset", required=True, help="dataset name (Minari id; -v0 appended if unversioned)")
     p.add_argument("--backend", choices=("sim", "emulated", "mock"), help="default: sim")

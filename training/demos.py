@@ -50,8 +50,11 @@ def dataset_id(name: str) -> str:
     with _minari() as minari_ids:
         try:
             minari_ids.parse_dataset_id(full)
-        except ValueError as e:
-            raise TrainingError(f"dataset name {name!r} is malformed: {e}") from e
+        except ValueError as e:  # Minari's message repeats the name as it is, newlines and all
+            raise TrainingError(
+                f"dataset name {name!r} is malformed: expected (namespace/)name(-vN), "
+                "of letters, digits, - and _"
+            ) from e
     return full
 
 
@@ -68,9 +71,15 @@ def _minari() -> Iterator[Any]:
 
 
 def datasets_root() -> Path:
-    """Where Minari keeps local datasets (``$MINARI_DATASETS_PATH`` honoured)."""
+    """Where Minari keeps local datasets (``$MINARI_DATASETS_PATH`` honoured).
+
+    Raises:
+        TrainingError: ``$MINARI_DATASETS_PATH`` is set but empty.
+    """
     root = os.environ.get("MINARI_DATASETS_PATH")
-    return Path(root) if root else Path.home() / ".minari" / "datasets"
+    if root == "":  # Minari's own reading and writing failed on "" with a message naming nothing
+        raise TrainingError("MINARI_DATASETS_PATH is empty: unset it (~/.minari/datasets) or name a folder")
+    return Path(root) if root is not None else Path.home() / ".minari" / "datasets"
 
 
 def dataset_path(name: str) -> Path:

@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.errors import DeployError, TrainingError
+from bioscara_gym.fsutil import output_clash
 from bioscara_gym.hardware.arm import check_control_freq
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
@@ -207,17 +208,13 @@ def check_outputs(outputs: dict[str, Path | None], inputs: dict[str, Path | None
             device or a FIFO, or a path under something that is not a directory,
             or an input file.
     """
-    read = {Path(p).resolve(): option for option, p in (inputs or {}).items() if p is not None}
-    seen: dict[Path, str] = {}
+    clash = output_clash(outputs, inputs)
+    if clash is not None:
+        raise DeployError(clash)
     for option, path in outputs.items():
         if path is None:
             continue
         resolved = Path(path).resolve()
-        if resolved in seen:
-            raise DeployError(f"{seen[resolved]} and {option} name the same file {path}; each needs its own")
-        seen[resolved] = option
-        if resolved in read:
-            raise DeployError(f"{option} {path} is the {read[resolved]} file; writing it would destroy it")
         if resolved.exists() and not resolved.is_file():
             raise DeployError(f"{option} {path} is not a regular file")
         parent = next((p for p in resolved.parents if p.exists()), None)

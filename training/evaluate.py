@@ -16,7 +16,7 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.errors import MetadataError
-from bioscara_gym.fsutil import atomic_write_text
+from bioscara_gym.fsutil import atomic_write_text, replaced_path
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import (
@@ -278,6 +278,20 @@ def evaluate_expert(
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".webm", ".gif")
 
 
+def _writer_settings(suffix: str, fps: int) -> dict[str, Any]:
+    """The imageio writer's settings for a video file ending in ``suffix``.
+
+    ffmpeg's default codec (H.264) fits all but WebM, which takes VP8, VP9 or
+    AV1 only (seen: 13 lines of ffmpeg's errors and a broken pipe); a GIF is
+    written by Pillow, which takes a frame's duration in ms, not ``fps``.
+    """
+    if suffix == ".gif":
+        return {"duration": 1000.0 / fps, "loop": 0}
+    if suffix == ".webm":
+        return {"fps": fps, "codec": "libvpx-vp9", "output_params": ["-crf", "32", "-b:v", "0"]}
+    return {"fps": fps}
+
+
 @contextlib.contextmanager
 def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray], None] | None]:
     """Stream frames into an MP4 (or GIF, by suffix) through imageio.
@@ -291,12 +305,12 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
         return
     import imageio.v2 as imageio
 
-    path = Path(path)
+    path = replaced_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
     os.close(fd)
     try:
-        with imageio.get_writer(tmp, fps=fps) as writer:
+        with imageio.get_writer(tmp, **_writer_settings(path.suffix.lower(), fps)) as writer:
             yield writer.append_data
         os.replace(tmp, path)
     finally:

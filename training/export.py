@@ -36,9 +36,9 @@ import numpy as np
 from rich.console import Console
 
 from bioscara_gym.errors import CliError, ExportError, MetadataError
-from bioscara_gym.fsutil import output_problem, path_argument
+from bioscara_gym.fsutil import output_clash, output_problem, path_argument, replaced_path
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
-from bioscara_gym.training.metadata import PolicyShapes, validate_metadata
+from bioscara_gym.training.metadata import METADATA_NAME, PolicyShapes, validate_metadata
 
 #: metadata_props key holding the training metadata (JSON).
 METADATA_KEY = "bioscara_metadata"
@@ -149,7 +149,7 @@ def export_onnx(
     layout = obs_layout(model.observation_space)
     actor = _actor_module(model, layout)
     n_obs = sum(size for _, size in layout)
-    onnx_path = Path(onnx_path)
+    onnx_path = replaced_path(onnx_path)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=onnx_path.parent, prefix=f".{onnx_path.name}.", suffix=".tmp")
     os.close(fd)
@@ -313,13 +313,23 @@ class OnnxPolicy:
 
 
 # ----------------------------------------------------------------------- CLI
+#: Most observations ``--check`` compares (the default 256 takes a second; seen: 10^9 ran on, growing).
+MAX_CHECK = 100_000
+
+
 def cmd_export(ns: argparse.Namespace) -> int:
     """``bioscara export``: write the ONNX file and report the check against torch."""
     if ns.check < 0:
         raise CliError(f"--check must be >= 0 (0: no check against torch), got {ns.check}")
+    if ns.check > MAX_CHECK:
+        raise CliError(f"--check {ns.check}: at most {MAX_CHECK} observations (each is kept to compare)")
     problem = output_problem(ns.onnx, parents=True)  # export makes the folders
     if problem is not None:
         raise CliError(f"--onnx {ns.onnx}: {problem}")
+    inputs = {"--model": ns.model, "metadata": ns.model.parent / METADATA_NAME}
+    clash = output_clash({"--onnx": ns.onnx}, inputs)
+    if clash is not None:
+        raise CliError(clash)
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
     con = Console(highlight=False, markup=False, soft_wrap=True)
     con.print(f"onnx      {result.path}")
@@ -339,6 +349,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
     p.add_argument("--onnx", type=path_argument, required=True, help="ONNX file to write")
     p.add_argument(
-        "--check", type=int, default=256, help="observations to compare with model.predict (0: none)"
+        "--check",
+        type=int,
+        default=256,
+        help=f"observations to compare with model.predict (0: none; at most {MAX_CHECK})",
     )
     p.set_defaults(func=cmd_export)

@@ -128,6 +128,41 @@ class Recording:
     args: Mapping[str, Any] = field(default_factory=dict)
     context: Mapping[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        """Refuse, before the command runs, a file a session cannot be appended to.
+
+        Raises:
+            ValueError: ``path`` is not a regular file, or holds something
+                other than a trace (seen: ``--record`` appended a session to a
+                model's ``metadata.json``, which no longer read).
+        """
+        problem = _append_problem(Path(self.path))
+        if problem is not None:
+            raise ValueError(f"--record {self.path}: {problem}")
+
+
+#: Longest first line read to tell a trace (its header holds the arm's configuration: some 5 kB).
+_MAX_HEADER_BYTES = 1024 * 1024
+
+
+def _append_problem(path: Path) -> str | None:
+    """Why a session cannot be appended to ``path``, or ``None`` (it is new, empty or a trace)."""
+    if not path.exists():
+        return None
+    if not path.is_file():
+        return "is not a regular file"
+    if path.stat().st_size == 0:
+        return None
+    with path.open("rb") as f:
+        first = f.readline(_MAX_HEADER_BYTES)
+    try:
+        doc = json.loads(first)
+    except (ValueError, RecursionError):
+        doc = None
+    if not isinstance(doc, Mapping) or doc.get("type") != "header" or doc.get("format") != TRACE_FORMAT:
+        return f"exists and is not a bus trace ({TRACE_FORMAT}); give a new file, or a trace to add to"
+    return None
+
 
 def jsonable_args(args: object) -> dict[str, Any]:
     """A command's arguments (a namespace, dataclass or mapping) as JSON data.

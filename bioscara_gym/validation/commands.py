@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
-import signal
-from collections.abc import Iterator
 from pathlib import Path
 
 from rich.console import Console
@@ -25,24 +22,6 @@ def _check_output(path: Path | None, what: str, folder: bool = False) -> None:
     problem = None if path is None else output_problem(path, folder)
     if problem is not None:
         raise CliError(f"{what} {path}: {problem}")
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt() -> Iterator[None]:
-    """SIGTERM as Ctrl-C inside the block, so what the block started is stopped on the way out.
-
-    By default SIGTERM ends the process at once, and a fit's forked workers
-    went on fitting for minutes on both CPUs.
-    """
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    before = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, before)
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -102,10 +81,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     rec = find_recordings(args.dir)  # a folder without recordings fails here, before the fit
     con = _console()
     before = validate(args.dir, config)
-    with _terminate_as_interrupt():  # the fit's workers are stopped with it (calibrate's pool)
-        result = calibrate(
-            config, rec, seed=args.seed, maxiter=args.maxiter, workers=args.workers, progress=con.print
-        )
+    # SIGTERM is an interrupt here too (bioscara_gym.cli): the pool's workers are stopped with it.
+    result = calibrate(
+        config, rec, seed=args.seed, maxiter=args.maxiter, workers=args.workers, progress=con.print
+    )
     after = validate(args.dir, result.config)
     con.print("experiment                               rows passing before -> after")
     by_experiment: dict[str, list[int]] = {}

@@ -1,0 +1,282 @@
+"""What ``eval``, ``export``, ``collect`` and ``--record`` write, and what they refuse to write over.
+
+Findings of a hostile test (2026-11-29), each a case here:
+
+- an output path that was a symlink had the link replaced, not written
+  through (``eval --json /dev/stdout`` replaced the system's ``/dev/stdout``);
+- an output that named an input destroyed it (``export --onnx model.zip``,
+  ``eval --json model.zip``, ``--video`` and ``--json`` on one file);
+- ``--record`` appended trace lines to any file (a model's ``metadata.json``);
+- options a command ignored were taken silently (``eval --model --env``
+  another env, ``--video-episodes`` without ``--video``);
+- SIGTERM ended ``eval``, ``export``, ``collect`` and ``monitor`` at once,
+  leaving temporary files and, in ``monitor``, the joints as they were.
+
+Every refusal here comes before an env is made, so no model is trained:
+a ``metadata.json`` beside a placeholder ``model.zip`` is enough.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bioscara_gym.cli import main
+from bioscara_gym.fsutil import atomic_write_text, output_clash, replaced_path
+from bioscara_gym.hardware.recording import TRACE_FORMAT, Recording
+
+REACH = "Bioscara-Reach-v0"
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    """The single line on stderr after ``bioscara COMMAND: error: ``."""
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    prefix = f"bioscara {command}: error: "
+    assert lines[0].startswith(prefix), lines[0]
+    return lines[0].removeprefix(prefix)
+
+
+@pytest.fixture
+def run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A run folder whose metadata says Reach; its ``model.zip`` is a placeholder never loaded."""
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "model.zip").write_bytes(b"not loaded")
+    kwargs = {"control_mode": "cartesian", "control_freq": 25}
+    metadata = {"env_id": REACH, "env_kwargs": kwargs, "observation_space": {}, "action_space": {}}
+    (folder / "metadata.json").write_text(json.dumps(metadata), encoding="utf-8")
+    return folder
+
+
+def _unchanged(run: Path) -> None:
+    assert (run / "model.zip").read_bytes() == b"not loaded"
+    assert json.loads((run / "metadata.json").read_text(encoding="utf-8"))["env_id"] == REACH
+
+
+# ------------------------------------------------------------------ symlinks
+def test_a_write_through_a_symlink_replaces_its_target_and_keeps_the_link(tmp_path: Path) -> None:
+    target, link = tmp_path / "target.json", tmp_path / "link.json"
+    target.write_text("old", encoding="utf-8")
+    link.symlink_to(target)
+    assert replaced_path(link) == target
+    atomic_write_text(link, "new")
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert target.read_text(encoding="utf-8") == "new"
+    assert replaced_path(target) == target  # a plain file is itself
+
+
+def test_a_dangling_symlink_is_written_through_to_where_it_points(tmp_path: Path) -> None:
+    link = tmp_path / "link.json"
+    link.symlink_to(tmp_path / "made.json")
+    atomic_write_text(link, "x")
+    assert link.is_symlink() and (tmp_path / "made.json").read_text(encoding="utf-8") == "x"
+
+
+def test_a_video_through_a_symlink_keeps_the_link(tmp_path: Path) -> None:
+    from bioscara_gym.training.evaluate import video_writer
+
+    link, target = tmp_path / "v.gif", tmp_path / "real.gif"
+    link.symlink_to(target)
+    with video_writer(link, fps=5) as sink:
+        assert sink is not None
+        sink(np.zeros((16, 16, 3), dtype=np.uint8))
+        sink(np.full((16, 16, 3), 255, dtype=np.uint8))
+    assert link.is_symlink() and target.stat().st_size > 0
+    from PIL import Image
+
+    with Image.open(target) as gif:  # 5 frames a second: 200 ms each
+        assert (gif.n_frames, gif.info["duration"]) == (2, 200)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["real.gif", "v.gif"]  # no temporary file
+
+
+def test_a_webm_video_is_written_as_vp9(tmp_path: Path) -> None:
+    # Seen: ffmpeg's default H.264 is no WebM codec: 13 lines of errors and a broken pipe.
+    from bioscara_gym.training.evaluate import video_writer
+
+    path = tmp_path / "v.webm"
+    with video_writer(path, fps=5) as sink:
+        assert sink is not None
+        for k in range(3):
+            sink(np.full((32, 32, 3), 40 * k, dtype=np.uint8))
+    assert path.read_bytes()[:4] == bytes.fromhex("1a45dfa3")  # Matroska/WebM's EBML magic
+
+
+# ------------------------------------------------------------ outputs vs inputs
+def test_output_clash_names_two_options_on_one_file_and_an_output_that_is_an_input(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert output_clash({"--json": a, "--video": b, "--record": None}, {"--model": tmp_path / "m"}) is None
+    assert output_clash({"--json": a, "--video": tmp_path / "x" / ".." / "a"}) == (
+        f"--json and --video name the same file {tmp_path / 'x' / '..' / 'a'}; each needs its own"
+    )
+    b.symlink_to(a)  # one file under two names
+    assert output_clash({"--json": b}, {"--model": a}) == (
+        f"--json {b} is the --model file; writing it would destroy it"
+    )
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["export", "--model", "run/model.zip", "--onnx", "run/model.zip"],
+            "--onnx run/model.zip is the --model file; writing it would destroy it",
+        ),
+        (
+            ["export", "--model", "run/model.zip", "--onnx", "run/metadata.json", "--check", "0"],
+            "--onnx run/metadata.json is the metadata file; writing it would destroy it",
+        ),
+        (
+            ["export", "--model", "run/model.zip", "--onnx", "p.onnx", "--check", "100001"],
+            "--check 100001: at most 100000 observations (each is kept to compare)",
+        ),
+        (
+            ["eval", "--model", "run/model.zip", "--json", "run/model.zip"],
+            "--json run/model.zip is the --model file; writing it would destroy it",
+        ),
+        (
+            ["eval", "--model", "run/model.zip", "--record", "run/metadata.json", "--backend", "emulated"],
+            "--record run/metadata.json is the metadata file; writing it would destroy it",
+        ),
+        (
+            ["eval", "--model", "run/model.zip", "--video", "same.mp4", "--json", "same.mp4"],
+            "--json and --video name the same file same.mp4; each needs its own",
+        ),
+        (
+            ["eval", "--model", "run/model.zip", "--env", "Bioscara-Push"],
+            f"--env Bioscara-Push: the model was trained on {REACH}, where it is evaluated",
+        ),
+        (
+            ["eval", "--model", "run/model.zip", "--video-episodes", "5"],
+            "--video-episodes needs --video (the file to write them to)",
+        ),
+        (
+            ["collect", "--model", "run/model.zip", "--env", "Bioscara-Push", "--dataset", "d"],
+            f"--env Bioscara-Push: the model was trained on {REACH}, where it acts",
+        ),
+        (
+            ["collect", "--expert", "--env", "Bioscara-Reach", "--dataset", "d", "--seed", str(2**32 - 2)],
+            f"--seed {2**32 - 2}: the episodes' seeds must stay within 0-4294967295",
+        ),
+        (
+            ["collect", "--expert", "--env", "Bioscara-Reach", "--dataset", "a\nb", "--episodes", "1"],
+            r"dataset name 'a\nb' is malformed: expected (namespace/)name(-vN), of letters, digits, - and _",
+        ),
+    ],
+    ids=[
+        "export-over-the-model",
+        "export-over-the-metadata",
+        "export-check-beyond-the-cap",
+        "eval-json-over-the-model",
+        "eval-record-into-the-metadata",
+        "eval-json-and-video-one-file",
+        "eval-model-on-another-env",
+        "eval-video-episodes-without-video",
+        "collect-model-on-another-env",
+        "collect-seeds-past-32-bits",
+        "collect-dataset-name-with-a-newline",
+    ],
+)
+def test_bad_outputs_and_ignored_options_are_refused_before_the_work(
+    run: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
+    assert main(argv) == 2
+    assert one_line_error(capsys, argv[0]) == message
+    _unchanged(run)
+    assert not Path("p.onnx").exists() and not Path("same.mp4").exists()
+
+
+def test_collect_refuses_an_empty_datasets_path(
+    run: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("MINARI_DATASETS_PATH", "")
+    assert main(["collect", "--expert", "--env", "Bioscara-Reach", "--dataset", "d", "--episodes", "1"]) == 2
+    message = "MINARI_DATASETS_PATH is empty: unset it (~/.minari/datasets) or name a folder"
+    assert one_line_error(capsys, "collect") == message
+
+
+def test_eval_expert_without_env_evaluates_reach(
+    run: Path, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    assert main(["eval", "--expert", "--episodes", "1", "--json", "e.json"]) == 0
+    assert f"scripted expert on {REACH}" in capsys.readouterr().out
+    assert json.loads(Path("e.json").read_text(encoding="utf-8"))["episodes"] == 1
+
+
+# --------------------------------------------------------------------- traces
+def test_record_refuses_a_file_that_is_not_a_trace_and_takes_a_trace_an_empty_or_a_new_one(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "notes.txt").write_text("garbage\n", encoding="utf-8")
+    (tmp_path / "empty.jsonl").write_bytes(b"")
+    header = {"type": "header", "format": TRACE_FORMAT, "version": 2}
+    (tmp_path / "trace.jsonl").write_text(json.dumps(header) + "\n", encoding="utf-8")
+    (tmp_path / "other.jsonl").write_text(json.dumps({**header, "format": "x"}) + "\n", encoding="utf-8")
+    for name in ("empty.jsonl", "trace.jsonl", "new.jsonl"):
+        Recording(tmp_path / name, "eval")
+    for name in ("notes.txt", "other.jsonl"):
+        message = (
+            f"--record {tmp_path / name}: exists and is not a bus trace ({TRACE_FORMAT}); "
+            "give a new file, or a trace to add to"
+        )
+        with pytest.raises(ValueError) as caught:
+            Recording(tmp_path / name, "eval")
+        assert str(caught.value) == message
+    with pytest.raises(ValueError, match=r": is not a regular file$"):
+        Recording(tmp_path, "eval")
+    assert (tmp_path / "notes.txt").read_text(encoding="utf-8") == "garbage\n"
+
+
+# -------------------------------------------------------------------- SIGTERM
+def _terminated(argv: list[str], cwd: Path, ready: float) -> subprocess.CompletedProcess[str]:
+    """``bioscara ARGV`` sent SIGTERM after ``ready`` seconds."""
+    env = {**os.environ, "MUJOCO_GL": "egl", "MINARI_DATASETS_PATH": str(cwd / "minari")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bioscara_gym", *argv],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(ready)
+        assert proc.poll() is None, "the command ended before the signal"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    return subprocess.CompletedProcess(argv, proc.returncode, "", err)
+
+
+def test_sigterm_stops_eval_as_ctrl_c_does_leaving_no_partial_video(tmp_path: Path) -> None:
+    # Seen: exit 143 with nothing said, and a 48-byte hidden .mp4 left behind.
+    argv = ["eval", "--expert", "--episodes", "500", "--video", "v/v.mp4", "--video-episodes", "500"]
+    done = _terminated(argv, tmp_path, ready=8.0)
+    assert (done.returncode, done.stderr.strip()) == (143, "bioscara eval: interrupted by SIGTERM")
+    assert list((tmp_path / "v").iterdir()) == []
+
+
+def test_sigterm_stops_monitor_as_ctrl_c_does_disabling_the_joints(tmp_path: Path) -> None:
+    # Seen: exit 143 with nothing said, the state not saved and the joints left enabled.
+    assert main(["enable", "--state", str(tmp_path / "st.json")]) == 0
+    enabled = json.loads((tmp_path / "st.json").read_text(encoding="utf-8"))["firmware"]
+    assert all(state["drive_current"] > 0 for state in enabled.values())
+    done = _terminated(["monitor", "--duration", "60", "--state", "st.json"], tmp_path, ready=8.0)
+    assert (done.returncode, done.stderr.strip()) == (143, "bioscara monitor: interrupted by SIGTERM")
+    firmware = json.loads((tmp_path / "st.json").read_text(encoding="utf-8"))["firmware"]
+    assert {joint: state["drive_current"] for joint, state in firmware.items()} == {
+        "j1": 0,
+        "j2": 0,
+        "j3": 0,
+        "j4": 0,
+    }
