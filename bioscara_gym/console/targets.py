@@ -46,6 +46,7 @@ class ConsoleOptions:
     def from_args(cls, args: argparse.Namespace) -> ConsoleOptions:
         """Take the common options from parsed arguments."""
         record = getattr(args, "record", None)
+        _check_record_apart(args.state, record)  # before Recording reads the file as a trace
         return cls(
             backend=args.backend,
             config=args.config,
@@ -76,8 +77,7 @@ class ConsoleOptions:
             )
         if self.record is not None:
             trace = Path(self.record.path)
-            if self.state is not None and trace.resolve() == Path(self.state).resolve():
-                raise ConsoleUsageError(f"--state and --record name one file, {trace}; each needs its own")
+            _check_record_apart(self.state, trace)
             if trace.exists() and not trace.is_file():
                 raise ConsoleUsageError(f"--record {trace} is not a regular file")
 
@@ -141,3 +141,13 @@ def resolve_joints(config: ArmConfig, name: str | None) -> tuple[str, ...]:
     if not target.joints:
         raise InvalidArgumentError(f"{name}: the gripper has no homing; name a joint or a group of joints")
     return target.joints
+
+
+def _check_record_apart(state: Path | None, record: Path | None) -> None:
+    """Refuse ``--state`` and ``--record`` on one file (each would spoil the other).
+
+    Raises:
+        ConsoleUsageError: They name one file.
+    """
+    if record is not None and state is not None and Path(record).resolve() == Path(state).resolve():
+        raise ConsoleUsageError(f"--state and --record name one file, {record}; each needs its own")
