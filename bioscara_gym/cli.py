@@ -249,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, help="seed of the model and envs (default 0; on --resume the run's)")
     p.add_argument("--out", type=path_argument, default=Path("runs/reach"), help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --out")
     p.add_argument(

@@ -12,7 +12,11 @@ few seconds.
 from __future__ import annotations
 
 import json
+import os
 import re
+import threading
+import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -77,8 +81,17 @@ def out_a_file(root: Path) -> list[str]:
     return ["train", "--out", str(root / "run"), "--config", str(_config(root)), "--no-progress"]
 
 
-def resume(state_text: Callable[[Path], str] | None, *extra: str, checkpoint: bool = False) -> Setup:
-    """``--resume`` of a run whose ``train_state.json`` is ``state_text(config)`` (``None``: no file)."""
+#: Fills a run's ``checkpoints`` folder.
+Checkpoints = Callable[[Path], None]
+
+
+def resume(
+    state_text: Callable[[Path], str] | None, *extra: str, checkpoint: bool | Checkpoints = False
+) -> Setup:
+    """``--resume`` of a run whose ``train_state.json`` is ``state_text(config)`` (``None``: no file).
+
+    ``checkpoint``: make the (empty) checkpoints folder, or with a function fill it.
+    """
 
     def setup(root: Path) -> list[str]:
         config = _config(root)
@@ -88,9 +101,47 @@ def resume(state_text: Callable[[Path], str] | None, *extra: str, checkpoint: bo
             (run / "train_state.json").write_text(state_text(config), encoding="utf-8")
         if checkpoint:
             (run / "checkpoints").mkdir()
+        if callable(checkpoint):
+            checkpoint(run / "checkpoints")
         return ["train", "--resume", "--out", str(run), "--no-progress", *extra]
 
     return setup
+
+
+def model_zip(steps: int) -> Checkpoints:
+    """A checkpoint ``ckpt_<steps>_steps.zip``: a whole zip of a model's members, and nothing beside it."""
+
+    def fill(folder: Path) -> None:
+        with zipfile.ZipFile(folder / f"ckpt_{steps}_steps.zip", "w") as archive:
+            archive.writestr("data", "{}")
+            archive.writestr("policy.pth", b"")
+
+    return fill
+
+
+def fifo(name: str) -> Checkpoints:
+    """A FIFO ``name`` in the checkpoints folder, with a model zip of 100 steps as its checkpoint.
+
+    A reader that opens it (seen: ``--resume`` hung there) is released by a
+    writer that opens and closes it at once, so the case fails instead of hanging.
+    """
+
+    def release(path: Path) -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))  # ENXIO until a reader opens it
+            except OSError:
+                time.sleep(0.05)
+                continue
+            return
+
+    def fill(folder: Path) -> None:
+        model_zip(100)(folder)
+        os.mkfifo(folder / name)
+        threading.Thread(target=release, args=(folder / name,), daemon=True).start()
+
+    return fill
 
 
 def state_json(**changes: Any) -> Callable[[Path], str]:
@@ -153,6 +204,53 @@ CASES = [
         resume(state_json(), checkpoint=True),
         r"nothing to resume in .*run/checkpoints: no checkpoint",
         id="resume-no-checkpoint",
+    ),
+    # Seen (a hostile test): --seed ignored, the run's seed 0 used without a word.
+    pytest.param(
+        resume(state_json(seed=3), "--seed", "5", checkpoint=model_zip(200)),
+        r"--resume continues .*run's seed 3; --seed 5 would change it \(drop it, or train a new run",
+        id="resume-with-another-seed",
+    ),
+    pytest.param(  # --seed 0 was --seed's default: it was taken as not given
+        resume(state_json(seed=3), "--seed", "0", checkpoint=model_zip(200)),
+        r"--resume continues .*run's seed 3; --seed 0 would change it \(drop it, or train a new run",
+        id="resume-with-seed-0-given",
+    ),
+    # Seen: a budget below the steps taken finished the run (exit 0, a new model.zip).
+    pytest.param(
+        resume(state_json(total_timesteps=100), checkpoint=model_zip(2491)),
+        r"cannot resume from .*run/train_state\.json: total_timesteps is 100, below the 2491 steps its "
+        r"checkpoint ckpt_2491_steps\.zip has taken$",
+        id="state-total-below-the-steps-taken",
+    ),
+    # Seen: accepted, though --seed refuses it.
+    pytest.param(
+        resume(state_json(seed=10**30), checkpoint=model_zip(200)),
+        r"run/train_state\.json: seed is 1000000000000000000000000000000; expected 0 to 4294967295$",
+        id="state-seed-beyond-32-bits",
+    ),
+    pytest.param(
+        resume(state_json(seed=-1), checkpoint=model_zip(200)),
+        r"run/train_state\.json: seed is -1; expected 0 to 4294967295$",
+        id="state-seed-negative",
+    ),
+    # Seen: HER's 28-line "Unable to sample before the end of the first episode" traceback.
+    pytest.param(
+        resume(state_json(), checkpoint=model_zip(200)),
+        r"cannot resume: checkpoint .*run/checkpoints/ckpt_200_steps\.zip cannot be loaded "
+        r"\(FileNotFoundError: its replay buffer ckpt_200_steps_replay\.pkl is missing\)$",
+        id="resume-without-the-replay-buffer",
+    ),
+    # Seen: --resume hung, reading a FIFO.
+    pytest.param(
+        resume(state_json(), checkpoint=fifo("ckpt_250_steps.zip")),
+        r"cannot resume from .*run/checkpoints/ckpt_250_steps\.zip: not a regular file$",
+        id="checkpoint-a-fifo",
+    ),
+    pytest.param(
+        resume(state_json(), checkpoint=fifo("ckpt_100_steps_replay.pkl")),
+        r"cannot resume from .*run/checkpoints/ckpt_100_steps_replay\.pkl: not a regular file$",
+        id="replay-buffer-a-fifo",
     ),
     # Hyperparameter keys.
     pytest.param(
@@ -233,6 +331,22 @@ CASES = [
     ),
     # Seen: a 30-line traceback from gymnasium's seeding.
     pytest.param(new_run("--seed", "-1"), r"--seed must be >= 0, got -1$", id="seed-negative"),
+    # Seen (a hostile test): "config .../sac.yaml: Bioscara-Reach-v0: ValueError: Seed must be ..."
+    pytest.param(
+        new_run("--seed", "4294967296"),
+        r"--seed must be <= 4294967295 \(2\*\*32 - 1\), got 4294967296$",
+        id="seed-beyond-32-bits",
+    ),
+    pytest.param(
+        new_run("--seed", "4294967296", "--algo", "bc"),
+        r"--seed must be <= 4294967295 \(2\*\*32 - 1\), got 4294967296$",
+        id="bc-seed-beyond-32-bits",
+    ),
+    pytest.param(
+        new_run("--seed", "4294967296", "--algo", "dagger", "--env", "Bioscara-PickPlace"),
+        r"--seed must be <= 4294967295 \(2\*\*32 - 1\), got 4294967296$",
+        id="dagger-seed-beyond-32-bits",
+    ),
     # Seen (a hostile test): accepted, and training started.
     pytest.param(new_run("--threads", "0"), r"--threads must be >= 1, got 0$", id="threads-zero"),
     pytest.param(out_a_file, r"--out .*run is a file; give a folder for the run$", id="out-a-file"),

@@ -37,7 +37,9 @@ import gymnasium as gym
 
 from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.training.checkpoints import (
+    STATE_NAME,
     checkpoint_dir,
+    checkpoint_steps,
     newest_checkpoint,
     read_run_state,
     write_run_state,
@@ -82,12 +84,14 @@ class Resumed:
         total: Its budget.
         config: Its hyperparameter file (``None``: the packaged one).
         demos: Its demonstration dataset.
+        newest: Its newest checkpoint (what it resumes from, unless that one does not load).
     """
 
     seed: int
     total: int
     config: str | None
     demos: str | None
+    newest: Path
 
 
 class TrainingMethod(abc.ABC):
@@ -235,7 +239,8 @@ class TrainingMethod(abc.ABC):
 
         Raises:
             TrainingError: No or a damaged state, a run of another env or
-                method, a ``--timesteps`` that would change its budget, no checkpoint.
+                method, a ``--timesteps`` or ``--seed`` that would change its
+                budget or seed, no checkpoint.
         """
         args, out = self.args, self.out
         saved = read_run_state(out)
@@ -248,12 +253,35 @@ class TrainingMethod(abc.ABC):
                 f"--resume continues {out}'s budget of {total} steps; --timesteps {args.timesteps} "
                 "would change it (drop it, or train a new run with --out elsewhere)"
             )
-        if newest_checkpoint(checkpoint_dir(out)) is None:
+        if args.seed is not None and args.seed != saved["seed"]:
+            raise TrainingError(
+                f"--resume continues {out}'s seed {saved['seed']}; --seed {args.seed} "
+                "would change it (drop it, or train a new run with --out elsewhere)"
+            )
+        newest = newest_checkpoint(checkpoint_dir(out))
+        if newest is None:
             raise TrainingError(f"nothing to resume in {checkpoint_dir(out)}: no checkpoint")
         args.seed = saved["seed"]
         args.demos = args.demos or saved["demos"]
         config = saved["config"] or (str(args.config) if args.config else None)
-        return Resumed(seed=saved["seed"], total=total, config=config, demos=saved["demos"])
+        return Resumed(seed=saved["seed"], total=total, config=config, demos=saved["demos"], newest=newest)
+
+    def check_budget(self, resumed: Resumed, overshoot: int | None) -> None:
+        """Refuse a budget below the steps the newest checkpoint has taken (an edited ``train_state.json``).
+
+        A run may end up to one collection (``overshoot`` env steps: a PPO
+        rollout, an off-policy ``train_freq``; ``None``: unbounded) past
+        its budget, and a Ctrl-C during the final evaluation checkpoints that.
+
+        Raises:
+            TrainingError: The checkpoint's steps exceed the budget by more than ``overshoot``.
+        """
+        taken = checkpoint_steps(resumed.newest)
+        if overshoot is not None and taken > resumed.total + overshoot:
+            raise TrainingError(
+                f"cannot resume from {self.out / STATE_NAME}: total_timesteps is {resumed.total}, below "
+                f"the {taken} steps its checkpoint {resumed.newest.name} has taken"
+            )
 
     def run_state(self, total: int, config: str | None, demos: str | None) -> dict[str, Any]:
         """The ``train_state.json`` of this run."""

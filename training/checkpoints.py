@@ -33,6 +33,8 @@ STATE_NAME = "train_state.json"
 CHECKPOINT_DIR = "checkpoints"
 #: A checkpoint's file name; the group is its env step count.
 CHECKPOINT_RE = re.compile(r"ckpt_(\d+)_steps\.zip$")
+#: The largest seed: numpy seeds its generators with 32 bits (``--seed``, ``train_state.json``).
+SEED_MAX = 2**32 - 1
 #: The keys of ``train_state.json`` and their JSON types (``None``: may be null).
 STATE_KEYS: dict[str, tuple[type | None, ...]] = {
     "env_id": (str,),
@@ -66,11 +68,11 @@ def write_run_state(out: Path, state: Mapping[str, Any]) -> None:
 
 
 def read_run_state(out: Path) -> dict[str, Any]:
-    """``out/train_state.json``, checked: every key of :data:`STATE_KEYS`, of its type.
+    """``out/train_state.json``, checked: every key of :data:`STATE_KEYS`, of its type and range.
 
     Raises:
         TrainingError: Missing, unreadable, not JSON, not an object, or a
-            key missing or of the wrong type; the message names file and key.
+            key missing, of the wrong type or out of range; the message names file and key.
     """
     path = out / STATE_NAME
     if not path.exists():
@@ -93,6 +95,8 @@ def read_run_state(out: Path) -> dict[str, Any]:
     if state["total_timesteps"] < 1:
         total = state["total_timesteps"]
         raise TrainingError(f"cannot resume from {path}: total_timesteps is {total}; expected >= 1")
+    if not 0 <= state["seed"] <= SEED_MAX:
+        raise TrainingError(f"cannot resume from {path}: seed is {state['seed']}; expected 0 to {SEED_MAX}")
     return state
 
 
@@ -115,6 +119,14 @@ def list_checkpoints(directory: Path) -> list[Path]:
         if (m := CHECKPOINT_RE.search(p.name))
     ]
     return [p for _, p in sorted(found, reverse=True)]
+
+
+def checkpoint_steps(checkpoint: Path) -> int:
+    """The env steps a checkpoint had taken, from its name."""
+    match = CHECKPOINT_RE.search(checkpoint.name)
+    if match is None:
+        raise ValueError(f"{checkpoint.name} is not a checkpoint's name")
+    return int(match.group(1))
 
 
 def newest_checkpoint(directory: Path) -> Path | None:
@@ -156,17 +168,19 @@ def load_newest(directory: Path, load: Callable[[Path], T]) -> tuple[T, Path]:
 
     ``load`` is given a checkpoint whose zip is whole (:func:`check_model_zip`)
     and loads it with its companions. A damaged checkpoint (truncated, not a
-    zip, a companion unreadable) is skipped with a
+    zip, a companion unreadable or missing) is skipped with a
     :class:`~bioscara_gym.errors.CheckpointWarning` naming it and the one used instead.
 
     Raises:
-        TrainingError: No checkpoint, or none that loads.
+        TrainingError: No checkpoint, none that loads, or one reached that is
+            not a regular file (a FIFO would block its reader).
     """
     found = list_checkpoints(directory)
     if not found:
         raise TrainingError(f"nothing to resume in {directory}: no checkpoint")
     failures: list[tuple[Path, BaseException]] = []
     for path in found:
+        check_regular_files(path)
         try:
             check_model_zip(path)
             loaded = load(path)
@@ -184,6 +198,20 @@ def load_newest(directory: Path, load: Callable[[Path], T]) -> tuple[T, Path]:
     newest, error = failures[0]
     more = f" nor the {len(found) - 1} older ones" if len(found) > 1 else ""
     raise TrainingError(f"cannot resume: checkpoint {newest} cannot be loaded ({reason(error)}){more}")
+
+
+def check_regular_files(checkpoint: Path) -> None:
+    """Refuse a checkpoint, or a companion file beside it, that is not a regular file.
+
+    A FIFO would block the load until something writes to it (seen: a hang);
+    a device such as ``/dev/zero`` would fill the memory.
+
+    Raises:
+        TrainingError: One of them exists and is not a regular file (a symlink to one is).
+    """
+    for path in (checkpoint, *sorted(checkpoint.parent.glob(checkpoint.stem + "_*"))):
+        if path.exists() and not path.is_file():
+            raise TrainingError(f"cannot resume from {path}: not a regular file")
 
 
 def check_model_zip(path: Path) -> None:

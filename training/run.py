@@ -26,7 +26,9 @@ class TrainArgs:
             or on ``resume`` the run's own.
         config: Hyperparameter file (rl-zoo3 format); default the packaged one.
         timesteps: Training budget; default the config's ``n_timesteps``.
-        seed: Seed of the model, the envs and the evaluation episodes.
+        seed: Seed of the model, the envs and the evaluation episodes, 0 to
+            2**32 - 1; ``None``: 0, or on ``resume`` the run's (another one
+            is refused).
         out: Output directory (model, metadata, checkpoints, TensorBoard logs).
         resume: Continue from the newest checkpoint in ``out``.
         progress: Show a progress bar.
@@ -48,7 +50,7 @@ class TrainArgs:
     algo: str | None = None
     config: Path | None = None
     timesteps: int | None = None
-    seed: int = 0
+    seed: int | None = None
     out: Path = Path("runs/reach")
     resume: bool = False
     progress: bool = True

@@ -14,6 +14,7 @@ Off-policy algorithms on the goal tasks use HER.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import warnings
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -132,10 +133,18 @@ def save_sb3_checkpoint(model: BaseAlgorithm, directory: Path) -> Path:
 
 
 def load_sb3_checkpoint(algo_cls: type[BaseAlgorithm], path: Path, env: Any) -> BaseAlgorithm:
-    """A checkpoint of ``algo_cls`` with its replay buffer (if saved)."""
+    """A checkpoint of ``algo_cls`` with (off-policy) its replay buffer.
+
+    Raises:
+        FileNotFoundError: An off-policy checkpoint without its replay buffer: it
+            would train on an empty one (seen: HER's "Unable to sample" traceback).
+    """
+    replay = companion_path(path, REPLAY_SUFFIX)
+    if issubclass(algo_cls, OffPolicyAlgorithm) and not replay.exists():
+        raise FileNotFoundError(f"its replay buffer {replay.name} is missing")
     model = algo_cls.load(path, env=env, device="cpu")
-    if isinstance(model, OffPolicyAlgorithm) and companion_path(path, REPLAY_SUFFIX).exists():
-        _load_replay_buffer(model, companion_path(path, REPLAY_SUFFIX))
+    if isinstance(model, OffPolicyAlgorithm):
+        _load_replay_buffer(model, replay)
     return model
 
 
@@ -180,6 +189,25 @@ class CheckpointEvery(BaseCallback):
         return True
 
 
+def collection_steps(hp: Hyperparams, algo_cls: type[BaseAlgorithm], n_envs: int, env_id: str) -> int | None:
+    """Env steps one collection takes: how far past its budget a run may end (``None``: unbounded).
+
+    PPO collects whole rollouts (``n_steps`` an env), an off-policy
+    algorithm ``train_freq`` steps or episodes, before it looks at the budget.
+    """
+    defaults = {k: p.default for k, p in inspect.signature(algo_cls).parameters.items()}
+    kwargs = {**defaults, **hp.algo_kwargs}
+    try:
+        if not issubclass(algo_cls, OffPolicyAlgorithm):
+            return int(kwargs["n_steps"]) * n_envs
+        freq = kwargs["train_freq"]
+        n, unit = (freq, "step") if isinstance(freq, int) else tuple(freq)
+        per_env = int(n) * (gym.spec(env_id).max_episode_steps if unit == "episode" else 1)
+    except (TypeError, ValueError):  # malformed, or episodes without a limit: no bound
+        return None
+    return per_env * n_envs
+
+
 # ---------------------------------------------------------------------- method
 class SB3Method(TrainingMethod):
     """A stable-baselines3 algorithm trained from its rl-zoo3 file (see the module docstring)."""
@@ -190,6 +218,8 @@ class SB3Method(TrainingMethod):
         if args.resume:
             resumed = self.resumed()
             hp = self._hyperparams(resumed.config)
+            n_envs = args.n_envs or hp.n_envs
+            self.check_budget(resumed, collection_steps(hp, sb3_class(self.spec.model), n_envs, self.env_id))
             total, config, demos = resumed.total, resumed.config, resumed.demos
         else:
             config = str(args.config) if args.config else None

@@ -25,7 +25,7 @@ from pathlib import Path
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import TrainingError
 from bioscara_gym.tasks import TASKS
-from bioscara_gym.training.checkpoints import read_run_state
+from bioscara_gym.training.checkpoints import SEED_MAX, read_run_state
 from bioscara_gym.training.metadata import resolve_env_id
 from bioscara_gym.training.methods import MethodSpec, method_spec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
@@ -106,8 +106,12 @@ def train(args: TrainArgs) -> TrainResult:
     env_id = resolve_env_id(args.env)
     check_timesteps(args.timesteps)
     check_n_envs(args.n_envs)
-    if args.seed < 0:
+    if args.seed is not None and args.seed < 0:
         raise TrainingError(f"--seed must be >= 0, got {args.seed}")
+    if args.seed is not None and args.seed > SEED_MAX:  # numpy's limit: refused as the model is seeded
+        raise TrainingError(f"--seed must be <= {SEED_MAX} (2**32 - 1), got {args.seed}")
+    if args.seed is None and not args.resume:  # a resumed run's is its own (TrainingMethod.resumed)
+        args.seed = 0
     if args.threads is not None and args.threads < 1:
         raise TrainingError(f"--threads must be >= 1, got {args.threads}")
     out = Path(args.out)
