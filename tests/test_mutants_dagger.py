@@ -920,7 +920,7 @@ def test_a_resumed_plan_keeps_the_runs_budget_config_and_demos(tmp_path: Path) -
     (out / "checkpoints").mkdir()
     (out / "checkpoints" / "ckpt_100_steps.zip").write_bytes(b"")
     d = make_dagger(tmp_path)
-    d.args.resume, d.args.config = True, None
+    d.args.resume, d.args.config, d.args.seed = True, None, None  # --seed not given: the run's
     plan = d.plan()
     assert plan.total == 600 and plan.state == state and d.cfg.net_arch == (16,)
 

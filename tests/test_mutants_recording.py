@@ -25,6 +25,7 @@ from bioscara_gym.hardware import recording
 from bioscara_gym.hardware.clock import ManualClock
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.recording import (
+    TRACE_FORMAT,
     Recording,
     RecordingBus,
     ReplayBus,
@@ -161,8 +162,9 @@ def test_a_trace_whose_header_cannot_be_written_is_refused_before_any_transactio
 ) -> None:
     # Seen: `--record /proc/version` opened, lost every line, and ping said nothing of it.
     path = tmp_path / "t.jsonl"
+    earlier = json.dumps({"type": "header", "format": TRACE_FORMAT}) + "\n"  # an earlier session's
     if existing:
-        path.write_text("an earlier session's lines\n", encoding="utf-8")
+        path.write_text(earlier, encoding="utf-8")
 
     def refuse(fd: int, data: bytes) -> int:
         raise OSError(errno.EINVAL, "Invalid argument")
@@ -176,7 +178,7 @@ def test_a_trace_whose_header_cannot_be_written_is_refused_before_any_transactio
     assert caught.value.strerror == f"cannot write the bus trace {path} (--record): Invalid argument"
     assert clock.now() == 0.0  # nothing sent
     if existing:
-        assert path.read_text(encoding="utf-8") == "an earlier session's lines\n"
+        assert path.read_text(encoding="utf-8") == earlier
     else:
         assert not path.exists()
 

@@ -436,4 +436,4 @@ def test_recording_a_path_alone_writes_a_bare_header(tmp_path: Path) -> None:
         backend.joints["j1"].init()
     (session,) = read_trace(tmp_path / "t.jsonl")
     assert session.command == "" and len(session.transactions) >= 1
-    assert isinstance(Recording(tmp_path, "x").args, dict)
+    assert isinstance(Recording(tmp_path / "new.jsonl", "x").args, dict)
