@@ -375,6 +375,28 @@ def test_home_abort_stops_a_running_homing(bioscara: Run, state: Path) -> None:
     assert status(bioscara, state)["j1"][2:5] == ["no", "no", "NOT_HOMED NOT_ENABLED"]
 
 
+@pytest.mark.parametrize(
+    ("options", "unused"),
+    [
+        (["--direction", "+"], "--direction"),
+        (["--timeout", "5"], "--timeout"),
+        (["--no-wait"], "--no-wait"),
+        (["--no-wait", "--direction", "-"], "--direction or --no-wait"),
+    ],
+)
+def test_home_abort_refuses_the_options_it_does_not_use(
+    bioscara: Run, state: Path, options: list[str], unused: str
+) -> None:
+    # Seen (a hostile test): exit 0, "no homing is running", the options ignored.
+    bioscara("enable", "--state", str(state))
+    bioscara("home", "j1", "--no-wait", "--state", str(state))
+    saved = state.read_text()
+    code, _, err = bioscara("home", "--abort", *options, "--state", str(state))
+    assert code == 2
+    assert err == f"bioscara home: error: --abort stops a running homing; it takes no {unused}"
+    assert state.read_text() == saved  # refused before the arm was touched: the homing runs on
+
+
 def test_home_no_wait_needs_state(bioscara: Run) -> None:
     code, _, err = bioscara("home", "--no-wait")
     assert code == 2
@@ -587,6 +609,55 @@ def test_an_empty_state_path_is_refused(bioscara: Run) -> None:
         ("firmware", "flags", 10**30, "j1.flags 1000000000000000000000000000000 is not a byte (0-255)"),
         ("firmware", "flags", -1, "j1.flags -1 is not a byte (0-255)"),
         ("drive", "_position", float("nan"), "drive state j1._position is NaN"),
+        # Seen (a third hostile pass): a traceback from struct or OverflowError at the next
+        # monitor, the file rewritten anyway; 1e308 motor current made MuJoCo's state huge.
+        (
+            "firmware",
+            "drive_current",
+            -1,
+            "firmware.j1.drive_current is -1; expected a current in % (0-100: the firmware caps it)",
+        ),
+        (
+            "firmware",
+            "hold_current",
+            1e30,
+            "firmware.j1.hold_current is 1e+30; expected a current in % (0-100: the firmware caps it)",
+        ),
+        (
+            "firmware",
+            "motor_current",
+            1e308,
+            "firmware.j1.motor_current is 1e+308; expected a current in % (0-255: HOME's current byte "
+            "is not capped)",
+        ),
+        (
+            "firmware",
+            "max_velocity",
+            1e308,
+            "firmware.j1.max_velocity is 1e+308; expected a float32 (at most 3.4028235e+38 in size, "
+            "or inf or NaN)",
+        ),
+        ("firmware", "brake_mode", 256, "firmware.j1.brake_mode is 256; expected a byte (0-255)"),
+        (
+            "firmware",
+            "encoder_zero",
+            1e308,
+            "firmware.j1.encoder_zero is 1e+308; expected a finite number, at most 1e+09 in size",
+        ),
+        (
+            "drive",
+            "load_accel",
+            1e308,
+            "drive.j1.load_accel is 1e+308; expected 0.0, this configuration's (a parameter of the "
+            "drive model, not state)",
+        ),
+        ("drive", "pole_slips", -1, "drive.j1.pole_slips is -1; expected a count (a whole number >= 0)"),
+        (
+            "drive",
+            "_swing_deg",
+            -1e308,
+            "drive.j1._swing_deg is -1e+308; expected a finite number, at most 1e+09 in size",
+        ),
     ],
 )
 def test_a_state_whose_joint_values_cannot_be_is_refused_and_kept(
@@ -603,6 +674,64 @@ def test_a_state_whose_joint_values_cannot_be_is_refused_and_kept(
     assert code == 2
     assert err.strip().endswith(f"state file {state}: {message}")
     assert state.read_text() == saved
+
+
+def test_a_state_whose_float_registers_hold_inf_or_nan_is_used(bioscara: Run, state: Path) -> None:
+    # A float32 register holds them, and the firmware takes them (HOMEOFFSET is NaN until stored).
+    bioscara("enable", "--state", str(state))
+    doc = json.loads(state.read_text())
+    doc["firmware"]["j1"].update(max_velocity=float("inf"), q_set=float("nan"), home_offset=float("nan"))
+    state.write_text(json.dumps(doc))
+    assert bioscara("monitor", "--duration", "0.1", "--state", str(state))[0] == 0
+
+
+@pytest.mark.parametrize(
+    ("keys", "value", "message"),
+    [
+        (("time_s",), "x", "'time_s' is 'x'; expected the simulated time in s, 0 to 1e+09"),
+        (("time_s",), None, "'time_s' is None; expected the simulated time in s, 0 to 1e+09"),
+        (
+            ("host", "gripper", "width_m"),
+            -1,
+            "host.gripper.width_m -1 is outside the gripper's 0.04 to 0.12 m",
+        ),
+        (
+            ("host", "stats", "j1", "errors"),
+            -5,
+            "host.stats.j1.errors is -5; expected a count (a whole number >= 0)",
+        ),
+    ],
+    ids=["time-text", "time-null", "gripper-width", "stats-count"],
+)
+def test_a_state_whose_host_values_cannot_be_is_refused_and_kept(
+    bioscara: Run, state: Path, keys: tuple[str, ...], value: object, message: str
+) -> None:
+    # Seen (a hostile test): all accepted; a width of -1 m was shown as 0.0400 m.
+    bioscara("gripper", "0.06", "--state", str(state))
+    doc = json.loads(state.read_text())
+    *parents, last = keys
+    part = doc
+    for key in parents:
+        part = part[key]
+    part[last] = value
+    state.write_text(json.dumps(doc))
+    saved = state.read_text()
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert err == f"bioscara status: error: state file {state}: {message}"
+    assert state.read_text() == saved
+
+
+@pytest.mark.parametrize(
+    "argv", [("status", "--backend", "sim"), ("ping", "--backend", "mock"), ("status",)], ids=str
+)
+def test_bus_is_refused_on_a_backend_without_a_numbered_bus(bioscara: Run, argv: tuple[str, ...]) -> None:
+    # Seen (a hostile test): exit 0, the bus number ignored.
+    backend = argv[2] if len(argv) > 1 else "emulated"
+    code, _, err = bioscara(*argv, "--bus", "3")
+    assert code == 2
+    message = f"--bus 3 needs --backend i2c (a numbered I2C bus); {backend} has none"
+    assert err == f"bioscara {argv[0]}: error: {message}"
 
 
 def test_state_with_the_mock_backend_is_refused(bioscara: Run, state: Path) -> None:
@@ -855,6 +984,32 @@ def test_monitor_runs_for_a_duration_without_a_terminal(bioscara: Run) -> None:
     assert code == 0
     assert "bioscara monitor" in out
     assert "lifecycle INACTIVE   backend emulated" in out
+
+
+def test_monitor_stops_at_its_duration_however_slow_its_rate(bioscara: Run, state: Path) -> None:
+    # Seen (a hostile test): --rate 0.05 --duration 1 ran the arm a whole 20 s period (21 s).
+    code, _, _ = bioscara("monitor", "--rate", "0.05", "--duration", "0.2", "--state", str(state))
+    assert code == 0
+    assert json.loads(state.read_text())["time_s"] == pytest.approx(0.2, abs=0.05)
+
+
+@pytest.mark.parametrize(
+    ("rate", "message"),
+    [
+        (
+            "1e-300",
+            "--rate 1e-300 is too slow; expected at least 0.01 refreshes per second (one every 100 s)",
+        ),
+        ("0", "--rate 0 must be a positive number of refreshes per second"),
+        ("nan", "--rate nan must be a positive number of refreshes per second"),
+        ("inf", "--rate inf must be a positive number of refreshes per second"),
+    ],
+)
+def test_monitor_refuses_a_rate_it_cannot_keep(bioscara: Run, rate: str, message: str) -> None:
+    # Seen (a hostile test): --rate 1e-300 --duration 1 ran forever.
+    code, _, err = bioscara("monitor", "--rate", rate, "--duration", "1")
+    assert code == 2
+    assert err == f"bioscara monitor: error: {message}"
 
 
 def test_monitor_without_a_terminal_needs_a_duration(bioscara: Run) -> None:

@@ -309,6 +309,45 @@ def test_cli_emulate_refuses_faults_that_name_none(
     assert capsys.readouterr().err == f"bioscara emulate: error: {expected}\n"
 
 
+@pytest.mark.parametrize(
+    ("link", "expected"),
+    [
+        ("", "--link is empty; give the path of the symlink to make, e.g. /tmp/dxl"),
+        ("/nonexistent/dxl", "--link /nonexistent/dxl: the folder /nonexistent does not exist"),
+        ("/etc/hostname/dxl", "--link /etc/hostname/dxl: /etc/hostname is not a folder"),
+        ("/proc/dxl", "--link /proc/dxl: cannot make the symlink there (No such file or directory)"),
+    ],
+)
+def test_cli_emulate_refuses_a_link_it_cannot_make_naming_it(
+    capsys: pytest.CaptureFixture[str], link: str, expected: str
+) -> None:
+    # Seen (a hostile test): "No such file or directory: /dev/pts/0" (the pty, not the link);
+    # '' as "--link .: exists and is not a symlink".
+    from bioscara_gym.cli import main
+
+    if link.startswith(("/etc/hostname", "/proc")) and not Path(link).parent.exists():
+        pytest.skip(f"no {Path(link).parent}")
+    assert main(["emulate", "dynamixel", "--ids", "1", "--link", link]) == 2
+    assert capsys.readouterr().err == f"bioscara emulate: error: {expected}\n"
+
+
+def test_cli_emulate_keeps_a_symlink_that_is_not_to_a_pty(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen (a hostile test): an unrelated symlink replaced, then deleted on exit.
+    from bioscara_gym.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "target.json").write_text("{}")
+    Path("mylink").symlink_to("target.json")
+    assert main(["emulate", "dynamixel", "--ids", "1", "--link", "mylink"]) == 2
+    assert capsys.readouterr().err == (
+        "bioscara emulate: error: --link mylink: a symlink to target.json, not to a pseudo-terminal "
+        "(/dev/pts/*); not replacing it\n"
+    )
+    assert os.readlink("mylink") == "target.json"
+
+
 # ---------------------------------------------------- driver over the SDK
 
 

@@ -8,7 +8,8 @@ statistics) did, at a terminal and on every backend. Every subcommand takes
 ``--backend NAME``  ``emulated`` (default: the real driver over the emulated
                     bus, so anyone can try it), ``sim``, ``mock`` or ``i2c``
 ``--config FILE``   arm configuration YAML (default: the packaged one)
-``--bus N``         I2C bus number for ``i2c`` (default: the config's)
+``--bus N``         I2C bus number for ``i2c`` (default: the config's; refused
+                    on the other backends, which have no numbered bus)
 ``--state FILE``    keep the simulated arm's state in FILE between commands
 ``--record FILE``   append every bus transaction to FILE (``i2c``,
                     ``emulated``; ``bioscara replay FILE``, docs/traces.md)
@@ -406,6 +407,11 @@ def cmd_home(args: argparse.Namespace) -> int:
     """``bioscara home [JOINT|GROUP] [--direction +|-] [--abort] [--no-wait]``."""
     con = make_console()
     options = ConsoleOptions.from_args(args)
+    if args.abort:  # refused, not ignored: the operator meant something by them
+        given = {"--direction": args.direction, "--no-wait": args.no_wait or None, "--timeout": args.timeout}
+        unused = [option for option, value in given.items() if value is not None]
+        if unused:
+            raise ConsoleUsageError(f"--abort stops a running homing; it takes no {' or '.join(unused)}")
     if args.no_wait and options.state is None:
         raise ConsoleUsageError("--no-wait needs --state FILE, so that a later command can finish the homing")
     with Session(options) as session:
@@ -502,10 +508,19 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The slowest ``monitor --rate``, Hz: a refresh every 100 s (the arm is cycled a whole period between two).
+MIN_MONITOR_RATE_HZ = 0.01
+
+
 def _check_monitor_args(args: argparse.Namespace) -> None:
-    """Refuse a refresh rate or duration that is not a positive number."""
+    """Refuse a refresh rate or duration that is not a positive number, or a rate below 0.01 Hz."""
     if args.rate <= 0 or not math.isfinite(args.rate):
         raise ConsoleUsageError(f"--rate {args.rate:g} must be a positive number of refreshes per second")
+    if args.rate < MIN_MONITOR_RATE_HZ:
+        raise ConsoleUsageError(
+            f"--rate {args.rate:g} is too slow; expected at least {MIN_MONITOR_RATE_HZ:g} refreshes "
+            "per second (one every 100 s)"
+        )
     if args.duration is not None and not args.duration > 0:
         raise ConsoleUsageError(f"--duration {args.duration:g} must be positive")
 
@@ -601,7 +616,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("monitor", help="live dashboard; keys e/d enable/disable, h home, a abort, q quit")
     p.add_argument(
-        "--rate", type=float, default=10.0, metavar="HZ", help="refreshes per second (default: 10)"
+        "--rate", type=float, default=10.0, metavar="HZ", help="refreshes per second, >= 0.01 (default: 10)"
     )
     p.add_argument(
         "--duration", type=float, metavar="S", help="stop after S seconds (needed without a terminal)"

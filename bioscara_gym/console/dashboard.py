@@ -540,6 +540,7 @@ def run_monitor(
     clock = clock or WallClock()
     period = 1.0 / app.rate_hz
     start = clock.now()
+    end = math.inf if duration_s is None else start + duration_s
     deadline = start + period
     with Live(render_dashboard(app.snapshot()), console=console, auto_refresh=False) as live:
         while app.running:
@@ -547,13 +548,13 @@ def run_monitor(
                 handle_key(app, key)
             if not app.running:
                 break
-            app.step(period)
+            app.step(min(period, max(end - clock.now(), 0.0)))  # a slow rate's period ends at the end
             live.update(render_dashboard(app.snapshot()), refresh=True)
             now = clock.now()
-            if duration_s is not None and now - start >= duration_s:
+            if now >= end:
                 break
             if deadline > now:
-                clock.sleep(deadline - now)
+                clock.sleep(min(deadline, end) - now)
                 deadline += period
             else:
                 deadline = now + period

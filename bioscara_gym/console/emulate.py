@@ -5,13 +5,16 @@
     bioscara emulate dynamixel --ids 1-4 --link /tmp/dxl
     # elsewhere: PortHandler("/tmp/dxl") of the official SDK, 1 Mbps, protocol 2.0
 
-Serves until SIGINT or SIGTERM, then removes the symlink. ``--faults``
+Serves until SIGINT or SIGTERM, then removes the symlink. An existing
+``--link`` is replaced only if it is a symlink into ``/dev/pts/`` (a stale
+link of an emulator that was killed). ``--faults``
 takes ``drop=0.01,corrupt=0.001,delay_ms=2``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import time
 from pathlib import Path
@@ -22,6 +25,8 @@ from bioscara_gym.errors import CliError
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: How often the serving loop looks for one, s.
 STOP_POLL_S = 0.2
+#: Where the pseudo-terminals' slave devices are: a symlink into it may be replaced.
+PTY_FOLDER = "/dev/pts/"
 
 
 def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
@@ -36,16 +41,20 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
         faults = FaultPlan.parse(args.faults, kinds=RS485_FAULTS) if args.faults else None
     except ValueError as e:
         raise CliError(str(e)) from None
-    link = Path(args.link)
-    if link.exists() and not link.is_symlink():
-        raise CliError(f"--link {link}: exists and is not a symlink; not replacing it")
+    link = _check_link(args.link)
     # The handler only records the signal: one that set a threading.Event deadlocked
     # when the signal landed while this thread held the Event's lock inside wait()
     # (seen under load: SIGTERM ignored for 30 s; python/cpython#126434 is the same trap).
     received: list[int] = []
     previous = {sig: signal.signal(sig, lambda signum, _: received.append(signum)) for sig in STOP_SIGNALS}
     try:
-        with PtyServer(make_bus(ids, faults), link) as server:
+        try:
+            server = PtyServer(make_bus(ids, faults), link)
+        except OSError as e:
+            if e.filename2 != os.fspath(link):  # not the symlink: the pty's own error
+                raise
+            raise CliError(f"--link {link}: cannot make the symlink there ({e.strerror})") from None
+        with server:
             ids_text = ", ".join(str(i) for i in ids)
             print(
                 f"XL430 servos {ids_text} on {server.path} -> {server.slave_path}; Ctrl-C stops", flush=True
@@ -57,6 +66,31 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
     print("stopped; link removed", flush=True)
     return 0
+
+
+def _check_link(text: str) -> Path:
+    """The ``--link`` path, refused when empty, in no folder, or anything but a stale link to a pty.
+
+    Raises:
+        CliError: One line naming the path and what is wrong.
+    """
+    if not text:
+        raise CliError("--link is empty; give the path of the symlink to make, e.g. /tmp/dxl")
+    link = Path(text)
+    folder = link.parent
+    if not folder.is_dir():
+        problem = f"{folder} is not a folder" if folder.exists() else f"the folder {folder} does not exist"
+        raise CliError(f"--link {link}: {problem}")
+    if link.is_symlink():
+        target = os.readlink(link)
+        if not target.startswith(PTY_FOLDER):  # a stale link of a killed emulator points into it
+            raise CliError(
+                f"--link {link}: a symlink to {target}, not to a pseudo-terminal ({PTY_FOLDER}*); "
+                "not replacing it"
+            )
+    elif link.exists() or link.name in ("", ".", ".."):
+        raise CliError(f"--link {link}: exists and is not a symlink; not replacing it")
+    return link
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -24,9 +24,13 @@ enable state, encoder zero, HOMEOFFSET); ``init`` reads HOMEOFFSET back as on
 the real arm. The host part is what the real host would have in memory: the
 gripper (no feedback), homings still running, bus statistics. A file that is
 not such JSON, or was saved by another backend or with another arm
-configuration, is refused with a message (delete it to start over); a
-missing file means a powered-up arm and is created. Simulated time does not
-advance between commands, only while a command runs (``home``, ``move``,
+configuration, or holds a value the firmware cannot (a current above
+100 %, a float beyond float32, :data:`FIRMWARE_VALUES`) or the simulation
+should not (a number beyond :data:`MAX_SIM_VALUE`, a drive parameter not
+the configuration's, a negative count, a gripper width outside its range),
+is refused with one line naming the key, and left as it is (delete it to
+start over); a missing file means a powered-up arm and is created.
+Simulated time does not advance between commands, only while a command runs (``home``, ``move``,
 ``gripper``, ``monitor``). The ``mock`` backend does not persist (``--state``
 is refused), nor does ``i2c``: the real arm keeps its own state.
 
@@ -42,7 +46,7 @@ import dataclasses
 import hashlib
 import json
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -189,18 +193,22 @@ def save_state(path: Path, backend: Backend, facts: HostFacts) -> None:
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
-def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> HostFacts:
+def _host_facts(
+    doc: Mapping[str, Any], names: Iterable[str], gripper_range: tuple[float, float], where: str
+) -> HostFacts:
     host = doc.get("host")
     if not isinstance(host, dict):
         raise StateFileError(f"{where}: no 'host' object")
     gripper = host.get("gripper", {})
     enabled = gripper.get("enabled") if isinstance(gripper, dict) else None
     width = gripper.get("width_m") if isinstance(gripper, dict) else None
-    if not isinstance(enabled, bool) or not (
-        width is None
-        or (isinstance(width, (int, float)) and not isinstance(width, bool) and math.isfinite(width))
-    ):
+    if not isinstance(enabled, bool) or not (width is None or _finite_number(width)):
         raise StateFileError(f"{where}: host.gripper must be {{'enabled': bool, 'width_m': number}}")
+    low, high = gripper_range
+    if width is not None and not low <= width <= high:  # was shown as the servo's nearest width
+        raise StateFileError(
+            f"{where}: host.gripper.width_m {width!r} is outside the gripper's {low:g} to {high:g} m"
+        )
     names = set(names)
     homing = host.get("homing", {})
     if not isinstance(homing, dict) or not all(
@@ -214,10 +222,15 @@ def _host_facts(doc: Mapping[str, Any], names: Iterable[str], where: str) -> Hos
         n in names
         and isinstance(c, dict)
         and set(c) <= counters  # a file saved by an older version has fewer counters
-        and all(isinstance(v, int) for v in c.values())
         for n, c in stats.items()
     ):
         raise StateFileError(f"{where}: host.stats must map joint names to {sorted(counters)}")
+    for n, c in stats.items():
+        wrong = next((k for k, v in c.items() if not _is_count(v)), None)
+        if wrong is not None:
+            raise StateFileError(
+                f"{where}: host.stats.{n}.{wrong} is {c[wrong]!r}; expected a count (a whole number >= 0)"
+            )
     return HostFacts(bool(enabled), None if width is None else float(width), dict(homing), stats)
 
 
@@ -243,6 +256,114 @@ def _holds_nan(value: object) -> bool:
     if isinstance(value, tuple):
         return any(_holds_nan(v) for v in value)
     return isinstance(value, float) and math.isnan(value)
+
+
+#: The largest float32: the firmware's float registers hold nothing larger but inf (and NaN).
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def _is_count(x: object) -> bool:
+    """Whether ``x`` is a whole number >= 0 (not a bool)."""
+    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+
+def _in_bytes(high: int) -> Callable[[object], bool]:
+    """A test of a whole number from 0 to ``high``."""
+    return lambda x: _is_count(x) and x <= high  # type: ignore[operator]
+
+
+def _float32(x: object) -> bool:
+    """Whether ``x`` is a value a float32 register can hold: inf and NaN too, as the firmware takes them."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return not math.isfinite(x) or abs(x) <= FLOAT32_MAX
+    except OverflowError:
+        return False
+
+
+def _payload(x: object) -> bool:
+    """Whether ``x`` is a blocking command's payload as decoded: a 32-bit integer or a finite float32."""
+    if isinstance(x, int) and not isinstance(x, bool):
+        return -(2**31) <= x < 2**32
+    return _float32(x) and math.isfinite(x)  # type: ignore[arg-type]  # HOME's int() of inf failed
+
+
+def _homing(x: object) -> bool:
+    """Whether ``x`` is the firmware's homing tuple: direction, RPM, sensitivity, current (HOME's bytes)."""
+    if not isinstance(x, tuple) or len(x) != 4 or x[0] not in (1, -1) or isinstance(x[0], bool):
+        return False
+    rpm = x[1]
+    number = isinstance(rpm, int | float) and not isinstance(rpm, bool)
+    return (
+        number and 0 <= rpm <= 0xFF and _is_count(x[2]) and x[2] <= 0xFF and _is_count(x[3]) and x[3] <= 0xFF
+    )
+
+
+_BYTE = (_in_bytes(0xFF), "a byte (0-255)")
+_PERCENT = (_in_bytes(100), "a current in % (0-100: the firmware caps it)")
+_FLOAT32 = (_float32, f"a float32 (at most {FLOAT32_MAX:.8g} in size, or inf or NaN)")
+#: What each firmware value can be: what its register or variable holds (firmware.py, codec.py).
+#: A value not named is a number of the simulation (:data:`MAX_SIM_VALUE`) or a flag.
+FIRMWARE_VALUES: dict[str, tuple[Callable[[object], bool], str]] = {
+    "drive_current": _PERCENT,  # SETUP byte0 and SETCURRENT, capped at 100
+    "hold_current": _PERCENT,  # SETUP byte1 and SETHOLDCURRENT, capped at 100
+    "motor_current": (_in_bytes(0xFF), "a current in % (0-255: HOME's current byte is not capped)"),
+    "brake_mode": _BYTE,
+    "stall_sensitivity": _BYTE,
+    "_pending_reg": (_in_bytes(0xFF), "a register byte (0-255)"),
+    "qd_set": _FLOAT32,
+    "q_set": _FLOAT32,
+    "home_offset": _FLOAT32,  # NaN until the host stores one
+    "max_velocity": _FLOAT32,
+    "max_acceleration": _FLOAT32,
+    "target_rpm": _FLOAT32,  # SETRPM's value (±inf: the top speed) or the homing's RPM
+    "_pending_arg": (_payload, "a finite payload: a 32-bit integer or float32"),
+    "_homing": (_homing, "[direction 1 or -1, RPM 0-255, sensitivity 0-255, current 0-255]"),
+}
+#: The drive model's counters: whole numbers >= 0.
+DRIVE_COUNTERS = frozenset({"lost_sync", "pole_slips", "resyncs"})
+#: The drive model's parameters (from the configuration, never changed by a command): as a fresh model's.
+DRIVE_PARAMETERS = frozenset({"lower_stop_deg", "upper_stop_deg", "load_accel", "max_speed_dps"})
+_SIM_NUMBER = f"a finite number, at most {MAX_SIM_VALUE:g} in size"
+
+
+def _sim_numbers(value: object) -> bool:
+    """Whether ``value`` (a number or a tuple of them) is finite and at most :data:`MAX_SIM_VALUE`."""
+    if isinstance(value, tuple):
+        return all(_sim_numbers(v) for v in value)
+    return _finite_number(value) if isinstance(value, int | float) and not isinstance(value, bool) else True
+
+
+def _check_firmware(values: Mapping[str, object], key: str, where: str) -> None:
+    """Refuse a firmware value its register or variable cannot hold (``key``: ``firmware.j1``)."""
+    for k, v in values.items():
+        test, expected = FIRMWARE_VALUES.get(k, (_sim_numbers, _SIM_NUMBER))
+        if not test(v):
+            raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {expected}")
+
+
+def _check_drive(values: Mapping[str, object], fresh: Mapping[str, object], key: str, where: str) -> None:
+    """Refuse a drive value no drive model has (``key``: ``drive.j1``); NaN was refused before."""
+    for k, v in values.items():
+        if k in DRIVE_PARAMETERS:
+            if v != fresh[k]:
+                raise StateFileError(
+                    f"{where}: {key}.{k} is {_shown(v)}; expected {fresh[k]!r}, this configuration's "
+                    "(a parameter of the drive model, not state)"
+                )
+        elif k in DRIVE_COUNTERS:
+            if not _is_count(v):
+                raise StateFileError(
+                    f"{where}: {key}.{k} is {_shown(v)}; expected a count (a whole number >= 0)"
+                )
+        elif not _sim_numbers(v):
+            raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {_SIM_NUMBER}")
+
+
+def _shown(value: object) -> str:
+    """``value`` as the file has it (a tuple as a list)."""
+    return repr(list(value)) if isinstance(value, tuple) else repr(value)
 
 
 def load_state(path: Path, backend: Backend) -> HostFacts:
@@ -275,6 +396,11 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
             f"{where} was saved with another arm configuration (joints or gripper differ); use the same "
             "--config or another file"
         )
+    if not _finite_number(doc.get("time_s")) or doc["time_s"] < 0:
+        raise StateFileError(
+            f"{where}: 'time_s' is {doc.get('time_s')!r}; expected the simulated time in s, "
+            f"0 to {MAX_SIM_VALUE:g}"
+        )
     sim = backend.sim
     fresh_state, fresh_cores, fresh_drives = sim.snapshot()  # type: ignore[union-attr]
     mj = doc.get("mujoco")
@@ -293,6 +419,7 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         cores[name] = {k: _decode(saved[k], fresh[k], f"{where}: {name}.{k}") for k in fresh}
         if not 0 <= cores[name]["flags"] <= 0xFF:  # type: ignore[operator]  # the reply's flags byte
             raise StateFileError(f"{where}: {name}.flags {cores[name]['flags']!r} is not a byte (0-255)")
+        _check_firmware(cores[name], f"firmware.{name}", where)
     saved_drives = doc.get("drive")
     if not isinstance(saved_drives, dict) or set(saved_drives) != set(fresh_drives):
         raise StateFileError(f"{where}: 'drive' must hold the joints {', '.join(fresh_drives)}")
@@ -308,6 +435,8 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         nan = next((k for k, v in drives[name].items() if _holds_nan(v)), None)
         if nan is not None:  # (an end stop may be infinite: none on that side)
             raise StateFileError(f"{where}: drive state {name}.{nan} is NaN")
-    facts = _host_facts(doc, fresh_cores, where)
+        _check_drive(drives[name], keep, f"drive.{name}", where)
+    gripper = backend.config.gripper
+    facts = _host_facts(doc, fresh_cores, (gripper.min, gripper.max), where)
     sim.restore((np.asarray(mj, dtype=float), cores, drives))  # type: ignore[union-attr]
     return facts

@@ -16,6 +16,8 @@ from bioscara_gym.hardware.registry import backend_names
 
 #: Backends whose state ``--state`` can keep.
 PERSISTENT_BACKENDS = backend_names("persistent")
+#: Backends on an I2C bus whose number ``--bus`` sets (the emulated bus has no number).
+BUS_BACKENDS = ("i2c",)
 #: ``--direction`` to the Arm's homing direction: ``+`` to the max end stop, ``-`` to min.
 HOMING_DIRECTIONS = {"+": 1, "-": -1}
 
@@ -58,7 +60,7 @@ class ConsoleOptions:
         )
 
     def check(self) -> None:
-        """Refuse an unknown backend, and ``--state`` with a backend that has no state to keep.
+        """Refuse an unknown backend, and ``--bus``, ``--firmware`` or ``--state`` on a backend without one.
 
         Raises:
             ConsoleUsageError: The options do not go together.
@@ -66,6 +68,11 @@ class ConsoleOptions:
         backend = self.backend
         if backend not in ALL_BACKENDS:
             raise ConsoleUsageError(f"unknown backend {backend!r}; expected one of {', '.join(ALL_BACKENDS)}")
+        if self.bus is not None and backend not in BUS_BACKENDS:
+            raise ConsoleUsageError(
+                f"--bus {self.bus} needs --backend {' or '.join(BUS_BACKENDS)} (a numbered I2C bus); "
+                f"{backend} has none"
+            )
         if self.firmware is not None and backend != "sitl":
             raise ConsoleUsageError("--firmware needs --backend sitl (the firmware in the loop)")
         if self.state is not None and backend not in PERSISTENT_BACKENDS:
