@@ -223,6 +223,27 @@ CASES = [
         r"checkpoint ckpt_2491_steps\.zip has taken$",
         id="state-total-below-the-steps-taken",
     ),
+    pytest.param(  # DAgger's run may end a phase past its budget: 120 episodes of 200 steps
+        resume(
+            state_json(env_id="Bioscara-PickPlace-v1", algo="dagger", config=None, total_timesteps=1000),
+            "--env",
+            "Bioscara-PickPlace",
+            checkpoint=model_zip(25_001),
+        ),
+        r"cannot resume from .*run/train_state\.json: total_timesteps is 1000, below the 25001 steps its "
+        r"checkpoint ckpt_25001_steps\.zip has taken$",
+        id="dagger-state-total-below-the-steps-taken",
+    ),
+    pytest.param(  # one phase past: the budget passes, and the checkpoint's missing aggregate is named
+        resume(
+            state_json(env_id="Bioscara-PickPlace-v1", algo="dagger", config=None, total_timesteps=1000),
+            "--env",
+            "Bioscara-PickPlace",
+            checkpoint=model_zip(25_000),
+        ),
+        r"ckpt_25000_steps\.zip cannot be loaded \(FileNotFoundError: .*ckpt_25000_steps_dagger\.npz'\)$",
+        id="dagger-state-total-one-phase-below-the-steps-taken",
+    ),
     # Seen: accepted, though --seed refuses it.
     pytest.param(
         resume(state_json(seed=10**30), checkpoint=model_zip(200)),

@@ -161,6 +161,10 @@ class DAgger(TrainingMethod):
         if args.resume:
             resumed = self.resumed()
             cfg = self._config(resumed.config)
+            # A run ends at most one phase past its budget: the expert's episodes, or an
+            # iteration's rollouts and a confirmation.
+            episodes = max(cfg.demo_episodes, cfg.episodes_per_iteration + cfg.eval_episodes)
+            self.check_budget(resumed, episodes * gym.spec(self.env_id).max_episode_steps)
             total, config, demos = resumed.total, resumed.config, resumed.demos
         else:
             config = str(args.config) if args.config else None
