@@ -143,8 +143,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         problem = None if path is None else output_problem(path, parents=True)  # eval makes the folders
         if problem is not None:
             raise CliError(f"{option} {path}: {problem}")
-    model_inputs = {} if args.model is None else {"--model": args.model, "metadata": _metadata_of(args.model)}
-    clash = output_clash(outputs, model_inputs)
+    clash = output_clash(outputs, {} if args.model is None else _policy_files(args.model))
     if clash is not None:
         raise CliError(clash)
     if args.video is not None and Path(args.video).suffix.lower() not in VIDEO_SUFFIXES:
@@ -183,11 +182,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _metadata_of(model: Path) -> Path:
-    """The ``metadata.json`` beside ``model.zip``."""
-    from bioscara_gym.training.metadata import METADATA_NAME
+def _policy_files(model: Path) -> dict[str, Path]:
+    """The model's files (:func:`bioscara_gym.training.metadata.policy_files`), imported on use."""
+    from bioscara_gym.training.metadata import policy_files
 
-    return Path(model).parent / METADATA_NAME
+    return policy_files(model)
 
 
 def _check_model_env(model: Path, env: str) -> None:

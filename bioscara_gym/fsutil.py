@@ -86,6 +86,8 @@ def output_problem(path: str | os.PathLike[str], folder: bool = False, parents: 
     only trying tells: a hidden temporary file is made there and removed.
     """
     path = Path(path)
+    if _loops(path):
+        return "is a loop of symlinks"
     if folder:
         if path.exists() and not path.is_dir():
             return "is a file; give a folder"
@@ -114,24 +116,47 @@ def output_clash(
 ) -> str | None:
     """Why the files a command writes cannot all be written, or ``None``.
 
-    Two options naming one file (a symlink to it counts: paths are compared
-    resolved) would leave neither readable, and an output that is one of
+    Two options naming one file (a symlink or a hard link to it counts:
+    files are compared by device and inode) would leave neither readable, and an output that is one of
     the command's inputs (the model being exported, its metadata) would
     destroy it. ``outputs`` and ``inputs`` map an option (``"--json"``) to
     its path; ``None`` is an option not given.
     """
-    read = {Path(p).resolve(): option for option, p in (inputs or {}).items() if p is not None}
-    seen: dict[Path, str] = {}
+    read = {_identity(p): option for option, p in (inputs or {}).items() if p is not None}
+    seen: dict[object, str] = {}
     for option, path in outputs.items():
         if path is None:
             continue
-        resolved = Path(path).resolve()
-        if resolved in seen:
-            return f"{seen[resolved]} and {option} name the same file {path}; each needs its own"
-        seen[resolved] = option
-        if resolved in read:
-            return f"{option} {path} is the {read[resolved]} file; writing it would destroy it"
+        if _loops(path):
+            return f"{option} {path} is a loop of symlinks"
+        identity = _identity(path)
+        if identity in seen:
+            return f"{seen[identity]} and {option} name the same file {path}; each needs its own"
+        seen[identity] = option
+        if identity in read:
+            return f"{option} {path} is the {read[identity]} file; writing it would destroy it"
     return None
+
+
+def _identity(path: str | os.PathLike[str]) -> object:
+    """Which file ``path`` names: its device and inode, or its resolved path if it is not there yet.
+
+    A hard link, a symlink and ``..`` in a path all name the file they lead to.
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return Path(os.path.realpath(path))
+    return (st.st_dev, st.st_ino)
+
+
+def _loops(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is (or passes through) a loop of symlinks."""
+    try:
+        os.stat(path)
+    except OSError as e:
+        return e.errno == errno.ELOOP
+    return False
 
 
 def replaced_path(path: str | os.PathLike[str]) -> Path:
@@ -142,6 +167,8 @@ def replaced_path(path: str | os.PathLike[str]) -> Path:
     replaced the system's ``/dev/stdout``), so it is written through.
     """
     path = Path(path)
+    if _loops(path):
+        raise OSError(errno.ELOOP, "is a loop of symlinks", os.fspath(path))
     return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 

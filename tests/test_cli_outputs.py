@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from bioscara_gym.cli import main
-from bioscara_gym.fsutil import atomic_write_text, output_clash, replaced_path
+from bioscara_gym.fsutil import atomic_write_text, output_clash, output_problem, replaced_path
 from bioscara_gym.hardware.recording import TRACE_FORMAT, Recording
 
 REACH = "Bioscara-Reach-v0"
@@ -124,6 +124,28 @@ def test_output_clash_names_two_options_on_one_file_and_an_output_that_is_an_inp
     )
 
 
+def test_a_hard_link_to_an_input_is_that_input(tmp_path: Path) -> None:
+    # Seen: deploy --log through a hard link to policy.onnx truncated the policy.
+    model = tmp_path / "model.zip"
+    model.write_bytes(b"m")
+    os.link(model, tmp_path / "h.jsonl")
+    assert output_clash({"--log": tmp_path / "h.jsonl"}, {"--model": model}) == (
+        f"--log {tmp_path / 'h.jsonl'} is the --model file; writing it would destroy it"
+    )
+
+
+def test_a_loop_of_symlinks_is_named_and_never_replaced(tmp_path: Path) -> None:
+    # Seen: a RuntimeError traceback from Path.resolve in some commands, the link replaced in others.
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    assert output_problem(a) == "is a loop of symlinks"
+    assert output_clash({"--json": a}) == f"--json {a} is a loop of symlinks"
+    with pytest.raises(OSError, match="is a loop of symlinks"):
+        atomic_write_text(a, "x")
+    assert a.is_symlink() and os.readlink(a) == str(b)
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -133,7 +155,15 @@ def test_output_clash_names_two_options_on_one_file_and_an_output_that_is_an_inp
         ),
         (
             ["export", "--model", "run/model.zip", "--onnx", "run/metadata.json", "--check", "0"],
-            "--onnx run/metadata.json is the metadata file; writing it would destroy it",
+            "--onnx run/metadata.json is the policy's metadata.json file; writing it would destroy it",
+        ),
+        (  # seen: --model as the run's folder let both through, exit 0
+            ["export", "--model", "run", "--onnx", "run/model.zip", "--check", "0"],
+            "--onnx run/model.zip is the --model file; writing it would destroy it",
+        ),
+        (
+            ["eval", "--model", "run", "--json", "run/metadata.json"],
+            "--json run/metadata.json is the policy's metadata.json file; writing it would destroy it",
         ),
         (
             ["export", "--model", "run/model.zip", "--onnx", "p.onnx", "--check", "100001"],
@@ -145,7 +175,7 @@ def test_output_clash_names_two_options_on_one_file_and_an_output_that_is_an_inp
         ),
         (
             ["eval", "--model", "run/model.zip", "--record", "run/metadata.json", "--backend", "emulated"],
-            "--record run/metadata.json is the metadata file; writing it would destroy it",
+            "--record run/metadata.json is the policy's metadata.json file; writing it would destroy it",
         ),
         (
             ["eval", "--model", "run/model.zip", "--video", "same.mp4", "--json", "same.mp4"],
@@ -175,6 +205,8 @@ def test_output_clash_names_two_options_on_one_file_and_an_output_that_is_an_inp
     ids=[
         "export-over-the-model",
         "export-over-the-metadata",
+        "export-over-the-model-named-by-its-folder",
+        "eval-json-over-the-metadata-of-a-model-folder",
         "export-check-beyond-the-cap",
         "eval-json-over-the-model",
         "eval-record-into-the-metadata",

@@ -28,7 +28,13 @@ from bioscara_gym.hardware.errors import SitlError
 from bioscara_gym.hardware.registry import backend_names
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
-from bioscara_gym.training.metadata import PolicyShapes, env_kwargs_problem, read_metadata, resolve_env_id
+from bioscara_gym.training.metadata import (
+    PolicyShapes,
+    env_kwargs_problem,
+    policy_files,
+    read_metadata,
+    resolve_env_id,
+)
 
 #: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
 #: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
@@ -188,10 +194,11 @@ def check_files(args: DeployArgs, log: Path, state_file: Path | None) -> None:
     Raises:
         DeployError: As :func:`check_outputs`.
     """
-    inputs = {"--config": args.config, "--model": args.model, "--onnx": args.onnx}
-    policy = args.model or args.onnx
-    if policy is not None:
-        inputs["policy's metadata.json"] = Path(policy).parent / "metadata.json"
+    inputs: dict[str, Path | None] = {"--config": args.config, "--onnx": args.onnx}
+    if args.model is not None:  # model.zip or its folder
+        inputs.update(policy_files(args.model))
+    if args.onnx is not None:
+        inputs["policy's metadata.json"] = Path(args.onnx).parent / "metadata.json"
     check_outputs({"--log": log, "--state-file": state_file, "--record": args.record}, inputs)
 
 

@@ -38,7 +38,7 @@ from rich.console import Console
 from bioscara_gym.errors import CliError, ExportError, MetadataError
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument, replaced_path
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
-from bioscara_gym.training.metadata import METADATA_NAME, PolicyShapes, validate_metadata
+from bioscara_gym.training.metadata import PolicyShapes, policy_files, validate_metadata
 
 #: metadata_props key holding the training metadata (JSON).
 METADATA_KEY = "bioscara_metadata"
@@ -326,8 +326,7 @@ def cmd_export(ns: argparse.Namespace) -> int:
     problem = output_problem(ns.onnx, parents=True)  # export makes the folders
     if problem is not None:
         raise CliError(f"--onnx {ns.onnx}: {problem}")
-    inputs = {"--model": ns.model, "metadata": ns.model.parent / METADATA_NAME}
-    clash = output_clash({"--onnx": ns.onnx}, inputs)
+    clash = output_clash({"--onnx": ns.onnx}, policy_files(ns.model))
     if clash is not None:
         raise CliError(clash)
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)

@@ -245,6 +245,17 @@ def _json_type(value: Any) -> str:
     return f"{name} {value!r}" if isinstance(value, str) and len(value) <= 20 else name
 
 
+def policy_files(model_path: Path) -> dict[str, Path]:
+    """The files a policy is read from: ``--model`` (``model.zip``, or its folder) and ``metadata``.
+
+    Keyed by what names them, for :func:`~bioscara_gym.fsutil.output_clash`.
+    """
+    model_path = Path(model_path)
+    directory = model_path if model_path.is_dir() else model_path.parent
+    model_file = directory / "model.zip" if model_path.is_dir() else model_path
+    return {"--model": model_file, "policy's metadata.json": directory / METADATA_NAME}
+
+
 def read_metadata(model_path: Path) -> dict[str, Any]:
     """Read and validate the metadata next to ``model_path`` (a ``model.zip`` or its directory).
 
