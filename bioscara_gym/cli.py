@@ -316,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
     warnings.showwarning = _one_line_warnings(args.command, err, warnings.showwarning)
     try:
-        with _sigterm_as_interrupt():
+        with _signals_as_interrupt():
             return int(args.func(args) or 0)
     except CliError as e:
         err.print(f"bioscara {args.command}: error: {e}")
@@ -336,30 +336,59 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file
         err.print(f"bioscara {args.command}: error: an input file is nested too deeply to be read")
         return EXIT_ERROR
+    except Exception as e:
+        interrupt = _interrupt_behind(e)
+        if interrupt is None:
+            raise
+        # Seen: a signal landing in MuJoCo's import became "ImportError: initialization failed".
+        err.print(f"bioscara {args.command}: interrupted" + (f" by {interrupt}" if interrupt.args else ""))
+        return interrupt.exit_code if isinstance(interrupt, Interrupted) else EXIT_INTERRUPTED
+
+
+def _interrupt_behind(e: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM an exception was raised while handling (a library's error in its place)."""
+    seen: set[int] = set()
+    cause: BaseException | None = e
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return None
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises :class:`Interrupted` (a ``KeyboardInterrupt``) while a command runs.
+def _signals_as_interrupt() -> Iterator[None]:
+    """The first SIGINT or SIGTERM interrupts a command; later ones do not interrupt its clean-up.
 
-    By default SIGTERM ends the process at once: temporary files stayed
+    By default SIGTERM ended the process at once: temporary files stayed
     behind (``export``, ``eval --video``, ``collect``) and ``monitor`` left
     the joints as they were, where Ctrl-C cleans up and makes the arm safe.
-    Now both take the same way out (exit 143 for SIGTERM). ``train`` and
-    ``deploy`` install their own guard inside this one.
+    Now both take that way out (``KeyboardInterrupt`` for SIGINT, exit 130;
+    :class:`Interrupted` for SIGTERM, exit 143), and a second signal while
+    the command makes the arm safe and removes its files is only noted
+    (seen: a second SIGTERM 20 ms after the first left ``move``'s joints
+    enabled). ``train`` and ``deploy`` install their own guard inside this one.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    signals = (signal.SIGINT, signal.SIGTERM)
+
+    def noted(signum: int, frame: object) -> None:
+        """A signal after the first: the clean-up it interrupted runs to its end."""
 
     def interrupt(signum: int, frame: object) -> None:
-        raise Interrupted(signum)
+        for s in signals:
+            signal.signal(s, noted)
+        raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
 
-    before = signal.signal(signal.SIGTERM, interrupt)
+    before = {s: signal.signal(s, interrupt) for s in signals}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, before)
+        for s, handler in before.items():
+            signal.signal(s, handler)
 
 
 def _os_error(e: OSError) -> str:

@@ -312,3 +312,78 @@ def test_sigterm_stops_monitor_as_ctrl_c_does_disabling_the_joints(tmp_path: Pat
         "j3": 0,
         "j4": 0,
     }
+
+
+def test_the_first_signal_interrupts_and_later_ones_let_the_clean_up_finish() -> None:
+    # Seen: a second SIGTERM 20 ms after the first interrupted move's safe stop: joints left enabled.
+    from bioscara_gym.cli import _signals_as_interrupt
+    from bioscara_gym.training.signals import Interrupted
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with _signals_as_interrupt():
+        with pytest.raises(Interrupted) as caught:
+            signal.getsignal(signal.SIGTERM)(signal.SIGTERM, None)  # type: ignore[operator]
+        assert caught.value.exit_code == 143
+        for s in (signal.SIGINT, signal.SIGTERM):  # the clean-up runs on
+            assert signal.getsignal(s)(s, None) is None  # type: ignore[operator]
+    assert {s: signal.getsignal(s) for s in before} == before
+    with _signals_as_interrupt(), pytest.raises(KeyboardInterrupt) as caught_int:
+        signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # type: ignore[operator]
+    assert type(caught_int.value) is KeyboardInterrupt  # Ctrl-C: exit 130, "interrupted"
+
+
+@pytest.mark.parametrize(
+    ("interrupt", "code", "line"),
+    [
+        (KeyboardInterrupt(), 130, "bioscara status: interrupted"),
+        (None, 143, "bioscara status: interrupted by SIGTERM"),
+    ],
+)
+def test_a_library_error_raised_while_an_interrupt_was_handled_is_the_interrupt(
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    interrupt: KeyboardInterrupt | None,
+    code: int,
+    line: str,
+) -> None:
+    # Seen: a signal landing in MuJoCo's import: "ImportError: initialization failed", 40 lines.
+    from bioscara_gym.console import commands
+    from bioscara_gym.training.signals import Interrupted
+
+    def status(args: object) -> int:
+        try:
+            raise interrupt or Interrupted(signal.SIGTERM)
+        except KeyboardInterrupt as e:
+            raise ImportError("initialization failed") from e
+
+    monkeypatch.setattr(commands, "cmd_status", status)
+    assert main(["status"]) == code
+    assert capsys.readouterr().err.strip() == line
+
+
+def test_status_read_by_a_reader_that_leaves_early_leaves_the_arm_enabled(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen: `bioscara status | head -1` disabled every joint (the print failed inside the session).
+    from rich.console import Console
+
+    from bioscara_gym.console import commands
+
+    class ClosedPipe:
+        def write(self, text: str) -> int:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self) -> None:
+            raise BrokenPipeError(32, "Broken pipe")
+
+    class PipeConsole(Console):
+        def on_broken_pipe(self) -> None:  # rich's own exits 1 after pointing fd 1 at /dev/null
+            raise SystemExit(1)
+
+    state = tmp_path / "st.json"
+    assert main(["enable", "--state", str(state)]) == 0
+    monkeypatch.setattr(commands, "make_console", lambda: PipeConsole(file=ClosedPipe()))  # type: ignore[arg-type]
+    with pytest.raises(SystemExit):
+        main(["status", "--state", str(state)])
+    firmware = json.loads(state.read_text(encoding="utf-8"))["firmware"]
+    assert all(joint["drive_current"] > 0 for joint in firmware.values())

@@ -335,18 +335,19 @@ def current_notes(session: Session) -> list[str]:
 def cmd_status(args: argparse.Namespace) -> int:
     """``bioscara status``."""
     con = make_console()
+    # Printed once the session has closed: a reader that leaves early (| head) is no error of the arm's.
+    lines: list[tuple[object, bool]] = []
     with Session(ConsoleOptions.from_args(args)) as session:
-        con.print(lifecycle_line(session))
-        con.print(status_table(session))
-        for note in current_notes(session):
-            con.print(note, markup=False)
+        lines += [(lifecycle_line(session), True), (status_table(session), True)]
+        lines += [(note, False) for note in current_notes(session)]
         budget = budget_line(session)
         if budget is not None:
-            con.print(budget, markup=False)  # "[sim]" in a missing extra's name is no style tag
-        loops = loop_table(session)
-        if loops is not None:
+            lines.append((budget, False))  # "[sim]" in a missing extra's name is no style tag
+        if loop_table(session) is not None:
             session.backend.step(0.0)  # one pass of the loops, so that they have something to show
-            con.print(loop_table(session))
+            lines.append((loop_table(session), True))
+    for line, markup in lines:
+        con.print(line, markup=markup)
     return 0
 
 
