@@ -265,6 +265,21 @@ def test_record_refuses_a_file_that_is_not_a_trace_and_takes_a_trace_an_empty_or
         assert str(caught.value) == message
     with pytest.raises(ValueError, match=r": is not a regular file$"):
         Recording(tmp_path, "eval")
+    # Seen (a second hostile pass): only the first line was looked at.
+    line = (json.dumps(header) + "\n").encode()
+    (tmp_path / "glued.jsonl").write_bytes(line[:-1])  # the next session would be glued onto it
+    (tmp_path / "tail.jsonl").write_bytes(line + b"\x00\xff garbage\n")
+    (tmp_path / "two.jsonl").write_bytes(line + json.dumps({"type": "tx"}).encode() + b"\n")
+    Recording(tmp_path / "two.jsonl", "eval")
+    for name, problem in (
+        ("glued.jsonl", "does not end with a whole line"),
+        ("tail.jsonl", "does not end with a trace's line"),
+    ):
+        with pytest.raises(ValueError) as caught:
+            Recording(tmp_path / name, "eval")
+        assert str(caught.value) == (
+            f"--record {tmp_path / name}: {problem}; it is no trace a session can be added to"
+        )
     assert (tmp_path / "notes.txt").read_text(encoding="utf-8") == "garbage\n"
 
 

@@ -151,17 +151,31 @@ def _append_problem(path: Path) -> str | None:
         return None
     if not path.is_file():
         return "is not a regular file"
-    if path.stat().st_size == 0:
+    size = path.stat().st_size
+    if size == 0:
         return None
+    not_a_trace = f"exists and is not a bus trace ({TRACE_FORMAT}); give a new file, or a trace to add to"
     with path.open("rb") as f:
-        first = f.readline(_MAX_HEADER_BYTES)
-    try:
-        doc = json.loads(first)
-    except (ValueError, RecursionError):
-        doc = None
-    if not isinstance(doc, Mapping) or doc.get("type") != "header" or doc.get("format") != TRACE_FORMAT:
-        return f"exists and is not a bus trace ({TRACE_FORMAT}); give a new file, or a trace to add to"
+        first = _json_line(f.readline(_MAX_HEADER_BYTES))
+        f.seek(max(0, size - _MAX_HEADER_BYTES))
+        end = f.read()
+    if first is None or first.get("type") != "header" or first.get("format") != TRACE_FORMAT:
+        return not_a_trace
+    if not end.endswith(b"\n"):  # a new session would be glued onto its last line
+        return "does not end with a whole line; it is no trace a session can be added to"
+    last = _json_line(end[:-1].rsplit(b"\n", 1)[-1])
+    if last is None or last.get("type") not in ("header", "tx", "signal"):
+        return "does not end with a trace's line; it is no trace a session can be added to"
     return None
+
+
+def _json_line(raw: bytes) -> Mapping[str, Any] | None:
+    """``raw`` as a JSON object, or ``None``."""
+    try:
+        doc = json.loads(raw)
+    except (ValueError, RecursionError):
+        return None
+    return doc if isinstance(doc, Mapping) else None
 
 
 def jsonable_args(args: object) -> dict[str, Any]:
