@@ -30,7 +30,10 @@ import contextlib
 import dataclasses
 import io
 import json
+import os
+import signal
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -51,6 +54,7 @@ from bioscara_gym.hardware.recording import (
     describe,
     read_trace,
 )
+from bioscara_gym.training.signals import Interrupted
 
 #: Exit code of a trace the driver does not follow.
 EXIT_MISMATCH = 1
@@ -305,15 +309,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
     out = Console(highlight=False, markup=False, soft_wrap=True)
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
     check = not getattr(args, "unchecked", False)
-    try:
-        sessions = read_trace(args.file, check)
-        result = replay(args.file, check_digests=check)
-    except TraceError as e:
-        err.print(f"bioscara replay: error: {e}")
-        return EXIT_ERROR
-    except (ReplayError, ValueError) as e:
-        err.print(f"bioscara replay: error: {args.file}: {e}")
-        return EXIT_MISMATCH
+    with _stop_signals_received() as received:
+        try:
+            sessions = read_trace(args.file, check)
+            result = replay(args.file, check_digests=check)
+        except TraceError as e:
+            err.print(f"bioscara replay: error: {e}")
+            return EXIT_ERROR
+        except (ReplayError, ValueError) as e:
+            err.print(f"bioscara replay: error: {args.file}: {e}")
+            return EXIT_MISMATCH
+        signum = received()
+    if signum is not None and not result.ok:
+        # The replayed command stopped for this replay's own Ctrl-C or SIGTERM (a deploy's safe
+        # stop sends what the trace has not): no difference of the driver's. Seen: "mismatch", exit 1.
+        raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
     if result.ok:
         n = len(result.sessions)
         out.print(f"{result.matched} transactions matched ({n} session{'s' if n != 1 else ''})")
@@ -322,6 +332,37 @@ def cmd_replay(args: argparse.Namespace) -> int:
     out.print(f"{result.matched} transactions matched before the first difference")
     err.print(f"bioscara replay: {args.file}: {_explain(failed, len(result.sessions), sessions)}")
     return EXIT_MISMATCH
+
+
+@contextlib.contextmanager
+def _stop_signals_received() -> Iterator[Callable[[], int | None]]:
+    """A function telling the first SIGINT or SIGTERM this process really received in the block.
+
+    Replayed signals call their handlers directly; a real one also writes
+    its number to the wakeup file descriptor set here, whichever handler the
+    replayed command installed.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    r, w = os.pipe()
+    os.set_blocking(r, False)
+    os.set_blocking(w, False)
+    previous = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+
+    def first() -> int | None:
+        try:
+            data = os.read(r, 4096)
+        except BlockingIOError:
+            return None
+        return next((b for b in data if b in (signal.SIGINT, signal.SIGTERM)), None)
+
+    try:
+        yield first
+    finally:
+        signal.set_wakeup_fd(previous)
+        os.close(r)
+        os.close(w)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -240,3 +240,37 @@ def test_an_evaluation_ctrl_ced_mid_episode_replays(
     monkeypatch.undo()
     capsys.readouterr()
     assert_stopped_midway_and_replays(trace)
+
+
+@pytest.mark.parametrize(
+    ("signum", "code", "line"),
+    [
+        (signal.SIGINT, 130, "bioscara replay: interrupted"),
+        (signal.SIGTERM, 143, "bioscara replay: interrupted by SIGTERM"),
+    ],
+    ids=["INT", "TERM"],
+)
+def test_a_replay_stopped_by_its_own_signal_says_interrupted_not_mismatch(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], signum: int, code: int, line: str
+) -> None:
+    # Seen (a hostile test): Ctrl-C to `bioscara replay` of a deploy: the deploy's safe stop sent
+    # what the trace did not have, reported as "mismatch at transaction 111", exit 1.
+    import os
+
+    from bioscara_gym.cli import main
+    from bioscara_gym.hardware.recording import ReplayBus
+
+    transfer = ReplayBus.transfer
+    count = [0]
+
+    def transfer_then_signal(self: ReplayBus, address: int, data: bytes, read_len: int) -> bytes:
+        count[0] += 1
+        if count[0] == 400:  # in the deploy's control loop: its guard takes the signal
+            os.kill(os.getpid(), signum)
+        return transfer(self, address, data, read_len)
+
+    monkeypatch.setattr(ReplayBus, "transfer", transfer_then_signal)
+    trace = Path(__file__).parent / "traces" / "deploy_reach_expert.jsonl"
+    assert main(["replay", str(trace)]) == code
+    assert capsys.readouterr().err.strip() == line
+    assert count[0] > 400  # the command went on to its safe stop: the interrupt came after it
