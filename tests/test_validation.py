@@ -975,3 +975,32 @@ def test_the_drive_cost_charges_the_margin_of_every_run_and_stated_limit(
     assert cal.drive_cost(CONFIG, (), j3_limits) == 3000.0  # every verdict as stated
     assert [lost for _, lost in seen] == [False, True, False]
     assert all(d > 0.0 for d, _ in seen)
+
+
+def test_plots_are_written_all_or_none(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Seen (a hostile test): SIGTERM during validate --plots left 4 to 37 of the 41 PNGs.
+    pytest.importorskip("matplotlib")
+    from bioscara_gym.validation import plots
+
+    (tmp_path / "maxAccel").mkdir()
+    shutil.copy(DATA_DIR / "maxAccel" / "j3_6.csv", tmp_path / "maxAccel")
+    (tmp_path / "RW_test").mkdir()
+    shutil.copy(DATA_DIR / "RW_test" / "position_100kHz.csv.gz", tmp_path / "RW_test")
+    result = validate(tmp_path, CONFIG)
+    out = tmp_path / "plots"
+    names = sorted(p.name for p in plots.write_plots(result, out))
+    assert names and sorted(p.name for p in out.iterdir()) == names  # nothing hidden left
+    assert all(p.suffix == ".png" for p in out.iterdir())
+
+    def interrupted(v: object, folder: Path) -> list[Path]:
+        raise KeyboardInterrupt  # after maxAccel's pictures were drawn
+
+    monkeypatch.setattr(plots, "_transactions", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        plots.write_plots(result, tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    (out / "mine.txt").write_text("kept", encoding="utf-8")
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    with pytest.raises(KeyboardInterrupt):
+        plots.write_plots(result, out)
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before

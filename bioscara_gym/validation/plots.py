@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +140,10 @@ def _transactions(v: Validation, out: Path) -> list[Path]:
 def write_plots(v: Validation, out: Path | str) -> list[Path]:
     """One PNG per recording into ``out`` (created); returns the paths.
 
+    All or none: the pictures are drawn into a hidden folder inside ``out``
+    and moved into place once every one is drawn (seen: SIGTERM left 4 to 37
+    of 41); an interrupted or failed run leaves ``out`` as it was.
+
     Raises:
         MissingExtraError: matplotlib is not installed (the ``[validate]`` extra).
     """
@@ -145,15 +151,25 @@ def write_plots(v: Validation, out: Path | str) -> list[Path]:
 
     require_extra("matplotlib", "--plots", "validate")
     out = Path(out)
+    made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    paths: list[Path] = []
-    for kind, draw in (
-        ("max_accel", _max_accel),
-        ("setting_max_val", _setting_max_val),
-        ("stall_signal", _stall),
-        ("tracking", _tracking),
-        ("transactions", _transactions),
-    ):
-        if kind in v.replays:
-            paths += draw(v, out)
+    drawing = Path(tempfile.mkdtemp(dir=out, prefix=".drawing-"))
+    try:
+        drawn: list[Path] = []
+        for kind, draw in (
+            ("max_accel", _max_accel),
+            ("setting_max_val", _setting_max_val),
+            ("stall_signal", _stall),
+            ("tracking", _tracking),
+            ("transactions", _transactions),
+        ):
+            if kind in v.replays:
+                drawn += draw(v, drawing)
+        paths = [p.replace(out / p.name) for p in drawn]
+    except BaseException:
+        shutil.rmtree(drawing, ignore_errors=True)
+        if made:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    drawing.rmdir()
     return paths
