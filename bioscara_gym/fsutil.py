@@ -36,13 +36,24 @@ def read_json(path: str | os.PathLike[str], max_bytes: int = MAX_JSON_BYTES) -> 
             ``/dev/zero``, a FIFO that would block), is larger than
             ``max_bytes``, or cannot be read.
         ValueError: It is not UTF-8 (``UnicodeDecodeError``), not JSON
-            (``json.JSONDecodeError``) or nested too deeply to parse.
+            (``json.JSONDecodeError``), nested too deeply to parse, or an
+            object in it has a key twice (JSON keeps the last, silently).
     """
     data = read_bytes(path, max_bytes)
     try:
-        return json.loads(data.decode("utf-8"))
+        return json.loads(data.decode("utf-8"), object_pairs_hook=_once_each)
     except RecursionError as e:
         raise ValueError("nested too deeply to be one of this package's files") from e
+
+
+def _once_each(pairs: list[tuple[str, object]]) -> dict[str, object]:
+    """A JSON object whose keys are each given once (seen: the second drive_current won)."""
+    doc: dict[str, object] = {}
+    for key, value in pairs:
+        if key in doc:
+            raise ValueError(f"key {key!r} is given twice")
+        doc[key] = value
+    return doc
 
 
 def read_bytes(path: str | os.PathLike[str], max_bytes: int) -> bytes:

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from bioscara_gym.cli import main
-from bioscara_gym.fsutil import atomic_write_text, output_clash, output_problem, replaced_path
+from bioscara_gym.fsutil import atomic_write_text, output_clash, output_problem, read_json, replaced_path
 from bioscara_gym.hardware.recording import TRACE_FORMAT, Recording
 
 REACH = "Bioscara-Reach-v0"
@@ -402,3 +402,13 @@ def test_status_read_by_a_reader_that_leaves_early_leaves_the_arm_enabled(
         main(["status", "--state", str(state)])
     firmware = json.loads(state.read_text(encoding="utf-8"))["firmware"]
     assert all(joint["drive_current"] > 0 for joint in firmware.values())
+
+
+def test_a_json_file_with_a_key_twice_is_refused(tmp_path: Path) -> None:
+    # Seen (a hostile test): "drive_current": 200, "drive_current": 20 in a state file; the last won.
+    path = tmp_path / "s.json"
+    path.write_text('{"a": {"b": 1, "c": 2, "b": 3}}', encoding="utf-8")
+    with pytest.raises(ValueError, match=r"^key 'b' is given twice$"):
+        read_json(path)
+    path.write_text('{"a": {"b": 1}, "c": [{"b": 2}]}', encoding="utf-8")
+    assert read_json(path) == {"a": {"b": 1}, "c": [{"b": 2}]}

@@ -651,7 +651,12 @@ def test_an_empty_state_path_is_refused(bioscara: Run) -> None:
             "drive.j1.load_accel is 1e+308; expected 0.0, this configuration's (a parameter of the "
             "drive model, not state)",
         ),
-        ("drive", "pole_slips", -1, "drive.j1.pole_slips is -1; expected a count (a whole number >= 0)"),
+        (
+            "drive",
+            "pole_slips",
+            -1,
+            "drive.j1.pole_slips is -1; expected a count (a whole number, 0 to 2**63 - 1)",
+        ),
         (
             "drive",
             "_swing_deg",
@@ -698,10 +703,43 @@ def test_a_state_whose_float_registers_hold_inf_or_nan_is_used(bioscara: Run, st
         (
             ("host", "stats", "j1", "errors"),
             -5,
-            "host.stats.j1.errors is -5; expected a count (a whole number >= 0)",
+            "host.stats.j1.errors is -5; expected a count (a whole number, 0 to 2**63 - 1)",
+        ),
+        # Seen (a second hostile pass): all accepted, an unknown key dropped when the file was written.
+        (
+            ("host", "stats", "j1", "errors"),
+            2**63,
+            "host.stats.j1.errors is 9223372036854775808; expected a count (a whole number, 0 to 2**63 - 1)",
+        ),
+        (("host", "homing", "j1"), 1e308, "host.homing must map joint names to non-zero speeds"),
+        (
+            ("extra",),
+            1,
+            "has extra, which a state file does not; it has "
+            "{backend, config, drive, firmware, format, host, mujoco, time_s, version}",
+        ),
+        (
+            ("host", "notes"),
+            "x",
+            "has host.notes, which a state file does not; it has host.{gripper, homing, stats}",
+        ),
+        (
+            ("host", "gripper", "speed"),
+            1,
+            "has host.gripper.speed, which a state file does not; it has host.gripper.{enabled, width_m}",
         ),
     ],
-    ids=["time-text", "time-null", "gripper-width", "stats-count"],
+    ids=[
+        "time-text",
+        "time-null",
+        "gripper-width",
+        "stats-count",
+        "stats-count-past-64-bits",
+        "homing-speed-1e308",
+        "unknown-key",
+        "unknown-host-key",
+        "unknown-gripper-key",
+    ],
 )
 def test_a_state_whose_host_values_cannot_be_is_refused_and_kept(
     bioscara: Run, state: Path, keys: tuple[str, ...], value: object, message: str
@@ -720,6 +758,16 @@ def test_a_state_whose_host_values_cannot_be_is_refused_and_kept(
     assert code == 2
     assert err == f"bioscara status: error: state file {state}: {message}"
     assert state.read_text() == saved
+
+
+def test_a_state_of_version_2_0_is_not_version_2(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    doc = json.loads(state.read_text())
+    doc["version"] = float(doc["version"])
+    state.write_text(json.dumps(doc))
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert err.endswith(f"state file {state} has version 2.0; this console reads 2")
 
 
 @pytest.mark.parametrize(

@@ -200,6 +200,11 @@ def _host_facts(
     if not isinstance(host, dict):
         raise StateFileError(f"{where}: no 'host' object")
     gripper = host.get("gripper", {})
+    unknown = _unknown_keys(host, HOST_KEYS, "host.") or (
+        _unknown_keys(gripper, GRIPPER_KEYS, "host.gripper.") if isinstance(gripper, dict) else None
+    )
+    if unknown is not None:  # seen: accepted, and dropped when the file was written again
+        raise StateFileError(f"{where}: {unknown}")
     enabled = gripper.get("enabled") if isinstance(gripper, dict) else None
     width = gripper.get("width_m") if isinstance(gripper, dict) else None
     if not isinstance(enabled, bool) or not (width is None or _finite_number(width)):
@@ -212,8 +217,7 @@ def _host_facts(
     names = set(names)
     homing = host.get("homing", {})
     if not isinstance(homing, dict) or not all(
-        n in names and isinstance(s, (int, float)) and not isinstance(s, bool) and s != 0
-        for n, s in homing.items()
+        n in names and _finite_number(s) and s != 0 for n, s in homing.items()
     ):
         raise StateFileError(f"{where}: host.homing must map joint names to non-zero speeds")
     stats = host.get("stats", {})
@@ -228,9 +232,7 @@ def _host_facts(
     for n, c in stats.items():
         wrong = next((k for k, v in c.items() if not _is_count(v)), None)
         if wrong is not None:
-            raise StateFileError(
-                f"{where}: host.stats.{n}.{wrong} is {c[wrong]!r}; expected a count (a whole number >= 0)"
-            )
+            raise StateFileError(f"{where}: host.stats.{n}.{wrong} is {c[wrong]!r}; expected {COUNT}")
     return HostFacts(bool(enabled), None if width is None else float(width), dict(homing), stats)
 
 
@@ -262,9 +264,30 @@ def _holds_nan(value: object) -> bool:
 FLOAT32_MAX = 3.4028234663852886e38
 
 
+#: What a counter of the state file is.
+COUNT = "a count (a whole number, 0 to 2**63 - 1)"
+
+
 def _is_count(x: object) -> bool:
-    """Whether ``x`` is a whole number >= 0 (not a bool)."""
-    return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+    """Whether ``x`` is a whole number from 0 to 2**63 - 1 (not a bool; seen: 10**400 kept)."""
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 2**63
+
+
+#: The keys of a state file, of its ``host`` and of ``host.gripper`` (:func:`save_state` writes them).
+STATE_KEYS = frozenset(
+    {"format", "version", "backend", "config", "time_s", "mujoco", "firmware", "drive", "host"}
+)
+HOST_KEYS = frozenset({"gripper", "homing", "stats"})
+GRIPPER_KEYS = frozenset({"enabled", "width_m"})
+
+
+def _unknown_keys(doc: Mapping[str, object], known: frozenset[str], prefix: str) -> str | None:
+    """A line naming the first key of ``doc`` not in ``known``, or ``None``."""
+    unknown = sorted(k for k in doc if k not in known)
+    if not unknown:
+        return None
+    keys = ", ".join(sorted(known))
+    return f"has {prefix}{unknown[0]}, which a state file does not; it has {prefix}{{{keys}}}"
 
 
 def _in_bytes(high: int) -> Callable[[object], bool]:
@@ -354,9 +377,7 @@ def _check_drive(values: Mapping[str, object], fresh: Mapping[str, object], key:
                 )
         elif k in DRIVE_COUNTERS:
             if not _is_count(v):
-                raise StateFileError(
-                    f"{where}: {key}.{k} is {_shown(v)}; expected a count (a whole number >= 0)"
-                )
+                raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {COUNT}")
         elif not _sim_numbers(v):
             raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {_SIM_NUMBER}")
 
@@ -382,7 +403,7 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
         raise StateFileError(f"{where} cannot be read ({e}); delete it to start from a powered-up arm") from e
     if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
         raise StateFileError(f"{where} is not a bioscara console state file; delete it or pick another")
-    if doc.get("version") != STATE_VERSION:
+    if type(doc.get("version")) is not int or doc["version"] != STATE_VERSION:  # 2.0 is no version
         raise StateFileError(
             f"{where} has version {doc.get('version')!r}; this console reads {STATE_VERSION}"
         )
@@ -396,6 +417,9 @@ def load_state(path: Path, backend: Backend) -> HostFacts:
             f"{where} was saved with another arm configuration (joints or gripper differ); use the same "
             "--config or another file"
         )
+    unknown = _unknown_keys(doc, STATE_KEYS, "")
+    if unknown is not None:
+        raise StateFileError(f"{where}: {unknown}")
     if not _finite_number(doc.get("time_s")) or doc["time_s"] < 0:
         raise StateFileError(
             f"{where}: 'time_s' is {doc.get('time_s')!r}; expected the simulated time in s, "
