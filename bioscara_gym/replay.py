@@ -239,7 +239,7 @@ def replay_session(session: TraceSession) -> SessionResult:
         if state is not None:
             (tmp / "state.json").write_text(json.dumps(state), encoding="utf-8")
         error = None
-        with _quiet():
+        with _quiet(), _own_stop_handlers():
             try:
                 bus.start()
                 runner(args, options, tmp)
@@ -332,6 +332,24 @@ def cmd_replay(args: argparse.Namespace) -> int:
     out.print(f"{result.matched} transactions matched before the first difference")
     err.print(f"bioscara replay: {args.file}: {_explain(failed, len(result.sessions), sessions)}")
     return EXIT_MISMATCH
+
+
+@contextlib.contextmanager
+def _own_stop_handlers() -> Iterator[None]:
+    """SIGINT's and SIGTERM's handlers as they were before a session, whatever it did to them.
+
+    A recorded signal calls the installed handler; the CLI's turns every later
+    signal into a note (seen: a real Ctrl-C ignored for the rest of the replay).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
 
 
 @contextlib.contextmanager

@@ -274,3 +274,22 @@ def test_a_replay_stopped_by_its_own_signal_says_interrupted_not_mismatch(
     assert main(["replay", str(trace)]) == code
     assert capsys.readouterr().err.strip() == line
     assert count[0] > 400  # the command went on to its safe stop: the interrupt came after it
+
+
+def test_a_replayed_signal_leaves_the_replays_own_handlers_as_they_were(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a review): the recorded Ctrl-C of an eval called the CLI's handler, which noted every
+    # later signal: a real Ctrl-C during the next session of the replay was ignored.
+    from bioscara_gym.cli import _signals_as_interrupt, main
+
+    trace = tmp_path / "eval.jsonl"
+    interrupt_the_nth_read(monkeypatch, 40)
+    argv = ["eval", "--expert", "--env", REACH, "--backend", "emulated", "--episodes", "2"]
+    assert main([*argv, "--record", str(trace)]) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    with _signals_as_interrupt():
+        before = signal.getsignal(signal.SIGINT)
+        assert replay(trace).ok
+        assert signal.getsignal(signal.SIGINT) is before
