@@ -108,12 +108,15 @@ def resume(
     return setup
 
 
-def model_zip(steps: int) -> Checkpoints:
-    """A checkpoint ``ckpt_<steps>_steps.zip``: a whole zip of a model's members, and nothing beside it."""
+def model_zip(steps: int, n_envs: int | None = None) -> Checkpoints:
+    """A checkpoint ``ckpt_<steps>_steps.zip``: a whole zip of a model's members, and nothing beside it.
+
+    ``n_envs``: the envs its model says it stepped (SB3's ``data``); none said if ``None``.
+    """
 
     def fill(folder: Path) -> None:
         with zipfile.ZipFile(folder / f"ckpt_{steps}_steps.zip", "w") as archive:
-            archive.writestr("data", "{}")
+            archive.writestr("data", "{}" if n_envs is None else json.dumps({"n_envs": n_envs}))
             archive.writestr("policy.pth", b"")
 
     return fill
@@ -222,6 +225,18 @@ CASES = [
         r"cannot resume from .*run/train_state\.json: total_timesteps is 100, below the 2491 steps its "
         r"checkpoint ckpt_2491_steps\.zip has taken$",
         id="state-total-below-the-steps-taken",
+    ),
+    # A run on 8 envs ends up to 8 steps past its budget (SAC, train_freq 1): one more is refused,
+    # though --resume is not told --n-envs (a reviewer's: a PPO run on 8 was refused on 1).
+    pytest.param(
+        resume(state_json(total_timesteps=100), checkpoint=model_zip(109, n_envs=8)),
+        r"total_timesteps is 100, below the 109 steps its checkpoint ckpt_109_steps\.zip has taken$",
+        id="state-total-one-step-past-eight-envs",
+    ),
+    pytest.param(
+        resume(state_json(total_timesteps=100), checkpoint=model_zip(108, n_envs=8)),
+        r"ckpt_108_steps\.zip cannot be loaded",
+        id="state-total-eight-envs-past-is-resumed",
     ),
     pytest.param(  # DAgger's run may end a phase past its budget: 120 episodes of 200 steps
         resume(
@@ -489,3 +504,30 @@ def test_bad_train_input_is_one_line_exit_2_and_nothing_written(
     assert rc == EXIT_ERROR
     assert _snapshot(tmp_path) == before  # nothing trained, nothing written
     assert not (tmp_path / "run" / "tb").exists()
+
+
+def test_a_dagger_resume_allows_a_phase_of_the_configs_own_episode_length(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a review): a config of 800-step episodes, interrupted after iteration 0 at 800 steps of
+    # a 1-step budget: the printed --resume command was refused ("below the 800 steps"); the
+    # overshoot came from the registered 200 steps. 120 episodes of 800 steps are 96,000.
+    packaged = Path(__file__).parent.parent / "training" / "configs" / "dagger.yaml"
+    entry = yaml.safe_load(packaged.read_text(encoding="utf-8"))["Bioscara-PickPlace-v1"]
+    entry["env_kwargs"] = {**entry["env_kwargs"], "max_episode_steps": 800}
+    config = tmp_path / "dagger.yaml"
+    config.write_text(yaml.safe_dump({"Bioscara-PickPlace-v1": entry}), encoding="utf-8")
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    state = {**STATE, "env_id": "Bioscara-PickPlace-v1", "algo": "dagger", "config": str(config)}
+    (run / "train_state.json").write_text(json.dumps({**state, "total_timesteps": 1}), encoding="utf-8")
+    for steps, expected in (
+        (96_002, "below the 96002 steps"),  # the budget's 1 step and a phase past it: 96,001
+        (96_001, "ckpt_96001_steps.zip cannot be loaded"),
+    ):
+        for old in (run / "checkpoints").iterdir():
+            old.unlink()
+        model_zip(steps)(run / "checkpoints")
+        argv = ["train", "--resume", "--out", str(run), "--env", "Bioscara-PickPlace", "--no-progress"]
+        assert main(argv) == EXIT_ERROR
+        assert expected in capsys.readouterr().err

@@ -29,6 +29,7 @@ import abc
 import contextlib
 import signal
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -265,6 +266,11 @@ class TrainingMethod(abc.ABC):
         args.demos = args.demos or saved["demos"]
         config = saved["config"] or (str(args.config) if args.config else None)
         return Resumed(seed=saved["seed"], total=total, config=config, demos=saved["demos"], newest=newest)
+
+    def episode_steps(self, env_kwargs: Mapping[str, Any]) -> int | None:
+        """An episode's most steps: the config's ``max_episode_steps``, else the registered one."""
+        limit = env_kwargs.get("max_episode_steps") or gym.spec(self.env_id).max_episode_steps
+        return int(limit) if limit is not None else None
 
     def check_budget(self, resumed: Resumed, overshoot: int | None) -> None:
         """Refuse a budget below the steps the newest checkpoint has taken (an edited ``train_state.json``).

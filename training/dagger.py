@@ -164,7 +164,8 @@ class DAgger(TrainingMethod):
             # A run ends at most one phase past its budget: the expert's episodes, or an
             # iteration's rollouts and a confirmation.
             episodes = max(cfg.demo_episodes, cfg.episodes_per_iteration + cfg.eval_episodes)
-            self.check_budget(resumed, episodes * gym.spec(self.env_id).max_episode_steps)
+            steps = self.episode_steps(cfg.env_kwargs)
+            self.check_budget(resumed, None if steps is None else episodes * steps)
             total, config, demos = resumed.total, resumed.config, resumed.demos
         else:
             config = str(args.config) if args.config else None

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import json
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -189,11 +191,14 @@ class CheckpointEvery(BaseCallback):
         return True
 
 
-def collection_steps(hp: Hyperparams, algo_cls: type[BaseAlgorithm], n_envs: int, env_id: str) -> int | None:
+def collection_steps(
+    hp: Hyperparams, algo_cls: type[BaseAlgorithm], n_envs: int, episode_steps: int | None
+) -> int | None:
     """Env steps one collection takes: how far past its budget a run may end (``None``: unbounded).
 
     PPO collects whole rollouts (``n_steps`` an env), an off-policy
-    algorithm ``train_freq`` steps or episodes, before it looks at the budget.
+    algorithm ``train_freq`` steps or episodes (of at most ``episode_steps``),
+    before it looks at the budget.
     """
     defaults = {k: p.default for k, p in inspect.signature(algo_cls).parameters.items()}
     kwargs = {**defaults, **hp.algo_kwargs}
@@ -202,10 +207,20 @@ def collection_steps(hp: Hyperparams, algo_cls: type[BaseAlgorithm], n_envs: int
             return int(kwargs["n_steps"]) * n_envs
         freq = kwargs["train_freq"]
         n, unit = (freq, "step") if isinstance(freq, int) else tuple(freq)
-        per_env = int(n) * (gym.spec(env_id).max_episode_steps if unit == "episode" else 1)
+        per_env = int(n) * (int(episode_steps) if unit == "episode" else 1)  # type: ignore[arg-type]
     except (TypeError, ValueError):  # malformed, or episodes without a limit: no bound
         return None
     return per_env * n_envs
+
+
+def saved_n_envs(checkpoint: Path) -> int:
+    """The envs a checkpoint's model stepped (its ``data``'s ``n_envs``); 1 if it does not say."""
+    try:
+        with zipfile.ZipFile(checkpoint) as archive:
+            n_envs = json.loads(archive.read("data")).get("n_envs")
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, AttributeError):
+        return 1  # a damaged checkpoint is named when it is loaded
+    return n_envs if isinstance(n_envs, int) and not isinstance(n_envs, bool) and n_envs >= 1 else 1
 
 
 # ---------------------------------------------------------------------- method
@@ -218,8 +233,10 @@ class SB3Method(TrainingMethod):
         if args.resume:
             resumed = self.resumed()
             hp = self._hyperparams(resumed.config)
-            n_envs = args.n_envs or hp.n_envs
-            self.check_budget(resumed, collection_steps(hp, sb3_class(self.spec.model), n_envs, self.env_id))
+            # The run's own envs, which --resume may not repeat (seen: a PPO run on 8 refused on 1).
+            n_envs = max(args.n_envs or hp.n_envs, saved_n_envs(resumed.newest))
+            steps = self.episode_steps(hp.env_kwargs)
+            self.check_budget(resumed, collection_steps(hp, sb3_class(self.spec.model), n_envs, steps))
             total, config, demos = resumed.total, resumed.config, resumed.demos
         else:
             config = str(args.config) if args.config else None
