@@ -559,6 +559,28 @@ def test_sigterm_saves_a_checkpoint_and_exits_143_with_one_line(tmp_path: Path) 
     assert not (out / "model.zip").exists()
 
 
+def test_a_signal_while_the_envs_close_after_the_save_keeps_the_run_done(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a review): SIGINT while SubprocVecEnv's workers were joined, model.zip already saved:
+    # "interrupted by SIGINT before training started; nothing saved", exit 130.
+    import os
+
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    close = DummyVecEnv.close
+
+    def close_under_a_signal(self: DummyVecEnv) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        close(self)
+
+    monkeypatch.setattr(DummyVecEnv, "close", close_under_a_signal)
+    config = write_config(tmp_path / "cfg.yaml", {REACH: TINY["sac"]})
+    assert main(train_argv(tmp_path / "run", config)) == 0
+    assert (tmp_path / "run" / "model.zip").is_file() and (tmp_path / "run" / METADATA_NAME).is_file()
+    assert "interrupted" not in capsys.readouterr().err
+
+
 def _truncate(path: Path) -> None:
     """Cut ``path`` to its first half, as a crash or a full disk would."""
     data = path.read_bytes()

@@ -208,6 +208,9 @@ class TrainingMethod(abc.ABC):
             with guard.shielded():  # a signal now would cut the final model in half
                 metadata = self._metadata(env, plan, final)
                 model_path, metadata_path = save_policy(self.model, self.out, metadata)
+                # The envs closed (workers joined) in here too: a signal then was reported as one
+                # "before training started; nothing saved", the model saved (a reviewer's find).
+                stack.close()
         return TrainResult(
             model_path=model_path,
             metadata_path=metadata_path,
