@@ -226,11 +226,10 @@ def test_a_console_command_ctrl_ced_between_transactions_replays(
     assert_stopped_midway_and_replays(trace)
 
 
-def test_an_evaluation_ctrl_ced_mid_episode_replays(
+def eval_ctrl_ced(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:
-    # `bioscara eval --expert --backend emulated --record`: the env's shutdown
-    # after the Ctrl-C sends the arm's disable; the trace says where it came.
+) -> Path:
+    """The trace of ``bioscara eval --expert --backend emulated`` Ctrl-C'd at its 40th read."""
     from bioscara_gym.cli import main
 
     trace = tmp_path / "eval.jsonl"
@@ -239,7 +238,15 @@ def test_an_evaluation_ctrl_ced_mid_episode_replays(
     assert main([*argv, "--record", str(trace)]) == 130
     monkeypatch.undo()
     capsys.readouterr()
-    assert_stopped_midway_and_replays(trace)
+    return trace
+
+
+def test_an_evaluation_ctrl_ced_mid_episode_replays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # `bioscara eval --expert --backend emulated --record`: the env's shutdown
+    # after the Ctrl-C sends the arm's disable; the trace says where it came.
+    assert_stopped_midway_and_replays(eval_ctrl_ced(tmp_path, monkeypatch, capsys))
 
 
 @pytest.mark.parametrize(
@@ -281,14 +288,9 @@ def test_a_replayed_signal_leaves_the_replays_own_handlers_as_they_were(
 ) -> None:
     # Seen (a review): the recorded Ctrl-C of an eval called the CLI's handler, which noted every
     # later signal: a real Ctrl-C during the next session of the replay was ignored.
-    from bioscara_gym.cli import _signals_as_interrupt, main
+    from bioscara_gym.cli import _signals_as_interrupt
 
-    trace = tmp_path / "eval.jsonl"
-    interrupt_the_nth_read(monkeypatch, 40)
-    argv = ["eval", "--expert", "--env", REACH, "--backend", "emulated", "--episodes", "2"]
-    assert main([*argv, "--record", str(trace)]) == 130
-    monkeypatch.undo()
-    capsys.readouterr()
+    trace = eval_ctrl_ced(tmp_path, monkeypatch, capsys)
     with _signals_as_interrupt():
         before = signal.getsignal(signal.SIGINT)
         assert replay(trace).ok
