@@ -87,7 +87,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _resume_command(args: argparse.Namespace) -> str:
     """The command that continues this run (``--env`` and ``--algo`` must match the run's)."""
     command = f"bioscara train --resume --out {args.out}"
-    if args.env != "Bioscara-Reach":
+    if args.env != DEFAULT_ENV:
         command += f" --env {args.env}"
     if args.algo is not None:
         command += f" --algo {args.algo}"

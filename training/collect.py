@@ -24,6 +24,7 @@ import gymnasium as gym
 
 from bioscara_gym.errors import CliError, HyperparamError, TrainingError
 from bioscara_gym.tasks import task_of
+from bioscara_gym.training.checkpoints import SEED_MAX
 from bioscara_gym.training.extras import needed_by
 
 
@@ -61,8 +62,6 @@ def model_factory(model_path: Path) -> Any:
     return factory
 
 
-#: The largest seed of an episode (seeds reach numpy's legacy seeding, which takes 32 bits).
-MAX_SEED = 2**32 - 1
 #: The env of ``--expert`` when none is given.
 DEFAULT_ENV = "Bioscara-PickPlace"
 
@@ -78,8 +77,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
         raise CliError(f"--episodes must be > 0, got {args.episodes}")
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
-    if args.seed + args.episodes - 1 > MAX_SEED:
-        raise CliError(f"--seed {args.seed}: the episodes' seeds must stay within 0-{MAX_SEED}")
+    if args.seed + args.episodes - 1 > SEED_MAX:
+        raise CliError(f"--seed {args.seed}: the episodes' seeds must stay within 0-{SEED_MAX}")
     try:
         if args.expert:
             env_id = resolve_env_id(args.env or DEFAULT_ENV)
