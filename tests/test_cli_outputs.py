@@ -18,6 +18,7 @@ a ``metadata.json`` beside a placeholder ``model.zip`` is enough.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -141,8 +142,13 @@ def test_a_loop_of_symlinks_is_named_and_never_replaced(tmp_path: Path) -> None:
     b.symlink_to(a)
     assert output_problem(a) == "is a loop of symlinks"
     assert output_clash({"--json": a}) == f"--json {a} is a loop of symlinks"
-    with pytest.raises(OSError, match="is a loop of symlinks"):
+    with pytest.raises(OSError) as caught:
         atomic_write_text(a, "x")
+    assert (caught.value.errno, caught.value.strerror, caught.value.filename) == (
+        errno.ELOOP,
+        "is a loop of symlinks",
+        str(a),
+    )
     assert a.is_symlink() and os.readlink(a) == str(b)
 
 
