@@ -225,8 +225,9 @@ def _following_run(motor: KinematicStepper) -> list[tuple[float, float, float, f
 
 def test_the_many_pass_shortcut_gives_what_the_1_ms_passes_give(monkeypatch: pytest.MonkeyPatch) -> None:
     # A drive whose load angle changes with every tick of the ramp (friction 20 %
-    # of the pull-out, the ramp's 40 deg/s a tick 35 %): the shortcut and the passes one by one
-    # must agree on everything the firmware reads, to rounding.
+    # of the pull-out, the ramp's 40 deg/s a tick 35 %; as it brakes, the rotor
+    # waits on the field): the shortcut and the passes one by one must agree on
+    # everything the firmware reads, to rounding.
     drive = DriveParams(pullout_accel=1000.0, friction_coulomb=40.0, friction_viscous=0.5)
     fast = _following_run(KinematicStepper(0.0, drive=drive))
     monkeypatch.setattr(KinematicStepper, "_follow_passes", lambda self, n, h: False)

@@ -439,10 +439,12 @@ class KinematicStepper:
         """``n`` passes at once, if the rotor follows throughout (the common case; the same result).
 
         At a constant step rate the load angle is constant; the rotor takes
-        up a change of it over its settling (:func:`_settled`), and the
-        closed loop sees each pass's place. Returns False (nothing done) when
-        anything else may happen: a slip, a stop, a pole slip's swing, the
-        rotor waiting on friction, an acceleration that ends mid-way.
+        up a change of it over its settling (:func:`_settled`, pass by pass
+        here), and the closed loop sees each pass's place. A rotor whose
+        settling would take it back against the field waits, as in
+        :meth:`_follow`. Returns False (nothing done) when anything else may
+        happen: a slip, a stop, a pole slip's swing, an acceleration that
+        ends mid-way.
         """
         if not self._synced or self._swing_deg or self._swing_dps or self.blocked or self._held:
             return False
@@ -463,22 +465,36 @@ class KinematicStepper:
             return False
         lag = _load_angle_deg(needed, pullout)
         x, xd = self._settle_deg + lag - self._lag_deg, self._settle_dps
+        # The settling's constants, as _settled has them (none: no settling).
+        a = math.sqrt(pullout * (math.pi / 2) / (FULL_STEP_DEG * _RAD)) if math.isfinite(pullout) else 0.0
+        decay = math.exp(-a * h)
         step = v * h
         field = self._field
         before = self._position
         lower, upper = self.lower_stop_deg, self.upper_stop_deg
-        offsets, xd = _settled(x, xd, pullout, h, n) if x or xd else ([0.0] * n, 0.0)
         # The closed loop over the passes, kept local until every place is
         # known to be a following rotor's.
         loop = self._loop
         xactual = loop.xactual_deg
         error = loop.error
         counts = []
-        for x in offsets:
+        for _ in range(n):
+            if not a:
+                x = xd = 0.0
+            elif x or xd:
+                b = xd + a * x
+                y = x + b * h
+                x, xd = decay * y, decay * (b - a * y)
+                if (abs(x) + abs(xd) / a) * USTEPS_PER_DEG < 1.0:
+                    x = xd = 0.0
             field += step
             place = field - lag + x
-            if v * (place - before) < 0.0 or place < lower or place > upper:
-                return False  # it waits for the field to pull ahead (see _follow), or at a stop
+            if place < lower or place > upper:
+                return False  # at a stop: the passes one by one hold it there
+            if v * (place - before) < 0.0:
+                # It waits (stiction) until the field has pulled that far ahead.
+                x, xd = before - (field - lag), 0.0
+                place = before
             before = place
             xactual += step
             error = (xactual - place) * USTEPS_PER_DEG
@@ -491,7 +507,7 @@ class KinematicStepper:
         loop.error = self._pid_error = error
         self._field = field
         self._position = before
-        self._settle_deg, self._settle_dps = offsets[-1], xd
+        self._settle_deg, self._settle_dps = x, xd
         self._rotor_dps = v
         self._lag_deg = lag
         if left > 0.0:
