@@ -17,6 +17,7 @@ import contextlib
 import errno
 import json
 import os
+import secrets
 import stat
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -188,11 +189,13 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     """A binary file that replaces ``path`` atomically when the ``with`` block ends without error.
 
     What is written goes to a temporary file in the same directory (so the
-    rename cannot cross file systems), which is flushed and ``fsync``-ed,
-    then renamed over ``path`` with :func:`os.replace`; finally the directory
-    is ``fsync``-ed so the rename itself survives a power cut (skipped where
-    directories cannot be opened). Missing parent directories are created.
-    The new file has the temporary file's mode (0600, as :func:`tempfile.mkstemp`).
+    rename cannot cross file systems, :func:`temporary_beside`), which is
+    flushed and ``fsync``-ed, then renamed over ``path`` with :func:`os.replace`;
+    finally the directory is ``fsync``-ed so the rename itself survives a
+    power cut (skipped where directories cannot be opened). Missing parent
+    directories are created. A file replaced keeps its permission bits; a
+    new one gets those a plain :func:`open` would give it (``0o666`` less the
+    umask; seen: every write left 0600, tempfile's, also over a 0644 file).
     If the block raises (Ctrl-C included), the temporary file is removed and
     ``path`` is left as it was. A symlink is written through: its target is
     replaced, not the link (which may be someone else's, as ``/dev/stdout``).
@@ -203,7 +206,7 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     path = replaced_path(path)
     directory = path.parent
     directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = temporary_beside(path)
     try:
         with os.fdopen(fd, "wb") as f:
             yield f
@@ -215,6 +218,59 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
             os.unlink(tmp)
         raise
     _fsync_directory(directory)
+
+
+def temporary_beside(
+    path: str | os.PathLike[str], prefix: str | None = None, suffix: str = ".tmp"
+) -> tuple[int, str]:
+    """A new temporary file beside ``path``, to be renamed over it, with the mode ``path`` is to have.
+
+    As :func:`tempfile.mkstemp` (a new name, created exclusively, a symlink
+    never followed; open for reading and writing), but not 0600: if
+    ``path`` is a regular file, the temporary file gets its permission bits
+    (so the rename keeps them), else those a plain :func:`open` would give a
+    new file (``0o666`` less the umask, or what the folder's default ACL says).
+    Where the file system keeps no modes the mode is left as it comes.
+
+    Args:
+        path: The file the temporary one will replace (a symlink's target:
+            :func:`replaced_path`).
+        prefix: Start of the name; default ``.NAME.`` (a hidden file).
+        suffix: End of the name.
+
+    Returns:
+        The open descriptor and the temporary file's path; the caller closes
+        it, and renames or removes the file.
+
+    Raises:
+        OSError: No file can be created in the folder.
+    """
+    path = Path(path)
+    prefix = f".{path.name}." if prefix is None else prefix
+    kept = _permission_bits(path)
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL
+    for name in ("O_NOFOLLOW", "O_CLOEXEC", "O_BINARY"):
+        flags |= getattr(os, name, 0)
+    for _ in range(tempfile.TMP_MAX):
+        tmp = os.fspath(path.parent / f"{prefix}{secrets.token_hex(4)}{suffix}")
+        try:  # the kernel applies the umask (and a default ACL) to 0o666, as for open()
+            fd = os.open(tmp, flags, 0o600 if kept is not None else 0o666)
+        except FileExistsError:
+            continue
+        if kept is not None:
+            with contextlib.suppress(OSError):  # a file system without modes (FAT)
+                os.fchmod(fd, kept)
+        return fd, tmp
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", os.fspath(path.parent))
+
+
+def _permission_bits(path: Path) -> int | None:
+    """The permission bits of the regular file ``path``, or ``None`` if there is none."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_mode & 0o777 if stat.S_ISREG(st.st_mode) else None
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
@@ -263,11 +319,18 @@ class LockFile:
     """An exclusive, non-blocking lock held through a lock file (``fcntl.flock``, POSIX).
 
     The lock file is created if missing and holds the holder's pid while it
-    is held; it is left in place afterwards (removing it would let two
-    processes lock two different files of the same name). The operating
-    system releases the lock when its holder exits, so a crash never leaves
-    a stale lock. Use as a context manager, or :meth:`acquire` and
-    :meth:`release`.
+    is held. A holder that created the file removes it on :meth:`release`
+    (seen: a ``.lock`` left beside every state file, even beside a refused
+    one), while it still holds the lock; one that found it leaves it. Removal
+    is safe because every :meth:`acquire` checks, once it has the lock, that
+    its path still names the file it locked, and starts again if not: a
+    process that opened the file just before its holder removed it would
+    otherwise lock the removed file while a third locks a new one of the same
+    name. (A process following the older rule, which made no such check, may
+    still race a removal: run one version of the package on one file.) The
+    operating system releases the lock when its holder exits, so a crash never
+    leaves a stale lock, only the file. Use as a context manager, or
+    :meth:`acquire` and :meth:`release`.
 
     Args:
         path: The lock file (by convention the guarded file's name plus ``.lock``).
@@ -277,6 +340,7 @@ class LockFile:
         """Remember the path; nothing is locked before :meth:`acquire`."""
         self.path = Path(path)
         self._fd: int | None = None
+        self._created = False
 
     @property
     def held(self) -> bool:
@@ -285,6 +349,9 @@ class LockFile:
 
     def acquire(self) -> None:
         """Take the lock at once, or fail.
+
+        The lock file's folder must exist (it is not made: a mistyped folder
+        is the caller's to refuse).
 
         Raises:
             BlockingIOError: Another process (or another :class:`LockFile`
@@ -295,26 +362,59 @@ class LockFile:
 
         if self._fd is not None:
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BaseException:
-            os.close(fd)
-            raise
-        self._fd = fd
+        while True:
+            fd, created = self._open()
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                if self._names(fd):
+                    break
+            except BaseException:
+                os.close(fd)
+                raise
+            os.close(fd)  # its holder removed the file we locked: lock the one there now
+        self._fd, self._created = fd, created
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
 
+    def _open(self) -> tuple[int, bool]:
+        """Open the lock file, creating it if missing; whether this call created it."""
+        flags = os.O_RDWR | getattr(os, "O_CLOEXEC", 0)
+        while True:
+            try:
+                return os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644), True
+            except FileExistsError:
+                pass
+            try:
+                return os.open(self.path, flags), False
+            except FileNotFoundError:
+                continue  # removed by its holder in between: create it
+
+    def _names(self, fd: int) -> bool:
+        """Whether the lock file's path still names the file open as ``fd``."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return False
+        here = os.fstat(fd)
+        return (st.st_dev, st.st_ino) == (here.st_dev, here.st_ino)
+
     def release(self) -> None:
-        """Let go of the lock (the file's pid is cleared); does nothing when not held."""
+        """Let go of the lock: remove the file if this object created it, else clear its pid.
+
+        Does nothing when not held.
+        """
         fd, self._fd = self._fd, None
         if fd is None:
             return
         try:
             with contextlib.suppress(OSError):
                 os.ftruncate(fd, 0)
+            if self._created:
+                with contextlib.suppress(OSError):
+                    if self._names(fd):  # removed while held: a process that opened it starts again
+                        os.unlink(self.path)
         finally:
+            self._created = False
             os.close(fd)  # closing the descriptor releases the flock
 
     def holder(self) -> int | None:

@@ -44,8 +44,14 @@ On the ``dynamixel`` backends ``status`` adds the sync loops' statistics
 (``pvl_reader``, ``tv_reader``, ``pv_writer``, ``t_writer``: configured and
 achieved rate, packets, errors, timeouts) and ``monitor`` lists them with the
 joints' bus counters.
-- Any error (a refused request such as an unknown joint, a value outside the
-  limits or a busy joint, a stall, a bus failure) and Ctrl-C run the arm
+- A request refused for its arguments (an unknown joint or group, a value
+  outside the limits, a reboot of joints without REBOOT) is refused against
+  the configuration before the state file is locked or the bus opened: it
+  sends nothing and writes nothing (no state file, no bus trace), and exits 2
+  with one line naming the problem. One refused for the state the arm is in
+  (a joint not enabled, not homed, busy) sends nothing that changes the arm
+  and leaves it as it was.
+- Any other error (a stall, a bus failure) and Ctrl-C run the arm
   layer's on-error transition: every joint and the gripper are disabled
   (a running homing is stopped), then the command exits non-zero with one
   line naming the problem.
@@ -76,7 +82,15 @@ from rich.table import Table
 from bioscara_gym.console.dashboard import MonitorApp, key_source, run_monitor
 from bioscara_gym.console.format import flags_text, format_position, format_velocity, joint_unit
 from bioscara_gym.console.session import Session
-from bioscara_gym.console.targets import HOMING_DIRECTIONS, ConsoleOptions, resolve_joints, resolve_target
+from bioscara_gym.console.targets import (
+    HOMING_DIRECTIONS,
+    ConsoleOptions,
+    check_gripper_width,
+    check_position,
+    reboot_joints,
+    resolve_joints,
+    resolve_target,
+)
 from bioscara_gym.errors import ConsoleUsageError
 from bioscara_gym.fsutil import path_argument
 from bioscara_gym.hardware.backends import ALL_BACKENDS
@@ -368,7 +382,8 @@ def cmd_ping(args: argparse.Namespace) -> int:
 def cmd_enable(args: argparse.Namespace) -> int:
     """``bioscara enable [JOINT|GROUP]``."""
     con = make_console()
-    with Session(ConsoleOptions.from_args(args)) as session:
+    check = functools.partial(_check_target, target=args.target)
+    with Session(ConsoleOptions.from_args(args), check=check) as session:
         names = session.enable(resolve_target(session.config, args.target))
         con.print(f"enabled {', '.join(names)}; holding still · arm {session.arm.state.value}")
     return 0
@@ -377,22 +392,30 @@ def cmd_enable(args: argparse.Namespace) -> int:
 def cmd_disable(args: argparse.Namespace) -> int:
     """``bioscara disable [JOINT|GROUP]``."""
     con = make_console()
-    with Session(ConsoleOptions.from_args(args)) as session:
+    check = functools.partial(_check_target, target=args.target)
+    with Session(ConsoleOptions.from_args(args), check=check) as session:
         names = session.disable(resolve_target(session.config, args.target))
         con.print(f"disabled {', '.join(names)} · arm {session.arm.state.value}")
     return 0
 
 
+def _check_target(config: ArmConfig, target: str | None) -> None:
+    """Refuse an unknown joint or group (``enable``, ``disable``) before the session opens."""
+    resolve_target(config, target)
+
+
 def cmd_reboot(args: argparse.Namespace) -> int:
     """``bioscara reboot JOINT|GROUP``: REBOOT Dynamixel joints (clears a hardware error; torque off)."""
     con = make_console()
-    with Session(ConsoleOptions.from_args(args)) as session:
-        names = resolve_joints(session.config, args.target)
+    options = ConsoleOptions.from_args(args)
+    check = functools.partial(reboot_joints, backend=options.backend, name=args.target)
+    with Session(options, check=check) as session:
+        names = reboot_joints(session.config, options.backend, args.target)
         rebooted = []
         for name in names:
             joint = session.arm.joints[name]
             reboot = getattr(joint, "reboot", None)
-            if reboot is None:
+            if reboot is None:  # (a backend reboot_joints does not know)
                 raise InvalidArgumentError(
                     f"{name}: a {type(joint).__name__} has no REBOOT; only Dynamixel joints do "
                     "(power-cycle a Bioscara joint instead)"
@@ -415,7 +438,7 @@ def cmd_home(args: argparse.Namespace) -> int:
             raise ConsoleUsageError(f"--abort stops a running homing; it takes no {' or '.join(unused)}")
     if args.no_wait and options.state is None:
         raise ConsoleUsageError("--no-wait needs --state FILE, so that a later command can finish the homing")
-    with Session(options) as session:
+    with Session(options, check=functools.partial(resolve_joints, name=args.target)) as session:
         if args.abort:
             _abort_homing(con, session, args.target)
             return 0
@@ -474,7 +497,8 @@ def _end(speed: float) -> str:
 def cmd_move(args: argparse.Namespace) -> int:
     """``bioscara move JOINT VALUE``."""
     con = make_console()
-    with Session(ConsoleOptions.from_args(args)) as session:
+    check = functools.partial(check_position, name=args.joint, value=args.value)
+    with Session(ConsoleOptions.from_args(args), check=check) as session:
         clock = session.backend.clock
         start = clock.now()
         position = session.move(args.joint, args.value, args.timeout)
@@ -487,7 +511,8 @@ def cmd_move(args: argparse.Namespace) -> int:
 def cmd_gripper(args: argparse.Namespace) -> int:
     """``bioscara gripper WIDTH``."""
     con = make_console()
-    with Session(ConsoleOptions.from_args(args)) as session:
+    check = functools.partial(check_gripper_width, width_m=args.width)
+    with Session(ConsoleOptions.from_args(args), check=check) as session:
         width = session.set_gripper(args.width)
         con.print(f"gripper at {width:.4f} m (servo driven)")
     return 0

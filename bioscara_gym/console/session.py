@@ -1,18 +1,23 @@
 """One console command's hold on the arm: backend, :class:`~bioscara_gym.hardware.arm.Arm`, state file.
 
 A command opens a :class:`Session`, does its one thing and closes it.
-Opening builds the backend, restores the ``--state`` file, configures the
-arm and adopts what earlier commands left: joints enabled by an earlier
-command are adopted as they are (:meth:`~bioscara_gym.hardware.arm.Arm.attach`:
-the arm is ``active`` when any joint or the gripper is enabled, without
-re-sending SETUP, which would stop a running homing), and a homing left
-running is handed back to the arm
-(:meth:`~bioscara_gym.hardware.arm.Arm.adopt_homing`). Closing after an
-error (Ctrl-C included) runs the arm layer's on-error transition, then
-writes the state file and releases the connections, leaving enabled joints
-enabled. The state file is locked from before it is read until after it
+Opening first checks the options and the request's arguments against the
+configuration (``check``: joint names, positions against the limits,
+widths), so a request refused for its arguments sends nothing and writes
+nothing (no state file, no lock file, no bus trace); then it builds the
+backend, restores the ``--state`` file, configures the arm and adopts
+what earlier commands left: joints enabled by an earlier command are
+adopted as they are (:meth:`~bioscara_gym.hardware.arm.Arm.attach`: the arm
+is ``active`` when any joint or the gripper is enabled, without re-sending
+SETUP, which would stop a running homing), and a homing left running is
+handed back to the arm (:meth:`~bioscara_gym.hardware.arm.Arm.adopt_homing`).
+Closing after an error (Ctrl-C included) runs the arm layer's on-error
+transition, then writes the state file and releases the connections,
+leaving enabled joints enabled. The state file is locked from before it is read until after it
 is written (:func:`~bioscara_gym.console.state.lock_state`), so a second
-command on the same file is refused instead of losing an update.
+command on the same file is refused instead of losing an update. A request
+refused later, for the state the arm is in (a joint not enabled, not homed,
+busy), writes the state file only if it was there before.
 
 Homing and moving are the Arm's (:meth:`~bioscara_gym.hardware.arm.Arm.home`,
 :meth:`~bioscara_gym.hardware.arm.Arm.move_to`); the session adds the
@@ -25,15 +30,15 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from types import TracebackType
 
 from bioscara_gym.console.state import HostFacts, load_state, lock_state, save_state
-from bioscara_gym.console.targets import ConsoleOptions, Target
+from bioscara_gym.console.targets import ConsoleOptions, Target, check_gripper_width
 from bioscara_gym.fsutil import LockFile, read_json
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.backends import Backend, make_backend
-from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, load_config
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import (
     IncorrectStateError,
     InvalidArgumentError,
@@ -75,18 +80,28 @@ class Session:
     Args:
         options: The common command-line options.
         configure: Whether to configure the arm on entering (``False`` for ``ping``).
+        check: The request's own check of its arguments against the configuration
+            (:mod:`~bioscara_gym.console.targets`), run before the state file is
+            locked or the backend built; what it raises refuses the request.
     """
 
-    def __init__(self, options: ConsoleOptions, configure: bool = True) -> None:
+    def __init__(
+        self,
+        options: ConsoleOptions,
+        configure: bool = True,
+        check: Callable[[ArmConfig], object] | None = None,
+    ) -> None:
         """Remember the options; nothing is opened before ``__enter__``."""
         self.options = options
         self._configure = configure
+        self._check = check
         self.backend: Backend
         self.arm: Arm
         self.facts = HostFacts()
         self._opened = False
         self._attached = False
         self._save = False
+        self._state_existed = False
         self._lock: LockFile | None = None
 
     def __enter__(self) -> Session:
@@ -106,10 +121,13 @@ class Session:
 
     # ------------------------------------------------------------- opening
     def _open(self) -> None:
-        """Check the options, build the backend, restore the state file, configure and adopt."""
+        """Check the options and arguments, build the backend, restore the state, configure and adopt."""
         self.options.check()
+        config = self.options.arm_config()
+        if self._check is not None:
+            self._check(config)  # refused here: no lock, no state file, no byte on the bus
         self._lock_state()
-        self._build_backend()
+        self._build_backend(config)
         self._restore_state()
         if self._configure:
             self._configure_arm()
@@ -121,11 +139,8 @@ class Session:
         if self.options.state is not None:
             self._lock = lock_state(self.options.state)
 
-    def _build_backend(self) -> None:
-        """Load the configuration (``--bus`` applied) and make the backend and the arm."""
-        config = load_config(self.options.config)
-        if self.options.bus is not None:
-            config = dataclasses.replace(config, bus=self.options.bus)
+    def _build_backend(self, config: ArmConfig) -> None:
+        """Make the backend and the arm of the configuration (``--bus`` applied)."""
         self.backend = make_backend(self.options.backend, config, **self._backend_options())
         self.arm = Arm(self.backend)  # sends nothing before configure()
         self._opened = True
@@ -149,6 +164,7 @@ class Session:
         path = self.options.state
         if path is not None:
             if path.exists():
+                self._state_existed = True
                 self.facts = load_state(path, self.backend)
             self._save = True  # not before: a file that cannot be loaded is kept as it is
         for name, stats in self.backend.comm_stats().items():
@@ -189,7 +205,8 @@ class Session:
         if not self._opened:
             self._unlock()
             return
-        failed = exc is not None and not isinstance(exc, InvalidArgumentError) and not _refused(exc)
+        refused = exc is not None and (isinstance(exc, InvalidArgumentError) or _refused(exc))
+        failed = exc is not None and not refused
         try:
             if failed:
                 note_signal(self.backend, exc)  # a Ctrl-C: where, in the bus trace, for its replay
@@ -198,7 +215,7 @@ class Session:
                 self._let_blocking_commands_start()
         finally:
             try:
-                self._save_state(failed=failed)
+                self._save_state(failed=failed, refused=refused)
             finally:
                 try:
                     self._release()
@@ -210,9 +227,14 @@ class Session:
         self._remember_gripper()
         self.arm.recover()
 
-    def _save_state(self, failed: bool) -> None:
-        """Write the state file, if any; a write error is raised only when nothing else failed."""
+    def _save_state(self, failed: bool, refused: bool = False) -> None:
+        """Write the state file, if any; a write error is raised only when nothing else failed.
+
+        A refused request (nothing sent that changes the arm) creates no state file.
+        """
         if not self._save or self.options.state is None:
+            return
+        if refused and not self._state_existed:
             return
         self._collect_facts(failed)
         try:
@@ -424,11 +446,7 @@ class Session:
         Raises:
             InvalidArgumentError: The width is outside the gripper's limits.
         """
-        g = self.config.gripper
-        if not (math.isfinite(width_m) and g.min <= width_m <= g.max):
-            raise InvalidArgumentError(
-                f"gripper: width {width_m:g} m is outside the limits [{g.min:g}, {g.max:g}] m"
-            )
+        check_gripper_width(self.config, width_m)
         self.enable_gripper()
         self.backend.gripper.set_position(width_m)
         self.arm.set_gripper(width_m)

@@ -25,11 +25,14 @@ the real arm. The host part is what the real host would have in memory: the
 gripper (no feedback), homings still running, bus statistics. A file that is
 not such JSON, or was saved by another backend or with another arm
 configuration, or holds a value the firmware cannot (a current above
-100 %, a float beyond float32, :data:`FIRMWARE_VALUES`) or the simulation
-should not (a number beyond :data:`MAX_SIM_VALUE`, a drive parameter not
-the configuration's, a negative count, a gripper width outside its range),
-is refused with one line naming the key, and left as it is (delete it to
-start over); a missing file means a powered-up arm and is created.
+100 %, a float beyond float32, :data:`FIRMWARE_VALUES`) or the host never
+sends it (a speed limit NaN or not above 0, :data:`FIRMWARE_LIMITS`) or the
+simulation should not (a number beyond :data:`MAX_SIM_VALUE`, a drive
+parameter not the configuration's, a negative count, a gripper width
+outside its range), is refused with one line naming the key, and left as it
+is (delete it to start over); a missing file means a powered-up arm and is
+created (in a folder that exists: a missing one is refused, not made),
+unless the command is refused.
 Simulated time does not advance between commands, only while a command runs (``home``, ``move``,
 ``gripper``, ``monitor``). The ``mock`` backend does not persist (``--state``
 is refused), nor does ``i2c``: the real arm keeps its own state.
@@ -37,7 +40,8 @@ is refused), nor does ``i2c``: the real arm keeps its own state.
 One command at a time: a command holds ``FILE.lock`` (:func:`lock_state`)
 from reading the file until it has written it, and a second command on the
 same file is refused at once, naming the holder's pid, rather than losing
-one of the two updates. ``monitor`` holds it until it quits.
+one of the two updates. ``monitor`` holds it until it quits. The command
+that made ``FILE.lock`` removes it when it is done.
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from bioscara_gym.errors import StateFileError, StateFileInUseError
-from bioscara_gym.fsutil import LockFile, atomic_write_text, read_json
+from bioscara_gym.fsutil import LockFile, atomic_write_text, output_problem, read_json
 from bioscara_gym.hardware.backends import Backend
 from bioscara_gym.hardware.config import ArmConfig
 from bioscara_gym.hardware.motor import KinematicStepper
@@ -142,9 +146,14 @@ def lock_path(path: Path) -> Path:
 def lock_state(path: Path) -> LockFile:
     """Hold the state file ``path`` for one command; release the returned lock when done.
 
+    The lock file is removed when the lock is released if this call made it
+    (:class:`~bioscara_gym.fsutil.LockFile`). A path whose folder does not
+    exist is refused, not made (seen: ``--state nodir/x.json`` made ``nodir``).
+
     Raises:
         StateFileInUseError: Another command holds it (the message names its pid).
-        StateFileError: The lock file cannot be created.
+        StateFileError: The path cannot be a state file (its folder is missing,
+            a file, or refuses a file), or the lock file cannot be created.
     """
     above = next((p for p in Path(path).parents if p.exists()), None)
     if above is not None and not above.is_dir():  # the lock's error said "File exists"
@@ -153,6 +162,9 @@ def lock_state(path: Path) -> LockFile:
         raise StateFileError(
             f"state file {path} is not a regular file (a directory or a device); pick another path"
         )
+    problem = output_problem(path)
+    if problem is not None:
+        raise StateFileError(f"state file {path}: {problem}")
     lock = LockFile(lock_path(path))
     try:
         lock.acquire()
@@ -344,6 +356,19 @@ FIRMWARE_VALUES: dict[str, tuple[Callable[[object], bool], str]] = {
     "_pending_arg": (_payload, "a finite payload: a 32-bit integer or float32"),
     "_homing": (_homing, "[direction 1 or -1, RPM 0-255, sensitivity 0-255, current 0-255]"),
 }
+
+
+def _above_zero(x: object) -> bool:
+    """Whether the number ``x`` is above 0 (inf is; NaN is not)."""
+    return isinstance(x, int | float) and x > 0
+
+
+#: Firmware values a float32 holds but the host never sends, checked after :data:`FIRMWARE_VALUES`.
+#: ``max_velocity``: SETMAXVELOCITY's value, which the driver sends above 0 only (seen: NaN and
+#: negative ones accepted; homing happened to set it again).
+FIRMWARE_LIMITS: dict[str, tuple[Callable[[object], bool], str]] = {
+    "max_velocity": (_above_zero, "a speed limit in deg/s, above 0 (not NaN)"),
+}
 #: The drive model's counters: whole numbers >= 0.
 DRIVE_COUNTERS = frozenset({"lost_sync", "pole_slips", "resyncs"})
 #: The drive model's parameters (from the configuration, never changed by a command): as a fresh model's.
@@ -361,9 +386,12 @@ def _sim_numbers(value: object) -> bool:
 def _check_firmware(values: Mapping[str, object], key: str, where: str) -> None:
     """Refuse a firmware value its register or variable cannot hold (``key``: ``firmware.j1``)."""
     for k, v in values.items():
-        test, expected = FIRMWARE_VALUES.get(k, (_sim_numbers, _SIM_NUMBER))
-        if not test(v):
-            raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {expected}")
+        checks = [FIRMWARE_VALUES.get(k, (_sim_numbers, _SIM_NUMBER))]
+        if k in FIRMWARE_LIMITS:
+            checks.append(FIRMWARE_LIMITS[k])
+        for test, expected in checks:
+            if not test(v):  # (NaN > 0 is false: refused)
+                raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {expected}")
 
 
 def _check_drive(values: Mapping[str, object], fresh: Mapping[str, object], key: str, where: str) -> None:

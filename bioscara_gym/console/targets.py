@@ -1,15 +1,23 @@
-"""What a console command names: the common options, joints and groups, homing directions."""
+"""What a console command names: the common options, joints and groups, homing directions.
+
+Everything here is checked against the configuration alone, before a
+command locks its state file or opens the bus (:class:`~bioscara_gym.console.session.Session`'s
+``check``): a request refused for its arguments sends nothing and writes nothing.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from bioscara_gym.errors import ConsoleUsageError
+from bioscara_gym.hardware.arm import check_joint_targets
 from bioscara_gym.hardware.backends import ALL_BACKENDS
-from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
+from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, load_config
 from bioscara_gym.hardware.errors import InvalidArgumentError
 from bioscara_gym.hardware.recording import Recording
 from bioscara_gym.hardware.registry import backend_names
@@ -18,6 +26,8 @@ from bioscara_gym.hardware.registry import backend_names
 PERSISTENT_BACKENDS = backend_names("persistent")
 #: Backends on an I2C bus whose number ``--bus`` sets (the emulated bus has no number).
 BUS_BACKENDS = ("i2c",)
+#: Backends driving the Bioscara's own joints, which have no REBOOT (only Dynamixel servos do).
+REBOOTLESS_BACKENDS = backend_names("bioscara")
 #: ``--direction`` to the Arm's homing direction: ``+`` to the max end stop, ``-`` to min.
 HOMING_DIRECTIONS = {"+": 1, "-": -1}
 
@@ -88,6 +98,17 @@ class ConsoleOptions:
             if trace.exists() and not trace.is_file():
                 raise ConsoleUsageError(f"--record {trace} is not a regular file")
 
+    def arm_config(self) -> ArmConfig:
+        """The arm configuration the command uses: ``--config`` (or the packaged one), ``--bus`` applied.
+
+        Raises:
+            ConfigError: The file cannot be read or holds an invalid value.
+        """
+        config = load_config(self.config)
+        if self.bus is not None:
+            config = dataclasses.replace(config, bus=self.bus)
+        return config
+
 
 @dataclass(frozen=True)
 class Target:
@@ -138,16 +159,64 @@ def resolve_target(config: ArmConfig, name: str | None) -> Target:
     return Target(tuple(n for n in config.names if n in members), GRIPPER_NAME in members)
 
 
-def resolve_joints(config: ArmConfig, name: str | None) -> tuple[str, ...]:
-    """The joints of a joint or group name (as :func:`resolve_target`), for homing.
+def resolve_joints(config: ArmConfig, name: str | None, gripper_has_no: str = "homing") -> tuple[str, ...]:
+    """The joints of a joint or group name (as :func:`resolve_target`), for homing or a reboot.
+
+    Args:
+        config: The arm configuration (joints and groups).
+        name: A joint or group name, ``None`` for the group ``all``.
+        gripper_has_no: What the command does, for the refusal of the gripper alone.
 
     Raises:
         InvalidArgumentError: Unknown name, or the name stands for the gripper only.
     """
     target = resolve_target(config, name)
     if not target.joints:
-        raise InvalidArgumentError(f"{name}: the gripper has no homing; name a joint or a group of joints")
+        raise InvalidArgumentError(
+            f"{name}: the gripper has no {gripper_has_no}; name a joint or a group of joints"
+        )
     return target.joints
+
+
+#: What ``reboot`` says of the gripper alone.
+GRIPPER_NO_REBOOT = "REBOOT (only Dynamixel joints have one)"
+
+
+def reboot_joints(config: ArmConfig, backend: str, name: str) -> tuple[str, ...]:
+    """The joints ``reboot NAME`` sends REBOOT to, refusing a backend whose joints have none.
+
+    Raises:
+        InvalidArgumentError: Unknown name, the gripper alone, or joints without REBOOT.
+    """
+    names = resolve_joints(config, name, GRIPPER_NO_REBOOT)
+    if backend in REBOOTLESS_BACKENDS:
+        raise InvalidArgumentError(
+            f"{names[0]}: the {backend} backend's joints have no REBOOT; only Dynamixel joints do "
+            "(power-cycle a Bioscara joint instead)"
+        )
+    return names
+
+
+def check_position(config: ArmConfig, name: str, value: float) -> None:
+    """Refuse an unknown joint, or a position not finite or outside its limits (the Arm's check).
+
+    Raises:
+        InvalidArgumentError: Naming the joint, the value and the limits.
+    """
+    check_joint_targets(config, {name: value})
+
+
+def check_gripper_width(config: ArmConfig, width_m: float) -> None:
+    """Refuse a gripper width not finite or outside the gripper's limits.
+
+    Raises:
+        InvalidArgumentError: Naming the width and the limits.
+    """
+    g = config.gripper
+    if not (math.isfinite(width_m) and g.min <= width_m <= g.max):
+        raise InvalidArgumentError(
+            f"gripper: width {width_m:g} m is outside the limits [{g.min:g}, {g.max:g}] m"
+        )
 
 
 def _check_record_apart(state: Path | None, record: Path | None) -> None:

@@ -139,6 +139,31 @@ class JointState:
     flags: Flag = Flag.NOT_HOMED | Flag.NOT_ENABLED
 
 
+def check_joint_targets(config: ArmConfig, targets: Mapping[str, float]) -> None:
+    """Refuse unknown joints and positions not finite or outside the joint's limits.
+
+    Needs only the configuration, so a command can refuse its arguments
+    before it opens the bus (the console's ``move``).
+
+    Raises:
+        InvalidArgumentError: Naming the joint, the value and the limits.
+    """
+    for name, value in targets.items():
+        if name not in config.names:
+            raise InvalidArgumentError(f"unknown joint {name!r}; known joints: {', '.join(config.names)}")
+        cfg = config.joint(name)
+        if not (math.isfinite(value) and cfg.min <= value <= cfg.max):
+            unit = _unit(config, name)
+            raise InvalidArgumentError(
+                f"{name}: {value:g} {unit} is outside the joint limits [{cfg.min:g}, {cfg.max:g}] {unit}"
+            )
+
+
+def _unit(config: ArmConfig, name: str) -> str:
+    """``m`` for the prismatic joint, ``rad`` for the others."""
+    return "m" if config.joint(name).joint_type == "prismatic" else "rad"
+
+
 class Arm:
     """Lifecycle, command modes and homing over a backend's joints and gripper.
 
@@ -1009,18 +1034,11 @@ class Arm:
         Raises:
             InvalidArgumentError: Naming the joint, the value and the limits.
         """
-        for name, value in targets.items():
-            self._mode(name)
-            cfg = self.config.joint(name)
-            if not (math.isfinite(value) and cfg.min <= value <= cfg.max):
-                unit = self._unit(name)
-                raise InvalidArgumentError(
-                    f"{name}: {value:g} {unit} is outside the joint limits [{cfg.min:g}, {cfg.max:g}] {unit}"
-                )
+        check_joint_targets(self.config, targets)
 
     def _unit(self, name: str) -> str:
         """``m`` for the prismatic joint, ``rad`` for the others."""
-        return "m" if self.config.joint(name).joint_type == "prismatic" else "rad"
+        return _unit(self.config, name)
 
     def _at(self, name: str, target: float) -> bool:
         """Whether the joint is within :data:`MOVE_TOLERANCE` of ``target`` and at rest."""
