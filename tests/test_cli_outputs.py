@@ -22,6 +22,7 @@ import errno
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -110,6 +111,20 @@ def test_a_webm_video_is_written_as_vp9(tmp_path: Path) -> None:
         for k in range(3):
             sink(np.full((32, 32, 3), 40 * k, dtype=np.uint8))
     assert path.read_bytes()[:4] == bytes.fromhex("1a45dfa3")  # Matroska/WebM's EBML magic
+
+
+def test_a_video_gets_the_mode_open_would_give_it(tmp_path: Path) -> None:
+    # Seen: every video came out 0600 (tempfile's).
+    from bioscara_gym.training.evaluate import video_writer
+
+    mask = os.umask(0o027)
+    try:
+        with video_writer(tmp_path / "v.gif", fps=5) as sink:
+            assert sink is not None
+            sink(np.zeros((16, 16, 3), dtype=np.uint8))
+    finally:
+        os.umask(mask)
+    assert stat.S_IMODE((tmp_path / "v.gif").stat().st_mode) == 0o640
 
 
 # ------------------------------------------------------------ outputs vs inputs

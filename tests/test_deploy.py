@@ -12,6 +12,7 @@ import itertools
 import json
 import os
 import signal
+import stat
 import subprocess
 import sys
 import textwrap
@@ -587,6 +588,25 @@ def test_onnx_file_carries_the_training_metadata(sac_model: Path, onnx_file: Pat
     from bioscara_gym.training.export import OnnxPolicy
 
     assert OnnxPolicy(onnx_file).metadata == read_metadata(sac_model)
+
+
+def test_an_exported_policy_gets_the_mode_open_would_and_keeps_a_replaced_ones(
+    sac_model: Path, tmp_path: Path
+) -> None:
+    # Seen: every ONNX file came out 0600 (tempfile's), also over a 0644 one.
+    from bioscara_gym.training.export import export_onnx
+
+    mask = os.umask(0o022)
+    try:
+        fresh = export_onnx(sac_model, tmp_path / "new.onnx", check_samples=0).path
+        kept = tmp_path / "kept.onnx"
+        kept.write_bytes(b"old")
+        kept.chmod(0o640)
+        export_onnx(sac_model, kept, check_samples=0)
+    finally:
+        os.umask(mask)
+    assert stat.S_IMODE(fresh.stat().st_mode) == 0o644
+    assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() != b"old"
 
 
 def test_deploy_runs_an_onnx_policy_without_torch(tmp_path: Path, onnx_file: Path) -> None:

@@ -6,7 +6,6 @@ import contextlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.errors import MetadataError
-from bioscara_gym.fsutil import atomic_write_text, replaced_path
+from bioscara_gym.fsutil import atomic_write_text, replaced_path, temporary_beside
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import (
@@ -307,7 +306,7 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
 
     path = replaced_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    fd, tmp = temporary_beside(path, prefix=f".{path.stem}.", suffix=path.suffix)  # path's mode
     os.close(fd)
     try:
         with imageio.get_writer(tmp, **_writer_settings(path.suffix.lower(), fps)) as writer:

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +35,7 @@ import numpy as np
 from rich.console import Console
 
 from bioscara_gym.errors import CliError, ExportError, MetadataError
-from bioscara_gym.fsutil import output_clash, output_problem, path_argument, replaced_path
+from bioscara_gym.fsutil import output_clash, output_problem, path_argument, replaced_path, temporary_beside
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
 from bioscara_gym.training.metadata import PolicyShapes, policy_files, validate_metadata
 
@@ -151,7 +150,7 @@ def export_onnx(
     n_obs = sum(size for _, size in layout)
     onnx_path = replaced_path(onnx_path)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=onnx_path.parent, prefix=f".{onnx_path.name}.", suffix=".tmp")
+    fd, tmp = temporary_beside(onnx_path)  # the mode the file has, or a new file's
     os.close(fd)
     try:
         _write_graph(torch, onnx, actor, n_obs, tmp, metadata, layout)
