@@ -25,8 +25,7 @@ the real arm. The host part is what the real host would have in memory: the
 gripper (no feedback), homings still running, bus statistics. A file that is
 not such JSON, or was saved by another backend or with another arm
 configuration, or holds a value the firmware cannot (a current above
-100 %, a float beyond float32, :data:`FIRMWARE_VALUES`) or the host never
-sends it (a speed limit NaN or not above 0, :data:`FIRMWARE_LIMITS`) or the
+100 %, a float beyond float32, :data:`FIRMWARE_VALUES`) or the
 simulation should not (a number beyond :data:`MAX_SIM_VALUE`, a drive
 parameter not the configuration's, a negative count, a gripper width
 outside its range), is refused with one line naming the key, and left as it
@@ -357,18 +356,6 @@ FIRMWARE_VALUES: dict[str, tuple[Callable[[object], bool], str]] = {
     "_homing": (_homing, "[direction 1 or -1, RPM 0-255, sensitivity 0-255, current 0-255]"),
 }
 
-
-def _above_zero(x: object) -> bool:
-    """Whether the number ``x`` is above 0 (inf is; NaN is not)."""
-    return isinstance(x, int | float) and x > 0
-
-
-#: Firmware values a float32 holds but the host never sends, checked after :data:`FIRMWARE_VALUES`.
-#: ``max_velocity``: SETMAXVELOCITY's value, which the driver sends above 0 only (seen: NaN and
-#: negative ones accepted; homing happened to set it again).
-FIRMWARE_LIMITS: dict[str, tuple[Callable[[object], bool], str]] = {
-    "max_velocity": (_above_zero, "a speed limit in deg/s, above 0 (not NaN)"),
-}
 #: The drive model's counters: whole numbers >= 0.
 DRIVE_COUNTERS = frozenset({"lost_sync", "pole_slips", "resyncs"})
 #: The drive model's parameters (from the configuration, never changed by a command): as a fresh model's.
@@ -386,12 +373,9 @@ def _sim_numbers(value: object) -> bool:
 def _check_firmware(values: Mapping[str, object], key: str, where: str) -> None:
     """Refuse a firmware value its register or variable cannot hold (``key``: ``firmware.j1``)."""
     for k, v in values.items():
-        checks = [FIRMWARE_VALUES.get(k, (_sim_numbers, _SIM_NUMBER))]
-        if k in FIRMWARE_LIMITS:
-            checks.append(FIRMWARE_LIMITS[k])
-        for test, expected in checks:
-            if not test(v):  # (NaN > 0 is false: refused)
-                raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {expected}")
+        test, expected = FIRMWARE_VALUES.get(k, (_sim_numbers, _SIM_NUMBER))
+        if not test(v):
+            raise StateFileError(f"{where}: {key}.{k} is {_shown(v)}; expected {expected}")
 
 
 def _check_drive(values: Mapping[str, object], fresh: Mapping[str, object], key: str, where: str) -> None:
