@@ -57,6 +57,7 @@ __all__ = [
     "README_LIMITS",
     "Limit",
     "calibrate",
+    "check_fittable",
     "fit_bus_timing",
     "fit_drive",
     "fit_pid_noise",
@@ -133,8 +134,10 @@ def fit_program_overhead(runs: Sequence[MaxAccelRun], timing: TransactionTiming,
                 real = (run.q[i] - run.q[i - 1]) / run.qd[i]
                 extra.append(real - (run.t[i] - run.t[i - 1]) - reads)
     if not extra:
+        names = ", ".join(f"maxAccel/{run.path.name}" for run in runs)
         raise ValueError(
-            "no maxAccel run reaches a constant speed: the program's overhead cannot be measured"
+            f"no maxAccel run reaches a constant speed (within 1 % of its Vel for 5 samples): the "
+            f"program's overhead cannot be measured; looked at {names}"
         )
     return max(0.0, float(np.mean(extra)))
 
@@ -561,6 +564,22 @@ class Calibration:
     drive_cost_after: dict[str, float]
     #: Per joint, the cost of the drive fitted under each of :data:`DRIVE_HYPOTHESES`, in order.
     drive_cost_by_hypothesis: dict[str, tuple[float, ...]] = dataclasses.field(default_factory=dict)
+
+
+def check_fittable(config: ArmConfig, rec: Recordings) -> None:
+    """Refuse recordings the fit cannot use, before any replay: the quick fits :func:`calibrate` runs first.
+
+    Raises:
+        ValueError: What :func:`fit_bus_timing`, :func:`fit_program_overhead`
+            or :func:`fit_pid_noise` cannot fit, naming the files.
+    """
+    timing = config.bus_timing
+    if rec.transactions and rec.handler_times:
+        timing = fit_bus_timing(rec.transactions, rec.handler_times)
+    if rec.max_accel:
+        fit_program_overhead(rec.max_accel, timing, config.i2c_clock_hz)
+    if rec.stall_signal:
+        fit_pid_noise(rec.stall_signal)
 
 
 def calibrate(

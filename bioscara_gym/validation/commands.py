@@ -9,8 +9,11 @@ from pathlib import Path
 from rich.console import Console
 
 from bioscara_gym.errors import CliError
-from bioscara_gym.fsutil import output_problem, path_argument
+from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.config import load_config
+
+#: The seeds scipy's optimizers take (``numpy.random.RandomState``): 0 to 2**32 - 1.
+SEED_MAX = 2**32 - 1
 
 
 def _console() -> Console:
@@ -24,6 +27,32 @@ def _check_output(path: Path | None, what: str, folder: bool = False) -> None:
         raise CliError(f"{what} {path}: {problem}")
 
 
+def _packaged_config() -> Path:
+    """The packaged configuration's file (what ``load_config(None)`` reads)."""
+    from importlib import resources
+
+    return Path(str(resources.files("bioscara_gym.hardware").joinpath("default_config.yaml")))
+
+
+def _check_clash(outputs: dict[str, Path | None], args: argparse.Namespace) -> None:
+    """Refuse, before any work, an output that is one of the inputs or another output.
+
+    The inputs: every recording file of the folder (default: the packaged
+    ones) and the configuration (``--config``, or the packaged one).
+    """
+    from bioscara_gym.validation.recordings import DATA_DIR, recording_files
+
+    root = args.dir if args.dir is not None else DATA_DIR
+    inputs: dict[str, Path | None] = {f"recording {p.relative_to(root)}": p for p in recording_files(root)}
+    if args.config is not None:
+        inputs["--config"] = args.config
+    else:
+        inputs["packaged configuration"] = _packaged_config()
+    clash = output_clash(outputs, inputs)
+    if clash is not None:
+        raise CliError(clash)
+
+
 def cmd_validate(args: argparse.Namespace) -> int:
     """``bioscara validate``: exit 0 only if every comparison passes."""
     from bioscara_gym.validation import validate
@@ -31,6 +60,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
     _check_output(args.json, "--json")
     _check_output(args.plots, "--plots", folder=True)
+    _check_clash({"--json": args.json, "--plots": args.plots}, args)
     if args.plots is not None:
         from bioscara_gym.hardware.errors import require_extra
 
@@ -44,13 +74,24 @@ def cmd_validate(args: argparse.Namespace) -> int:
         f"{passed} of {total} comparisons pass "
         f"({len(result.recordings)} recordings in {result.recordings.root})"
     )
-    if args.json:
-        rows_to_json(result.rows, args.json)
-        con.print(f"json      {args.json}")
+    # All or none: the pictures are drawn first (a recording that cannot be
+    # drawn fails here, before the JSON), then the JSON is written, then the
+    # pictures are moved into place.
+    staged = None
     if args.plots:
-        from bioscara_gym.validation.plots import write_plots
+        from bioscara_gym.validation.plots import stage_plots
 
-        paths = write_plots(result, args.plots)
+        staged = stage_plots(result, args.plots)
+    if args.json:
+        try:
+            rows_to_json(result.rows, args.json)
+        except BaseException:
+            if staged is not None:
+                staged.discard()
+            raise
+        con.print(f"json      {args.json}")
+    if staged is not None:
+        paths = staged.commit()
         con.print(f"plots     {args.plots} ({len(paths)} PNG)")
     return 0 if result.passed else 1
 
@@ -65,20 +106,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from bioscara_gym.hardware.config import config_to_dict
     from bioscara_gym.hardware.errors import require_extra
     from bioscara_gym.validation import validate
-    from bioscara_gym.validation.calibrate import calibrate, hypotheses_line
+    from bioscara_gym.validation.calibrate import calibrate, check_fittable, hypotheses_line
     from bioscara_gym.validation.recordings import find_recordings
     from bioscara_gym.validation.report import summary
 
     require_extra("scipy", "bioscara calibrate", "validate")
     _check_output(args.out, "--out")
+    _check_clash({"--out": args.out}, args)
     if args.maxiter < 1:
         raise CliError(f"--maxiter must be >= 1, got {args.maxiter}")
-    if args.seed < 0:
-        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.seed <= SEED_MAX:
+        raise CliError(f"--seed must be 0-{SEED_MAX} (the optimizer's seeds are 32-bit), got {args.seed}")
     if args.workers < 1:
         raise CliError(f"--workers must be >= 1, got {args.workers}")
     config = load_config(args.config)
     rec = find_recordings(args.dir)  # a folder without recordings fails here, before the fit
+    check_fittable(config, rec)  # and one the fit cannot use, before the validation
     con = _console()
     before = validate(args.dir, config)
     # SIGTERM is an interrupt here too (bioscara_gym.cli): the pool's workers are stopped with it.

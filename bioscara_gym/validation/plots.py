@@ -10,7 +10,7 @@ import numpy as np
 
 from bioscara_gym.validation import Validation
 
-__all__ = ["write_plots"]
+__all__ = ["StagedPlots", "stage_plots", "write_plots"]
 
 _REAL = {"color": "black", "lw": 1.2, "label": "real arm"}
 _SIM = {"color": "tab:orange", "lw": 1.2, "label": "simulated"}
@@ -36,10 +36,20 @@ def _save(plt, fig, path: Path) -> Path:
     return path
 
 
+def _replayed(v: Validation, kind: str) -> list[tuple]:
+    """(recording, its replay) of every recording of ``kind`` that was replayed.
+
+    Not every recording is: a joint that cannot home has none (its
+    ``homing/`` row says so), nor a settingMaxVal profile that did not move,
+    nor an RW_test file of another host pattern.
+    """
+    sims = v.replays.get(kind, {})
+    return [(r, sims[r.name]) for r in getattr(v.recordings, kind) if r.name in sims]
+
+
 def _max_accel(v: Validation, out: Path) -> list[Path]:
     paths = []
-    for run in v.recordings.max_accel:
-        sim = v.replays["max_accel"][run.name]
+    for run, sim in _replayed(v, "max_accel"):
         plt, fig, (ax1, ax2) = _figure(
             2,
             f"maxAccel/{run.name}: {run.joint}, {run.max_velocity:g} at "
@@ -59,8 +69,7 @@ def _max_accel(v: Validation, out: Path) -> list[Path]:
 
 def _setting_max_val(v: Validation, out: Path) -> list[Path]:
     paths = []
-    for run in v.recordings.setting_max_val:
-        sim = v.replays["setting_max_val"][run.name]
+    for run, sim in _replayed(v, "setting_max_val"):
         plt, fig, (ax1, ax2) = _figure(2, f"settingMaxVal/{run.name}")
         ax1.plot(run.t, run.position - run.position[0], **_REAL)
         ax1.plot(sim.t, sim.position, **_SIM)
@@ -76,8 +85,7 @@ def _setting_max_val(v: Validation, out: Path) -> list[Path]:
 
 def _stall(v: Validation, out: Path) -> list[Path]:
     paths = []
-    for sig in v.recordings.stall_signal:
-        sim = v.replays["stall_signal"][sig.name]
+    for sig, sim in _replayed(v, "stall_signal"):
         t = sig.t - sig.t[0]
         plt, fig, (ax1, ax2, ax3) = _figure(3, f"high_speed_stall_test/{sig.name}")
         ax1.plot(t, np.clip(sig.raw, 0, 500), ".", ms=1.5, color="black", label="real raw |PID error|")
@@ -104,8 +112,7 @@ def _stall(v: Validation, out: Path) -> list[Path]:
 
 def _tracking(v: Validation, out: Path) -> list[Path]:
     paths = []
-    for run in v.recordings.tracking:
-        sim = v.replays["tracking"][run.name]
+    for run, sim in _replayed(v, "tracking"):
         plt, fig, (ax1, ax2) = _figure(2, f"tracking_error/{run.name}")
         ax1.plot(run.t, run.reference, color="grey", lw=0.8, ls="--", label="reference")
         ax1.plot(run.t, run.feedback, **_REAL)
@@ -122,10 +129,7 @@ def _tracking(v: Validation, out: Path) -> list[Path]:
 
 def _transactions(v: Validation, out: Path) -> list[Path]:
     paths = []
-    for tr in v.recordings.transactions:
-        sim = v.replays.get("transactions", {}).get(tr.name)
-        if sim is None:
-            continue
+    for tr, sim in _replayed(v, "transactions"):
         plt, fig, (ax1, ax2) = _figure(2, f"RW_test/{tr.name}: time per call")
         for ax, kind, values in ((ax1, "read", tr.read_us), (ax2, "write", tr.write_us)):
             ax.hist(np.clip(values, 0, 3000), bins=80, color="grey", label=f"real {kind} calls")
@@ -137,12 +141,36 @@ def _transactions(v: Validation, out: Path) -> list[Path]:
     return paths
 
 
-def write_plots(v: Validation, out: Path | str) -> list[Path]:
-    """One PNG per recording into ``out`` (created); returns the paths.
+class StagedPlots:
+    """Pictures drawn into a hidden folder of ``out``, not yet in place: :meth:`commit` or :meth:`discard`.
 
-    All or none: the pictures are drawn into a hidden folder inside ``out``
-    and moved into place once every one is drawn (seen: SIGTERM left 4 to 37
-    of 41); an interrupted or failed run leaves ``out`` as it was.
+    Lets a command write its other outputs between drawing and committing,
+    so that a failure of any leaves none of them behind.
+    """
+
+    def __init__(self, out: Path, drawing: Path, drawn: list[Path], made: bool) -> None:
+        """Hold what :func:`stage_plots` drew."""
+        self.out, self._drawing, self._drawn, self._made = out, drawing, drawn, made
+
+    def commit(self) -> list[Path]:
+        """Move every picture into ``out``; returns their paths."""
+        try:
+            paths = [p.replace(self.out / p.name) for p in self._drawn]
+        except BaseException:
+            self.discard()
+            raise
+        self._drawing.rmdir()
+        return paths
+
+    def discard(self) -> None:
+        """Remove the drawn pictures (and ``out``, if it was made for them)."""
+        shutil.rmtree(self._drawing, ignore_errors=True)
+        if self._made:
+            shutil.rmtree(self.out, ignore_errors=True)
+
+
+def stage_plots(v: Validation, out: Path | str) -> StagedPlots:
+    """Draw one PNG per replayed recording into a hidden folder inside ``out`` (created).
 
     Raises:
         MissingExtraError: matplotlib is not installed (the ``[validate]`` extra).
@@ -154,8 +182,8 @@ def write_plots(v: Validation, out: Path | str) -> list[Path]:
     made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     drawing = Path(tempfile.mkdtemp(dir=out, prefix=".drawing-"))
+    staged = StagedPlots(out, drawing, [], made)
     try:
-        drawn: list[Path] = []
         for kind, draw in (
             ("max_accel", _max_accel),
             ("setting_max_val", _setting_max_val),
@@ -164,12 +192,22 @@ def write_plots(v: Validation, out: Path | str) -> list[Path]:
             ("transactions", _transactions),
         ):
             if kind in v.replays:
-                drawn += draw(v, drawing)
-        paths = [p.replace(out / p.name) for p in drawn]
+                staged._drawn += draw(v, drawing)
     except BaseException:
-        shutil.rmtree(drawing, ignore_errors=True)
-        if made:
-            shutil.rmtree(out, ignore_errors=True)
+        staged.discard()
         raise
-    drawing.rmdir()
-    return paths
+    return staged
+
+
+def write_plots(v: Validation, out: Path | str) -> list[Path]:
+    """One PNG per replayed recording into ``out`` (created); returns the paths.
+
+    All or none: the pictures are drawn into a hidden folder inside ``out``
+    and moved into place once every one is drawn (seen: SIGTERM left 4 to 37
+    of 41); an interrupted or failed run leaves ``out`` as it was. A
+    recording that was not replayed (its joint cannot home) has none.
+
+    Raises:
+        MissingExtraError: matplotlib is not installed (the ``[validate]`` extra).
+    """
+    return stage_plots(v, out).commit()

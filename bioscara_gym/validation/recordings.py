@@ -5,7 +5,10 @@ A folder laid out like ``test/`` of DALSA-Lab/bioscara (the packaged
 reader takes one file (``.csv`` or ``.csv.gz``) and returns its figures with
 the settings its name or header states. Anything a reader cannot use raises
 :class:`RecordingError`, whose message is one line naming the file and the
-problem.
+problem: the line and the column or header field, and what was expected.
+Every number must be finite (:func:`_number`), every time column must run
+forward (:func:`_check_time`), and positions and speeds must be ones the
+firmware can report (:func:`_check_position`, :func:`_check_speed`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import io
 import math
 import re
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -25,6 +28,14 @@ import numpy as np
 
 from bioscara_gym.errors import RecordingError
 from bioscara_gym.fsutil import read_bytes
+from bioscara_gym.hardware.config import POSITION_MAX_DEG
+from bioscara_gym.hardware.registers import (
+    CURRENT_MAX_PCT,
+    DRIVE_CURRENT_MIN_PCT,
+    I2C_MAX_CLOCK_HZ,
+    I2C_MIN_CLOCK_HZ,
+    MAX_PLAUSIBLE_RPM,
+)
 
 __all__ = [
     "DATA_DIR",
@@ -39,11 +50,29 @@ __all__ = [
     "TrackingRun",
     "Transactions",
     "find_recordings",
+    "recording_files",
 ]
 
-#: The joints a recording may name, with the arm's reductions (motor turns per
-#: joint unit; the test programs' ``Joint(...)`` lines, which match the packaged configuration).
+#: The joints a recording may name.
 JOINTS = ("j1", "j2", "j3", "j4")
+#: The joints' reductions in the test programs, motor rad per joint unit (rad
+#: or m): their ``Joint(...)`` lines (``comm_speed_test.cpp`` builds all four:
+#: j1 35, j2 -2π/0.004, j3 24, j4 12; the packaged configuration's). A
+#: recording's positions, speeds and limits are checked at the motor with them.
+PROGRAM_REDUCTIONS = {"j1": 35.0, "j2": -2 * math.pi / 0.004, "j3": 24.0, "j4": 12.0}
+#: Unit of each joint's position (j2 is the lift, in metres).
+_UNIT = {"j1": "rad", "j2": "m", "j3": "rad", "j4": "rad"}
+#: The largest float32 (FLT_MAX): every limit and speed travels the bus as one
+#: (``registers.PAYLOAD_FORMAT``: SETMAXVELOCITY, SETMAXACCELERATION, SETRPM).
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: The longest step of a replayed recording's time, s. A replay runs the
+#: simulated arm through every step (one cell of 1e7 s ran ``bioscara
+#: validate`` for hours; a minute replays in about 0.06 s). The arm's
+#: published recordings pause for up to 19.5 s
+#: (``high_speed_stall_test/J3_UP_ramp``), the replayed ones for up to
+#: 0.22 s (the controller's log in ``tracking_error/record_0p314_0p157_j1``):
+#: a recording of one's own arm may pause longer than those and still be read.
+MAX_STEP_S = 60.0
 
 
 def _data_dir() -> Path:
@@ -81,31 +110,158 @@ def _stem(path: Path) -> str:
     return name
 
 
-def _floats(path: Path, rows: list[list[str]], first_line: int, width: int | None = None) -> np.ndarray:
-    """Rows of numbers as a 2-D array; a bad cell is an error naming its line."""
-    out = []
+# ------------------------------------------------------- shared cell checks
+def _number(path: Path, line: int, text: str, what: str = "") -> float:
+    """The finite number in one cell; anything else is an error naming the file, line and field.
+
+    Every reader takes its numbers through here: NaN and infinity (or a
+    number beyond float's range) are no measurement, and broke every figure
+    computed after them.
+    """
+    where = f" ({what})" if what else ""
+    cell = text.strip()
+    try:
+        value = float(cell)
+    except ValueError:
+        raise RecordingError(path, f"line {line}: not a number: {cell!r}{where}") from None
+    if not math.isfinite(value):
+        raise RecordingError(path, f"line {line}: {cell!r} is not a finite number{where}")
+    return value
+
+
+def _rows(
+    path: Path, rows: Sequence[Sequence[str]], first_line: int, width: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of numbers as a 2-D array, and the file line of each; a bad cell is an error naming its line."""
+    out, lines = [], []
     for i, row in enumerate(rows):
         cells = [c.strip() for c in row]
         if not any(cells):
             continue
+        line = first_line + i
         if width is not None and len(cells) < width:
-            raise RecordingError(path, f"line {first_line + i}: {len(cells)} columns, expected {width}")
-        try:
-            values = [float(c) for c in (cells[:width] if width else cells)]
-        except ValueError as e:
-            raise RecordingError(path, f"line {first_line + i}: not a number ({e})") from e
-        bad = next((c for c, v in zip(cells, values, strict=False) if not math.isfinite(v)), None)
-        if bad is not None:  # NaN or beyond float's range: no measurement (it broke every figure after)
-            raise RecordingError(path, f"line {first_line + i}: {bad!r} is not a finite number")
-        out.append(values)
+            raise RecordingError(path, f"line {line}: {len(cells)} columns, expected {width}")
+        out.append([_number(path, line, c) for c in (cells[:width] if width else cells)])
+        lines.append(line)
     if not out:
         raise RecordingError(path, "no data rows")
-    return np.asarray(out, dtype=float)
+    return np.asarray(out, dtype=float), np.asarray(lines)
 
 
-def _joint_from(path: Path, text: str) -> str:
+def _floats(
+    path: Path, rows: Sequence[Sequence[str]], first_line: int, width: int | None = None
+) -> np.ndarray:
+    """Rows of numbers as a 2-D array (:func:`_rows` without the lines)."""
+    return _rows(path, rows, first_line, width)[0]
+
+
+def _check_time(
+    path: Path,
+    t: np.ndarray,
+    lines: np.ndarray,
+    what: str,
+    *,
+    bounded: bool = False,
+    from_zero: bool = False,
+    strict: bool = True,
+) -> None:
+    """Refuse a time column that is not a sampled series, naming the line.
+
+    It must increase (``strict``) or at least never go back; if ``bounded``
+    (a recording the simulated arm is run through), no step may exceed
+    :data:`MAX_STEP_S`. With ``from_zero`` the clock starts at the program's
+    command: the first sample is that long after it (at least 0, and within
+    the same bound).
+    """
+    longest = MAX_STEP_S if bounded else math.inf
+    sampled = f"; a replay takes steps of up to {longest:g} s"
+    with np.errstate(over="ignore"):  # 1e308 after -1e308: a step of inf, refused below
+        steps = np.diff(t)
+    back = np.flatnonzero(steps <= 0.0 if strict else steps < 0.0)
+    if back.size:
+        i = int(back[0])
+        rule = "is not after" if strict else "goes back from"
+        raise RecordingError(
+            path,
+            f"line {lines[i + 1]}: {what} {t[i + 1]:g} s {rule} {t[i]:g} s (line {lines[i]}); "
+            f"time must {'increase' if strict else 'never go back'}",
+        )
+    if from_zero and t[0] < 0.0:
+        raise RecordingError(path, f"line {lines[0]}: {what} {t[0]:g} s is before the program's start (0 s)")
+    if from_zero and t[0] > longest:
+        raise RecordingError(
+            path, f"line {lines[0]}: time starts {t[0]:g} s after the program's start{sampled}"
+        )
+    jump = np.flatnonzero(steps > longest)
+    if jump.size:
+        i = int(jump[0])
+        raise RecordingError(path, f"line {lines[i + 1]}: time jumps by {steps[i]:g} s{sampled}")
+
+
+def _check_position(path: Path, line: int, value: float, what: str, reduction: float, unit: str) -> None:
+    """Refuse a position the firmware cannot report: beyond its float of motor degrees (angleMoved)."""
+    degrees = abs(math.degrees(value * reduction))
+    if degrees > POSITION_MAX_DEG:
+        at = "" if unit == "deg" else f" is {degrees:.3g} motor degrees"
+        raise RecordingError(
+            path,
+            f"line {line}: {what} {value:g} {unit}{at}; the firmware's position (float angleMoved) "
+            f"holds whole degrees up to {POSITION_MAX_DEG:,.0f}",
+        )
+
+
+def _check_speed(path: Path, line: int, value: float, what: str, rad_s_per_unit: float, unit: str) -> None:
+    """Refuse a speed no encoder reading can be: above ``MAX_PLAUSIBLE_RPM`` at the motor."""
+    rpm = abs(value * rad_s_per_unit) * 60.0 / (2.0 * math.pi)
+    if rpm > MAX_PLAUSIBLE_RPM:
+        raise RecordingError(
+            path,
+            f"line {line}: {what} {value:g} {unit} is {rpm:.3g} RPM at the motor; no encoder reading "
+            f"(GETENCODERRPM) is above {MAX_PLAUSIBLE_RPM:g}",
+        )
+
+
+def _check_columns(
+    path: Path, data: np.ndarray, lines: np.ndarray, check: Sequence[tuple[int, str, str, float, str]]
+) -> None:
+    """Positions (``kind`` ``"position"``) and speeds (``"speed"``) of a table, each against its bound.
+
+    ``check``: (column, kind, name, motor rad per unit, unit).
+    """
+    for column, kind, name, scale, unit in check:
+        values = data[:, column]
+        with np.errstate(over="ignore"):  # 1e307 m of j2 is inf at the motor: refused all the same
+            if kind == "position":
+                bad = np.abs(np.degrees(values * scale)) > POSITION_MAX_DEG
+            else:
+                bad = np.abs(values * scale) * 60.0 / (2.0 * math.pi) > MAX_PLAUSIBLE_RPM
+        if bad.any():
+            i = int(np.argmax(bad))
+            if kind == "position":
+                _check_position(path, int(lines[i]), float(values[i]), name, scale, unit)
+            else:
+                _check_speed(path, int(lines[i]), float(values[i]), name, scale, unit)
+
+
+def _check_limit(
+    path: Path, line: int | None, what: str, value: float, register: str, deg_per_unit: float, unit: str
+) -> None:
+    """A limit a program sends: > 0, and within the float32 its register packs it in (at the motor)."""
+    at = "" if line is None else f"line {line}: "
+    if value <= 0:
+        raise RecordingError(path, f"{at}{what} {value:g} must be > 0 (a limit)")
+    motor = abs(value * deg_per_unit)
+    if motor > FLOAT32_MAX:
+        there = ";" if deg_per_unit == 1.0 else f" is {motor:.3g} {unit} at the motor;"
+        raise RecordingError(
+            path, f"{at}{what} {value:g}{there} {register} sends a float32, at most {FLOAT32_MAX:.4g}"
+        )
+
+
+def _joint_from(path: Path, text: str, line: int | None = None) -> str:
     if text not in JOINTS:
-        raise RecordingError(path, f"unknown joint {text!r}; expected one of {', '.join(JOINTS)}")
+        at = f" on line {line}" if line is not None else ""
+        raise RecordingError(path, f"unknown joint {text!r}{at}; expected one of {', '.join(JOINTS)}")
     return text
 
 
@@ -147,18 +303,26 @@ _HEADER_KEYS = {
     "max accel": "max_acceleration",
     "current": "current",
 }
+#: A maxAccel file's name starts with its joint (``j1_3.csv``).
+_NAMED_JOINT = re.compile(r"([jJ]\d+)_")
 
 
 def read_max_accel(path: Path | str) -> MaxAccelRun:
     """Read a ``maxAccel/`` file: the program's header, then ``t, q, qd, qdd``."""
     path = Path(path)
     lines = _open_text(path).splitlines()
-    settings: dict[str, str] = {}
+    settings: dict[str, tuple[str, str, int]] = {}  # field -> (its key as written, value, line)
     start = None
     for i, line in enumerate(lines):
         key, sep, value = line.partition(":")
         if sep and key.strip().lower() in _HEADER_KEYS:
-            settings[_HEADER_KEYS[key.strip().lower()]] = value.strip()
+            attr = _HEADER_KEYS[key.strip().lower()]
+            if attr in settings:
+                raise RecordingError(
+                    path,
+                    f"line {i + 1}: header field {key.strip()} again (first on line {settings[attr][2]})",
+                )
+            settings[attr] = (key.strip(), value.strip(), i + 1)
         if line.replace(" ", "").lower().startswith("t,q,qd"):
             start = i + 1
             break
@@ -167,17 +331,58 @@ def read_max_accel(path: Path | str) -> MaxAccelRun:
     missing = [k for k in _HEADER_KEYS.values() if k not in settings]
     if missing:
         raise RecordingError(path, f"header lacks {', '.join(missing)} (the test program prints them)")
-    joint = _joint_from(path, settings["joint"])
-    try:
-        vel, acc, cur = (float(settings[k]) for k in ("max_velocity", "max_acceleration", "current"))
-    except ValueError as e:
-        raise RecordingError(path, f"header value is not a number ({e})") from e
-    if not (vel > 0 and acc > 0 and 0 < cur <= 100):
-        raise RecordingError(path, f"header: vel {vel}, max accel {acc} must be > 0 and current {cur} 1-100")
-    data = _floats(path, list(csv.reader(lines[start:])), start + 1, width=3)
-    if np.any(np.diff(data[:, 0]) <= 0):
-        raise RecordingError(path, "time column t does not increase")
-    return MaxAccelRun(path, joint, vel, acc, cur, data[:, 0], data[:, 1], data[:, 2])
+    key, text, at = settings["joint"]
+    joint = _joint_from(path, text, at)
+    named = _NAMED_JOINT.match(path.name)
+    if named and named.group(1).lower() != joint:
+        raise RecordingError(
+            path, f"line {at}: header says {key}: {joint}, the file name says {named.group(1).lower()}"
+        )
+    values = {}
+    for attr in ("max_velocity", "max_acceleration", "current"):
+        key, text, at = settings[attr]
+        values[attr] = (_number(path, at, text, f"header field {key}"), key, at)
+    deg_per_unit = math.degrees(abs(PROGRAM_REDUCTIONS[joint]))
+    unit = _UNIT[joint]
+    for attr, register, per in (
+        ("max_velocity", "SETMAXVELOCITY", "deg/s"),
+        ("max_acceleration", "SETMAXACCELERATION", "deg/s²"),
+    ):
+        value, key, at = values[attr]
+        _check_limit(path, at, f"header field {key}", value, register, deg_per_unit, per)
+    cur, key, at = values["current"]
+    if not (cur == round(cur) and DRIVE_CURRENT_MIN_PCT <= cur <= CURRENT_MAX_PCT):
+        raise RecordingError(
+            path,
+            f"line {at}: header field {key} {cur:g} must be a whole percent, "
+            f"{DRIVE_CURRENT_MIN_PCT}-{CURRENT_MAX_PCT} (enable() takes an integer)",
+        )
+    data, rows_at = _rows(path, list(csv.reader(lines[start:])), start + 1, width=3)
+    _check_time(
+        path,
+        data[:, 0],
+        rows_at,
+        "t",
+        bounded=True,
+        from_zero=True,
+    )
+    reduction = PROGRAM_REDUCTIONS[joint]
+    _check_columns(
+        path,
+        data,
+        rows_at,
+        [(1, "position", "q", reduction, unit), (2, "speed", "qd", reduction, f"{unit}/s")],
+    )
+    return MaxAccelRun(
+        path,
+        joint,
+        values["max_velocity"][0],
+        values["max_acceleration"][0],
+        cur,
+        data[:, 0],
+        data[:, 1],
+        data[:, 2],
+    )
 
 
 # ------------------------------------------------------------- settingMaxVal
@@ -209,19 +414,25 @@ class SettingMaxValRun:
         return _stem(self.path)
 
 
+#: Fewest samples of a settingMaxVal profile: its speed's slope needs two.
+SETTING_MAX_VAL_MIN_ROWS = 2
+
+
 def read_setting_max_val(path: Path | str) -> SettingMaxValRun:
     """Read a ``settingMaxVal/`` file: ``maxAccel:``, ``maxVel:``, then ``time, position, velocity, ...``."""
     path = Path(path)
     lines = _open_text(path).splitlines()
-    values: dict[str, float] = {}
+    values: dict[str, tuple[float, int]] = {}
     start = None
     for i, line in enumerate(lines):
         key, sep, value = line.partition(":")
-        if sep and key.strip() in ("maxAccel", "maxVel"):
-            try:
-                values[key.strip()] = float(value)
-            except ValueError as e:
-                raise RecordingError(path, f"line {i + 1}: {key.strip()} is not a number") from e
+        name = key.strip()
+        if sep and name in ("maxAccel", "maxVel"):
+            if name in values:
+                raise RecordingError(
+                    path, f"line {i + 1}: header field {name} again (first on line {values[name][1]})"
+                )
+            values[name] = (_number(path, i + 1, value, f"header field {name}"), i + 1)
         elif line.replace(" ", "").startswith("time,position,velocity"):
             start = i + 1
             break
@@ -229,11 +440,38 @@ def read_setting_max_val(path: Path | str) -> SettingMaxValRun:
         raise RecordingError(
             path, "needs 'maxAccel:' and 'maxVel:' lines, then a 'time, position, velocity' header"
         )
-    data = _floats(path, list(csv.reader(lines[start:])), start + 1, width=3)
+    for key, register, unit in (
+        ("maxAccel", "SETMAXACCELERATION", "deg/s²"),
+        ("maxVel", "SETMAXVELOCITY", "deg/s"),
+    ):
+        value, at = values[key]
+        _check_limit(path, at, f"header field {key}", value, register, 1.0, unit)
+    data, rows_at = _rows(path, list(csv.reader(lines[start:])), start + 1, width=3)
+    if len(data) < SETTING_MAX_VAL_MIN_ROWS:
+        raise RecordingError(
+            path, f"{len(data)} data row; a speed profile needs at least {SETTING_MAX_VAL_MIN_ROWS}"
+        )
+    _check_time(
+        path,
+        data[:, 0],
+        rows_at,
+        "time",
+        bounded=True,
+        from_zero=True,
+    )
+    _check_columns(
+        path,
+        data,
+        rows_at,
+        [
+            (1, "position", "position", math.radians(1.0), "deg"),
+            (2, "speed", "velocity", math.radians(1.0), "deg/s"),
+        ],
+    )
     return SettingMaxValRun(
         path,
-        values["maxAccel"],
-        values["maxVel"],
+        values["maxAccel"][0],
+        values["maxVel"][0],
         "online_change" in path.name,
         data[:, 0],
         data[:, 1],
@@ -286,11 +524,28 @@ def read_stall_signal(path: Path | str) -> StallSignal:
         raise RecordingError(
             path, f"header has {len(rows[0])} columns, expected 12 (time and data 0 .. data 10)"
         )
-    match = re.match(r"([jJ][1-4])_", path.name)
+    match = re.match(r"([jJ]\d+)_", path.name)
     if not match:
         raise RecordingError(path, "file name must start with the joint (j1_ .. j4_)")
     joint = _joint_from(path, match.group(1).lower())
-    d = _floats(path, rows[1:], 2, width=12)
+    d, lines = _rows(path, rows[1:], 2, width=12)
+    # The firmware prints its time to 10 ms: passes may share one, none goes back.
+    _check_time(path, d[:, 0], lines, "Program Time", strict=False)
+    odd = np.flatnonzero((d[:, 11] != 0.0) & (d[:, 11] != 1.0))
+    if odd.size:
+        i = int(odd[0])
+        raise RecordingError(
+            path, f"line {lines[i]}: data 10 (the stall flag) is {d[i, 11]:g}, expected 0 or 1"
+        )
+    _check_columns(
+        path,
+        d,
+        lines,
+        [
+            (8, "speed", "data 7 (measured speed)", 1.0, "rad/s"),
+            (9, "speed", "data 8 (set speed)", 1.0, "rad/s"),
+        ],
+    )
     return StallSignal(path, joint, d[:, 0], d[:, 1], d[:, 2], d[:, 3], d[:, 8], d[:, 9], d[:, 10], d[:, 11])
 
 
@@ -323,7 +578,10 @@ def read_pid_error_test(path: Path | str) -> PidErrorTest:
     rows = list(csv.reader(io.StringIO(_open_text(path))))
     if not rows or len(rows[0]) < 6 or "pid error" not in ",".join(rows[0]).lower():
         raise RecordingError(path, "header must be 'Program Time [s],PID error,Threshold,q,q_set,Stalled'")
-    d = _floats(path, rows[1:], 2, width=6)
+    d, lines = _rows(path, rows[1:], 2, width=6)
+    _check_time(path, d[:, 0], lines, "Program Time", strict=False)
+    deg = math.radians(1.0)
+    _check_columns(path, d, lines, [(3, "position", "q", deg, "deg"), (4, "position", "q_set", deg, "deg")])
     return PidErrorTest(path, d[:, 0], d[:, 1], d[:, 2], d[:, 3], d[:, 4], d[:, 5])
 
 
@@ -360,10 +618,24 @@ class TrackingRun:
 
 _TRACKING_NAME = re.compile(r"record_(?P<ramp>[0-9p]+)_(?P<acc>[0-9p]+)_(?P<joint>j\d)(?P<rest>.*)")
 _GAIN = re.compile(r"_(p|i|d|kff)([0-9p]+)")
+#: The joint the tracking test recorded (tracking_error/README.md): the replay drives j1.
+TRACKING_JOINT = "j1"
 
 
 def _pnum(text: str) -> float:
     return float(text.replace("p", "."))
+
+
+def _name_number(path: Path, what: str, text: str) -> float:
+    try:
+        value = _pnum(text)
+    except ValueError:
+        raise RecordingError(
+            path, f"{what} {text!r} in the name is not a number (p for the point: 0p314 is 0.314)"
+        ) from None
+    if not math.isfinite(value):
+        raise RecordingError(path, f"{what} {text!r} in the name is not a finite number")
+    return value
 
 
 def parse_tracking_name(path: Path) -> tuple[float, float, str, str, dict[str, float]]:
@@ -374,34 +646,50 @@ def parse_tracking_name(path: Path) -> tuple[float, float, str, str, dict[str, f
             path, "name must be record_<ramp rad/s>_<max accel rad/s²>_j1[_vel_p.._i.._d.._kff..]"
         )
     joint = _joint_from(path, m.group("joint"))
+    if joint != TRACKING_JOINT:
+        raise RecordingError(
+            path,
+            f"the name says {joint}; tracking_error/ holds j1's runs only (record_<ramp>_<max accel>_j1...)",
+        )
     rest = m.group("rest")
     interface = "velocity" if rest.startswith("_vel") else "position"
-    gains = {k: _pnum(v) for k, v in _GAIN.findall(rest)} if interface == "velocity" else {}
-    try:
-        return _pnum(m.group("ramp")), _pnum(m.group("acc")), joint, interface, gains
-    except ValueError as e:
-        raise RecordingError(path, f"ramp or acceleration in the name is not a number ({e})") from e
+    gains = (
+        {k: _name_number(path, f"gain {k}", v) for k, v in _GAIN.findall(rest)}
+        if interface == "velocity"
+        else {}
+    )
+    ramp = _name_number(path, "ramp speed", m.group("ramp"))
+    acc = _name_number(path, "max acceleration", m.group("acc"))
+    for what, value, text in (
+        ("ramp speed", ramp, m.group("ramp")),
+        ("max acceleration", acc, m.group("acc")),
+    ):
+        if value <= 0:
+            raise RecordingError(path, f"{what} {text!r} in the name must be > 0")
+    deg_per_rad = math.degrees(abs(PROGRAM_REDUCTIONS[joint]))
+    _check_limit(path, None, "max acceleration in the name", acc, "SETMAXACCELERATION", deg_per_rad, "deg/s²")
+    return ramp, acc, joint, interface, gains
 
 
 def _introspection_columns(path: Path, rows: list[list[str]], joint: str) -> tuple[np.ndarray, ...]:
     """``ros2 topic echo --csv`` of the controller manager's introspection: key, value pairs."""
-    t, ref, fb = [], [], []
-    for row in rows:
+    state, command = f"state_interface.{joint}/position", f"command_interface.{joint}/position"
+    t, ref, fb, lines = [], [], [], []
+    for i, row in enumerate(rows):
         if len(row) < 4:
             continue
-        try:
-            stamp = float(row[0]) + float(row[1]) * 1e-9
-        except ValueError:
-            continue
         pairs = dict(zip(row[3::2], row[4::2], strict=False))
-        q = pairs.get(f"state_interface.{joint}/position")
-        r = pairs.get(f"command_interface.{joint}/position")
+        q = pairs.get(state)
+        r = pairs.get(command)
         if q is None or r is None:
             continue
+        line = i + 1
+        stamp = _number(path, line, row[0], "stamp, s") + _number(path, line, row[1], "stamp, ns") * 1e-9
         t.append(stamp)
-        ref.append(float(r))
-        fb.append(float(q))
-    return np.asarray(t), np.asarray(ref), np.asarray(fb)
+        ref.append(_number(path, line, r, command))
+        fb.append(_number(path, line, q, state))
+        lines.append(line)
+    return np.asarray(t), np.asarray(ref), np.asarray(fb), np.asarray(lines, dtype=int)
 
 
 def _plotjuggler_columns(path: Path, rows: list[list[str]], index: int) -> tuple[np.ndarray, ...]:
@@ -414,8 +702,18 @@ def _plotjuggler_columns(path: Path, rows: list[list[str]], index: int) -> tuple
         iq = header.index(f"{prefix}feedback/positions[{index}]")
     except ValueError as e:
         raise RecordingError(path, f"no reference/feedback positions[{index}] columns ({e})") from e
-    d = _floats(path, [[r[it], r[ir], r[iq]] for r in rows[1:] if len(r) > max(it, ir, iq)], 2)
-    return d[:, 0], d[:, 1], d[:, 2]
+    width = max(it, ir, iq) + 1
+    picked = []
+    for i, r in enumerate(rows[1:], start=2):
+        if any(c.strip() for c in r) and len(r) < width:
+            raise RecordingError(path, f"line {i}: {len(r)} columns, expected {len(header)} (the header's)")
+        picked.append([r[it], r[ir], r[iq]] if len(r) >= width else [])
+    d, lines = _rows(path, picked, 2)
+    return d[:, 0], d[:, 1], d[:, 2], lines
+
+
+#: Fewest rows of j1's reference and feedback a tracking file must hold.
+TRACKING_MIN_ROWS = 10
 
 
 def read_tracking(path: Path | str) -> TrackingRun:
@@ -426,17 +724,31 @@ def read_tracking(path: Path | str) -> TrackingRun:
     if not rows:
         raise RecordingError(path, "empty file")
     if rows[0] and rows[0][0] == "__time":
-        t, ref, fb = _plotjuggler_columns(path, rows, JOINTS.index(joint))
+        t, ref, fb, lines = _plotjuggler_columns(path, rows, JOINTS.index(joint))
     elif _stem(path).endswith("_JTC"):
         raise RecordingError(path, "the controller's raw state echo is not read (its _CM or plain twin is)")
     else:
-        t, ref, fb = _introspection_columns(path, rows, joint)
-    if len(t) < 10:
+        t, ref, fb, lines = _introspection_columns(path, rows, joint)
+    if len(t) < TRACKING_MIN_ROWS:
         raise RecordingError(
-            path, f"no {joint} position reference and feedback found (need the position interface)"
+            path,
+            f"{len(t)} rows of {joint}'s position reference and feedback, expected at least "
+            f"{TRACKING_MIN_ROWS} (need the position interface)",
         )
-    order = np.argsort(t, kind="stable")
-    t, ref, fb = t[order], ref[order], fb[order]
+    _check_time(
+        path,
+        t,
+        lines,
+        "time",
+        bounded=True,
+    )
+    reduction = PROGRAM_REDUCTIONS[joint]
+    _check_columns(
+        path,
+        np.column_stack([ref, fb]),
+        lines,
+        [(0, "position", "reference", reduction, "rad"), (1, "position", "feedback", reduction, "rad")],
+    )
     return TrackingRun(path, ramp, acc, interface, gains, t - t[0], ref, fb)
 
 
@@ -471,12 +783,27 @@ class Transactions:
 _RW_NAME = re.compile(r"(?P<what>.+)_(?P<khz>\d+)kHz")
 
 
+def _duration(path: Path, line: int, text: str, what: str) -> float:
+    """A measured time: a finite number, not negative."""
+    value = _number(path, line, text, what)
+    if value < 0:
+        raise RecordingError(path, f"line {line}: {what} {value:g} is negative; a time measured is >= 0")
+    return value
+
+
 def read_transactions(path: Path | str) -> Transactions:
     """Read an ``RW_test/`` timing file: ``time [ms], iteration, joint, read [us], write [us]``."""
     path = Path(path)
     m = _RW_NAME.fullmatch(_stem(path))
     if not m:
         raise RecordingError(path, "name must be <what>_<bus speed>kHz (e.g. position_100kHz)")
+    clock_hz = float(m.group("khz")) * 1e3
+    if not I2C_MIN_CLOCK_HZ <= clock_hz <= I2C_MAX_CLOCK_HZ:
+        raise RecordingError(
+            path,
+            f"bus speed {m.group('khz')} kHz in the name is outside {I2C_MIN_CLOCK_HZ / 1e3:g}-"
+            f"{I2C_MAX_CLOCK_HZ / 1e3:g} kHz (100 standard mode, 400 fast mode)",
+        )
     rows = list(csv.reader(io.StringIO(_open_text(path))))
     if not rows or len(rows[0]) < 5 or "read" not in rows[0][3].lower():
         raise RecordingError(
@@ -488,17 +815,12 @@ def read_transactions(path: Path | str) -> Transactions:
             continue
         if len(row) < 5:
             raise RecordingError(path, f"line {i}: {len(row)} columns, expected 5")
-        joints.append(_joint_from(path, row[2].strip()))
-        try:
-            values.append((float(row[3]), float(row[4])))
-        except ValueError as e:
-            raise RecordingError(path, f"line {i}: not a number ({e})") from e
+        joints.append(_joint_from(path, row[2].strip(), i))
+        values.append((_duration(path, i, row[3], "read [us]"), _duration(path, i, row[4], "write [us]")))
     if not values:
         raise RecordingError(path, "no data rows")
     v = np.asarray(values)
-    return Transactions(
-        path, m.group("what"), float(m.group("khz")) * 1e3, np.asarray(joints), v[:, 0], v[:, 1]
-    )
+    return Transactions(path, m.group("what"), clock_hz, np.asarray(joints), v[:, 0], v[:, 1])
 
 
 @dataclass(frozen=True)
@@ -524,6 +846,11 @@ class HandlerTimes:
         return {c: float(self.t_exec_us[self.command == c].mean()) for c in dict.fromkeys(self.command)}
 
 
+#: The largest handler time ``profiling_test.ino`` can print, microseconds: ``now - start``
+#: of two ``unsigned long`` ``micros()`` readings, 32 bits on the joint's STM32.
+HANDLER_US_MAX = 2**32 - 1
+
+
 def read_handler_times(path: Path | str) -> HandlerTimes:
     """Read ``baseline_joint_*.csv``: ``time [ms], command, rx_length, tx_length, t_exec [us]``."""
     path = Path(path)
@@ -537,10 +864,19 @@ def read_handler_times(path: Path | str) -> HandlerTimes:
         if len(row) < 5:
             raise RecordingError(path, f"line {i}: {len(row)} columns, expected 5")
         cmds.append(row[1].strip())
-        try:
-            nums.append((float(row[2]), float(row[3]), float(row[4])))
-        except ValueError as e:
-            raise RecordingError(path, f"line {i}: not a number ({e})") from e
+        nums.append(
+            (
+                _number(path, i, row[2], "rx_length"),
+                _number(path, i, row[3], "tx_length"),
+                _duration(path, i, row[4], "t_exec [us]"),
+            )
+        )
+        if nums[-1][2] > HANDLER_US_MAX:
+            raise RecordingError(
+                path,
+                f"line {i}: t_exec [us] {nums[-1][2]:g} is beyond what profiling_test.ino prints "
+                f"(micros() differences, at most {HANDLER_US_MAX})",
+            )
     if not nums:
         raise RecordingError(path, "no data rows")
     n = np.asarray(nums)
@@ -572,11 +908,51 @@ class Recordings:
                 yield k, v
 
 
+#: The folders of the arm repository's ``test/`` layout, one per kind.
+FOLDERS = (
+    "maxAccel",
+    "settingMaxVal",
+    "high_speed_stall_test",
+    "stall_detection_test",
+    "tracking_error",
+    "RW_test",
+)
+
+
 def _csvs(folder: Path) -> list[Path]:
-    """Everything in ``folder`` named as a recording: one that is no regular file is refused when read."""
+    """Everything in ``folder`` named as a recording: one that is no regular file is refused when read.
+
+    Two of one name (``j1_1.csv`` beside ``j1_1.csv.gz``) are refused: each
+    recording's rows and replay go by its name.
+    """
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.name.endswith((".csv", ".csv.gz")))
+    found = sorted(p for p in folder.iterdir() if p.name.endswith((".csv", ".csv.gz")))
+    seen: dict[str, Path] = {}
+    for p in found:
+        other = seen.setdefault(_stem(p), p)
+        if other is not p:
+            raise RecordingError(
+                p, f"{other.name} beside it is a recording of the same name ({_stem(p)}); keep one"
+            )
+    return found
+
+
+def recording_files(root: Path | str | None = None) -> list[Path]:
+    """Every file :func:`find_recordings` reads under ``root`` (default: the packaged ones), or would.
+
+    Also those of ``tracking_error/`` it leaves out (``_CM``, ``_JTC``): a
+    command's outputs must not replace any of them.
+    """
+    root = Path(root) if root is not None else DATA_DIR
+    if not root.is_dir():
+        return []
+    files = []
+    for folder in FOLDERS:
+        path = root / folder
+        if path.is_dir():
+            files += sorted(p for p in path.iterdir() if p.name.endswith((".csv", ".csv.gz")))
+    return files
 
 
 def find_recordings(root: Path | str | None = None) -> Recordings:

@@ -75,13 +75,15 @@ def ramp_acceleration(t: np.ndarray, v: np.ndarray) -> float:
     return float(np.polyfit(t[sel], v[sel], 1)[0])
 
 
-def online_change(run: SettingMaxValRun) -> OnlineChange:
+def online_change(run: SettingMaxValRun) -> OnlineChange | None:
     """The two commands of the online change, read off the profile (the program is not published).
 
     The acceleration changes where the speed's slope leaves the header's
     value for good (the new value is the slope after it, rounded to 100
     deg/s²); the velocity limit is the speed the profile settles at (rounded
-    to 100 deg/s), sent when the speed stopped rising (the peak).
+    to 100 deg/s), sent when the speed stopped rising (the peak). ``None``
+    where the profile shows no such change (its slope never leaves the
+    header's value while the speed rises, or too few samples follow).
     """
     a0 = run.max_acceleration
     slope = _slopes(run)
@@ -89,9 +91,14 @@ def online_change(run: SettingMaxValRun) -> OnlineChange:
     rising = np.arange(len(slope)) < peak_i
     off = rising & (np.abs(slope - a0) > 0.25 * a0) & (run.velocity > 0.2 * run.velocity[peak_i])
     first = int(np.argmax(off))
-    a1 = float(np.median(slope[first + 2 : max(first + 3, peak_i - 1)]))
+    after_change = slope[first + 2 : max(first + 3, peak_i - 1)]
+    if not off.any() or first == 0 or not len(after_change):
+        return None
+    a1 = float(np.median(after_change))
     after = run.velocity[peak_i:]
-    flat = after[np.abs(np.gradient(after)) < 0.02 * a0 * np.median(np.diff(run.t))]
+    flat = (
+        after[np.abs(np.gradient(after)) < 0.02 * a0 * np.median(np.diff(run.t))] if len(after) > 1 else after
+    )
     v1 = float(np.median(flat)) if len(flat) else float(run.velocity[-1])
     # the slope changed between the sample before ``first`` and ``first``; the speed peaked at ``peak_i``
     return OnlineChange(
@@ -159,7 +166,7 @@ def compare(run: SettingMaxValRun, sim: SettingMaxValReplay) -> list[Row]:
     """Peak speed, ramp acceleration and position RMS of one profile."""
     name = f"settingMaxVal/{run.name}"
     real_pos = run.position - run.position[0]
-    note = ""
+    note = "online change: none found in the profile" if run.online_change and sim.change is None else ""
     if sim.change is not None:
         c = sim.change
         note = (
@@ -186,29 +193,47 @@ def compare(run: SettingMaxValRun, sim: SettingMaxValReplay) -> list[Row]:
             note=f"requested {run.max_acceleration:g} deg/s²",
         ),
     ]
-    moved = float(np.max(np.abs(real_pos)))
+    moved = float(np.max(np.abs(real_pos)))  # run_all leaves out a profile that did not move
     rms = float(np.sqrt(np.mean((sim.position - real_pos) ** 2)))
+    error = 100 * rms / moved if moved > 0 else math.inf
     rows.append(
         Row(
             name,
             "position RMS",
             moved,
             rms,
-            100 * rms / moved,
+            error,
             POSITION_BOUND_PCT,
             "deg",
             "% of move",
-            bool(100 * rms / moved <= POSITION_BOUND_PCT),
+            bool(error <= POSITION_BOUND_PCT),
             "real: the move; sim: the RMS difference",
         )
     )
     return rows
 
 
+def distance_moved(run: SettingMaxValRun) -> float:
+    """How far the real motor moved from its first sample, degrees (0: it did not)."""
+    return float(np.max(np.abs(run.position - run.position[0])))
+
+
 def run_all(runs: list[SettingMaxValRun]) -> tuple[list[Row], dict[str, SettingMaxValReplay]]:
-    """Replay and compare every profile."""
+    """Replay and compare every profile; one failing row for a profile that did not move (no replay)."""
     rows, sims = [], {}
     for run in runs:
+        if distance_moved(run) == 0.0:
+            rows.append(
+                Row.verdict(
+                    f"settingMaxVal/{run.name}",
+                    "the motor moved",
+                    "no",
+                    "-",
+                    False,
+                    "its position never changes: nothing to compare (not replayed)",
+                )
+            )
+            continue
         sim = sims[run.name] = replay(run)
         rows += compare(run, sim)
     return rows, sims
