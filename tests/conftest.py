@@ -479,3 +479,16 @@ def emulated_homed_arm(make_arm_backend: MakeBackend) -> Arm:
     arm.activate()
     arm.home()
     return arm
+
+
+@pytest.fixture
+def bioscara(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str, str]]:
+    """Run ``bioscara ARGS`` in-process; return the exit code, stdout and stderr (whitespace joined)."""
+    from bioscara_gym.cli import main
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        code = main(list(argv))
+        out, err = capsys.readouterr()
+        return code, out, " ".join(err.split())
+
+    return run

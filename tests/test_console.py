@@ -54,18 +54,6 @@ def state(tmp_path: Path) -> Path:
     return tmp_path / "arm.json"
 
 
-@pytest.fixture
-def bioscara(capsys: pytest.CaptureFixture[str]) -> Run:
-    """Run ``bioscara ARGS``; return the exit code, stdout and stderr (whitespace joined)."""
-
-    def run(*argv: str) -> tuple[int, str, str]:
-        code = main(list(argv))
-        out, err = capsys.readouterr()
-        return code, out, " ".join(err.split())
-
-    return run
-
-
 def rows(out: str) -> dict[str, list[str]]:
     """The status table's rows: device name to its cells (split on runs of spaces)."""
     table = {}

@@ -26,7 +26,6 @@ from pathlib import Path
 import pytest
 
 from bioscara_gym import fsutil
-from bioscara_gym.cli import main
 from bioscara_gym.console.state import lock_path
 from bioscara_gym.fsutil import LockFile, atomic_open, atomic_write_bytes, atomic_write_text
 
@@ -65,18 +64,6 @@ REFUSED = [
     ),
 ]
 REFUSED_IDS = ["-".join(argv) for argv, _ in REFUSED]
-
-
-@pytest.fixture
-def bioscara(capsys: pytest.CaptureFixture[str]) -> Run:
-    """Run ``bioscara ARGS``; return the exit code, stdout and stderr (whitespace joined)."""
-
-    def run(*argv: str) -> tuple[int, str, str]:
-        code = main(list(argv))
-        out, err = capsys.readouterr()
-        return code, out, " ".join(err.split())
-
-    return run
 
 
 @contextlib.contextmanager
