@@ -24,11 +24,26 @@ the writers; each loop runs only when its period has passed since its last
 run (a call too soon is skipped, as in the MH5), and keeps
 :class:`LoopStats`. The SDK is imported lazily: building a bus without it
 raises :class:`~bioscara_gym.hardware.errors.MissingExtraError`.
+
+Replies are checked: a protocol 2.0 status packet does not say which request
+it answers, so it must come from the servo asked and carry exactly the data
+asked for (:func:`status_data`; the SDK's ``readTxRx`` slices whatever packet
+came to the length asked). One that does not (a short or long packet, another
+ID) is a failed attempt (``malformed``), retried, and in the end a
+:class:`~bioscara_gym.hardware.errors.CommError` naming the joint, what was
+wrong and the packet's bytes. The SDK flushes the port before each request,
+which drops what has arrived but not a reply still on its way; so after an
+attempt that got no proper reply, the next request waits until the line has
+been quiet for :data:`LATE_REPLY_QUIET_S` and drops what came meanwhile
+(:meth:`DynamixelBus._settle`): a late reply to an earlier request is not taken
+as the reply to the next one.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -91,10 +106,100 @@ class DynamixelJoint(Protocol):
         ...
 
 
+log = logging.getLogger(__name__)
+
 #: The SDK's "success" result code (``COMM_SUCCESS``).
 COMM_SUCCESS = 0
 #: The SDK's "no status packet" result code (``COMM_RX_TIMEOUT``).
 COMM_RX_TIMEOUT = -3001
+#: The SDK's "incorrect status packet" result code (``COMM_RX_CORRUPT``).
+COMM_RX_CORRUPT = -3002
+#: Instruction bytes (protocol 2.0): PING, READ, WRITE, REBOOT, and a status packet's.
+INST_PING, INST_READ, INST_WRITE, INST_REBOOT, INST_STATUS = 0x01, 0x02, 0x03, 0x08, 0x55
+#: Data bytes of a PING's status packet: model number (2) and firmware version (1).
+PING_DATA_LENGTH = 3
+#: After a failed exchange, how long the line must stay quiet before the next request, s.
+#: A late status packet (one that came after the SDK gave up on it: a slow servo,
+#: an emulator catching up) arrives within this and is dropped, instead of being
+#: taken as the reply to the next request. Beyond the SDK's own wait (34 ms at 1 Mbps).
+LATE_REPLY_QUIET_S = 0.05
+#: The longest wait for the line to go quiet, s (a line that keeps talking is not waited out).
+LATE_REPLY_MAX_S = 0.5
+
+
+class BadReply(Exception):
+    """A status packet that is not the reply to the request sent: short, long, another ID, truncated.
+
+    The message says what was wrong and shows the packet's bytes.
+
+    Attributes:
+        packet: The packet as received (after the SDK removed the byte stuffing).
+    """
+
+    def __init__(self, reason: str, packet: bytes | list[int] | None = None) -> None:
+        """Say what was wrong; the packet's bytes are appended."""
+        self.packet = bytes(packet or b"")
+        shown = self.packet.hex(" ").upper() if self.packet else "none"
+        super().__init__(f"{reason}; reply {shown}")
+
+
+def status_data(packet: bytes | list[int], dxl_id: int, size: int) -> tuple[bytes, int]:
+    """The data and error byte of ``dxl_id``'s status packet that must carry exactly ``size`` data bytes.
+
+    ``packet`` is what the SDK's ``rxPacket`` returned (CRC checked, byte
+    stuffing removed): ``FF FF FD 00 | ID | LEN_L LEN_H | 55 | ERR | data… | CRC``.
+    A protocol 2.0 status packet does not say which request it answers; its
+    ID and length are all there is to tell a late reply to an earlier request
+    (a PING's 3 bytes, a READ of another size) from the one expected.
+
+    Raises:
+        BadReply: Another ID, not a status packet, shorter than its LEN, or
+            not ``size`` data bytes.
+    """
+    raw = bytes(packet)
+    if len(raw) < 11:
+        raise BadReply(f"a status packet of {len(raw)} bytes, shorter than any (11)", raw)
+    if raw[4] != dxl_id:
+        raise BadReply(f"a status packet from ID {raw[4]}, not ID {dxl_id}", raw)
+    if raw[7] != INST_STATUS:
+        raise BadReply(f"a packet with instruction {raw[7]:#04x}, not a status packet (0x55)", raw)
+    length = raw[5] | raw[6] << 8
+    if length < 4 or len(raw) < 7 + length:
+        raise BadReply(f"a truncated status packet (LEN {length}, {len(raw)} bytes)", raw)
+    got = length - 4  # LEN counts INST, ERR, the data and the CRC
+    if got != size:
+        raise BadReply(
+            f"a status packet with {got} data byte{'s' if got != 1 else ''} where {size} "
+            f"{'were' if size != 1 else 'was'} expected (a late reply to an earlier request?)",
+            raw,
+        )
+    return raw[9 : 9 + size], raw[8]
+
+
+def drain_port(port: Any, since: float, quiet_s: float, max_s: float) -> tuple[int, bool]:
+    """Read and drop bytes until none came for ``quiet_s``, counted from ``since`` at the earliest.
+
+    ``since`` is the :func:`time.monotonic` time the exchange failed. Gives
+    up after ``max_s`` of a line that keeps talking.
+
+    Returns:
+        The bytes dropped, and whether the line went quiet.
+    """
+    start = last = time.monotonic()
+    last = min(last, since)
+    dropped = 0
+    while True:
+        now = time.monotonic()
+        waiting = port.getBytesAvailable()
+        if waiting:
+            dropped += len(port.readPort(waiting))
+            last = now
+        elif now - last >= quiet_s:
+            return dropped, True
+        if now - start >= max_s:
+            return dropped, False
+        if not waiting:
+            time.sleep(0.001)
 
 
 def load_sdk() -> Any:
@@ -296,6 +401,11 @@ class DynamixelBus:
         clock: Time source of the loops and of waits.
         rates: Loop name to rate in Hz (defaults: :data:`DEFAULT_LOOP_RATES`).
         retries: Extra attempts of a failed single-servo transaction.
+
+    Attributes:
+        late_reply_s: How long the line must stay quiet after a failed
+            exchange before the next request (:data:`LATE_REPLY_QUIET_S`).
+        late_bytes: Bytes dropped so far while waiting for the line to go quiet.
     """
 
     def __init__(
@@ -323,6 +433,10 @@ class DynamixelBus:
         self.joints: dict[int, DynamixelJoint] = {}
         self.opened = False
         self.synced = False
+        self.late_reply_s = LATE_REPLY_QUIET_S
+        self.late_bytes = 0
+        # monotonic time of the last exchange after which a reply may still be on its way, or None
+        self._unsettled_since: float | None = None
         rates = {**DEFAULT_LOOP_RATES, **(rates or {})}
         self.loops: dict[str, SyncLoop] = {
             "pvl_reader": SyncLoop("pvl_reader", rates["pvl_reader"], self._read_pvl),
@@ -361,6 +475,41 @@ class DynamixelBus:
             raise ValueError(f"ID {joint.dxl_id} is used by {other.name} and {joint.name}")
         self.joints[joint.dxl_id] = joint
 
+    # ------------------------------------------------------------ late replies
+    def _unsettle(self) -> None:
+        """An exchange failed: a reply to it may still come; drop it before the next request."""
+        self._unsettled_since = time.monotonic()
+
+    def _settle(self) -> None:
+        """Before a request: after a failed exchange, wait for the line to go quiet and drop what came.
+
+        The SDK flushes the port's input before every request
+        (``Protocol2PacketHandler.txPacket`` calls ``clearPort``), which drops
+        what has arrived, not a status packet still on its way: one that comes
+        after the SDK stopped waiting for it would be taken as the reply to
+        the next request to the same ID. So after a failure the line must be
+        quiet for :attr:`late_reply_s` first. A port whose replies cannot come
+        late (:class:`~.port.EmulatedPortHandler`) says so with
+        ``discard_late_replies``.
+        """
+        since = self._unsettled_since
+        if since is None:
+            return
+        self._unsettled_since = None
+        discard = getattr(self.port, "discard_late_replies", None)
+        try:
+            if discard is not None:
+                dropped, quiet = discard(), True
+            else:
+                dropped, quiet = drain_port(self.port, since, self.late_reply_s, LATE_REPLY_MAX_S)
+        except OSError:  # the device went away: the request that follows fails and says so
+            dropped, quiet = 0, True
+        if dropped:
+            self.late_bytes += dropped
+            log.debug("%s: dropped %d bytes of late replies", self.port.getPortName(), dropped)
+        if not quiet:
+            self._unsettled_since = time.monotonic()
+
     # ------------------------------------------------------------ single servo
     def transact(
         self, joint: DynamixelJoint, what: str, call: Callable[[], tuple[Any, int, int]]
@@ -370,81 +519,150 @@ class DynamixelBus:
         A status packet with an error number (bits 0-6) counts as a failed
         attempt; the Alert bit alone does not (the servo did what it was
         told and reports its hardware error; the caller reads the flags).
+        A status packet that is not the reply to the request (``call``
+        raises :class:`BadReply`) is a failed attempt counted ``malformed``.
+        After an attempt with no proper reply, the next request waits for the
+        line to go quiet (:meth:`_settle`).
 
         Raises:
             CommError: Every attempt failed; the message names the joint, ID and reason.
         """
         self.open()
         last = ""
+        unsettled = False  # an attempt of this transaction may have a reply still on its way
         with self.lock:
+            self._settle()  # what an earlier transaction left on its way
+            late_before = self.late_bytes
             for attempt in range(self.retries + 1):
-                value, result, error = call()
+                self._settle()
+                retry = attempt > 0
+                try:
+                    value, result, error = call()
+                except BadReply as e:
+                    joint.stats.record(ok=False, kind="malformed", retry=retry)
+                    self._unsettle()
+                    unsettled, last = True, str(e)
+                    continue
+                except OSError as e:  # pyserial's SerialException: the device went away
+                    self.port.is_using = False
+                    joint.stats.record(ok=False, retry=retry)
+                    self._unsettle()
+                    unsettled, last = True, f"the port failed: {e}"
+                    continue
                 if result == COMM_SUCCESS and not error & ~ALERT & 0xFF:
-                    joint.stats.record(ok=True, retry=attempt > 0)
+                    joint.stats.record(ok=True, retry=retry)
                     joint.note_status(error)
+                    if unsettled:  # the reply taken may be an earlier attempt's: this one's may follow
+                        self._unsettle()
                     return value, error
-                joint.stats.record(ok=False, retry=attempt > 0)
+                joint.stats.record(ok=False, retry=retry)
                 if result != COMM_SUCCESS:
+                    self._unsettle()
+                    unsettled = True
                     last = self.packet_handler.getTxRxResult(result)
                 else:
                     joint.note_status(error)
                     last = self.packet_handler.getRxPacketError(error)
+            if unsettled:  # the last attempt's reply may still come: drop it now, and say so
+                self._settle()
+            late = self.late_bytes - late_before
+            if late:
+                last = f"{last}; {late} bytes came after the wait and were dropped"
         raise CommError(
             f"{what} failed after {self.retries + 1} attempts: {last}. "
             "Check the cable, power, ID and baud rate",
             joint=joint.name,
         )
 
+    def exchange(self, dxl_id: int, instruction: int, params: list[int], size: int) -> tuple[bytes, int, int]:
+        """One request and its status packet, checked: ``(data, SDK result, error byte)``.
+
+        The SDK's ``txRxPacket`` with its timeouts, except that the status
+        packet must come from ``dxl_id`` and carry exactly ``size`` data
+        bytes (:func:`status_data`); the SDK's ``readTxRx`` takes any packet
+        from the ID and slices it to the length asked, so that a late PING
+        reply (3 bytes) became a short READ, and a late 7-byte READ's first
+        byte a 1-byte one.
+
+        Raises:
+            BadReply: A status packet that is not the reply to this request, or
+                only other IDs' packets before the SDK stopped waiting.
+        """
+        ph, port = self.packet_handler, self.port
+        txpacket = [0] * (10 + len(params))
+        length = len(params) + 3  # INST, the parameters, CRC
+        txpacket[4], txpacket[5], txpacket[6], txpacket[7] = dxl_id, length & 0xFF, length >> 8, instruction
+        txpacket[8 : 8 + len(params)] = params
+        result = ph.txPacket(port, txpacket)
+        if result != COMM_SUCCESS:
+            return b"", result, 0
+        # as txRxPacket: READ waits for its data, other instructions for a bare status packet
+        port.setPacketTimeout(size + 11 if instruction == INST_READ else 11)
+        return self._receive(dxl_id, size)
+
+    def _receive(self, dxl_id: int, size: int, name_others: bool = True) -> tuple[bytes, int, int]:
+        """``dxl_id``'s status packet of ``size`` data bytes (the SDK's ``readRx``, checked).
+
+        Packets from other IDs are passed over, as the SDK does; if no packet
+        from ``dxl_id`` follows, that is what was wrong (``name_others``),
+        else the SDK's timeout is returned.
+
+        Raises:
+            BadReply: See :meth:`exchange`.
+        """
+        others: list[int] = []
+        other: list[int] = []
+        while True:
+            packet, result = self.packet_handler.rxPacket(self.port, False)
+            if result != COMM_SUCCESS:
+                if others and name_others:
+                    ids = ", ".join(str(i) for i in dict.fromkeys(others))
+                    raise BadReply(f"no status packet from ID {dxl_id}, one from ID {ids} instead", other)
+                return b"", result, 0
+            if packet[4] == dxl_id:
+                data, error = status_data(packet, dxl_id, size)
+                return data, COMM_SUCCESS, error
+            others.append(packet[4])
+            other = packet
+
     def ping(self, joint: DynamixelJoint, tries: int | None = None) -> int:
         """PING the joint's servo; return its model number."""
-        ph, port, i = self.packet_handler, self.port, joint.dxl_id
+        i = joint.dxl_id
         saved = self.retries
         if tries is not None:
             self.retries = tries - 1
         try:
-            model, _ = self.transact(joint, "PING", lambda: ph.ping(port, i))
+            data, _ = self.transact(joint, "PING", lambda: self.exchange(i, INST_PING, [], PING_DATA_LENGTH))
         finally:
             self.retries = saved
-        return int(model)
+        return int.from_bytes(data[:2], "little")
 
     def read(self, joint: DynamixelJoint, address: int, size: int, signed: bool = False) -> int:
-        """READ ``size`` bytes at ``address`` as one little-endian value."""
-        ph, port, i = self.packet_handler, self.port, joint.dxl_id
-
-        def call() -> tuple[Any, int, int]:
-            data, result, error = ph.readTxRx(port, i, address, size)
-            return data, result, error
-
-        data, _ = self.transact(joint, f"READ {address}", call)
-        value = int.from_bytes(bytes(data[:size]), "little")
+        """READ ``size`` bytes at ``address`` as one little-endian value (see :meth:`read_block`)."""
+        value = int.from_bytes(self.read_block(joint, address, size), "little")
         return to_signed(value, size) if signed else value
 
     def read_block(self, joint: DynamixelJoint, address: int, size: int) -> bytes:
-        """READ ``size`` raw bytes at ``address``."""
-        ph, port, i = self.packet_handler, self.port, joint.dxl_id
-        data, _ = self.transact(joint, f"READ {address}", lambda: ph.readTxRx(port, i, address, size))
-        return bytes(data[:size])
+        """READ ``size`` raw bytes at ``address``: exactly ``size`` bytes, or CommError."""
+        params = [address & 0xFF, address >> 8, size & 0xFF, size >> 8]
+        data, _ = self.transact(
+            joint, f"READ {address}", lambda: self.exchange(joint.dxl_id, INST_READ, params, size)
+        )
+        if len(data) != size:  # exchange() checked it: never padded, never cut
+            raise CommError(f"READ {address}: {len(data)} bytes where {size} were asked", joint=joint.name)
+        return bytes(data)
 
     def write(self, joint: DynamixelJoint, address: int, size: int, value: int) -> int:
         """WRITE one value; return the status packet's error byte."""
-        ph, port, i = self.packet_handler, self.port, joint.dxl_id
         data = list(to_unsigned(int(value), size).to_bytes(size, "little"))
-
-        def call() -> tuple[Any, int, int]:
-            result, error = ph.writeTxRx(port, i, address, size, data)
-            return None, result, error
-
-        return self.transact(joint, f"WRITE {address}", call)[1]
+        params = [address & 0xFF, address >> 8, *data]
+        return self.transact(
+            joint, f"WRITE {address}", lambda: self.exchange(joint.dxl_id, INST_WRITE, params, 0)
+        )[1]
 
     def reboot(self, joint: DynamixelJoint) -> None:
         """REBOOT the joint's servo."""
-        ph, port, i = self.packet_handler, self.port, joint.dxl_id
-
-        def call() -> tuple[Any, int, int]:
-            result, error = ph.reboot(port, i)
-            return None, result, error
-
-        self.transact(joint, "REBOOT", call)
+        self.transact(joint, "REBOOT", lambda: self.exchange(joint.dxl_id, INST_REBOOT, [], 0))
 
     # ------------------------------------------------------------ loops
     def start_loops(self) -> None:
@@ -483,17 +701,28 @@ class DynamixelBus:
         self.open()
         ph, port = self.packet_handler, self.port
         with self.lock:
+            self._settle()
             params = [j.dxl_id for j in joints]
-            result = ph.syncReadTx(port, start, length, params, len(params), False)
-            if result != COMM_SUCCESS:
-                return result
-            final = COMM_SUCCESS
-            for j in joints:
-                data, result, error = ph.readRx(port, j.dxl_id, length)
+            try:
+                result = ph.syncReadTx(port, start, length, params, len(params), False)
                 if result != COMM_SUCCESS:
-                    final = result
-                    continue  # the others may still have answered
-                store(j, bytes(data[:length]), error)
+                    self._unsettle()
+                    return result
+                final = COMM_SUCCESS
+                for j in joints:
+                    try:
+                        data, result, error = self._receive(j.dxl_id, length, name_others=False)
+                    except BadReply as e:
+                        log.debug("%s: SYNC READ %d: %s", j.name, start, e)
+                        result = COMM_RX_CORRUPT
+                    if result != COMM_SUCCESS:
+                        final = result
+                        self._unsettle()
+                        continue  # the others may still have answered
+                    store(j, data, error)
+            except OSError:  # pyserial's SerialException: the device went away
+                self._unsettle()
+                final = COMM_RX_CORRUPT
             port.is_using = False
             return final
 

@@ -143,12 +143,40 @@ class XL430:
         dt = now - self._t
         if dt <= 0:
             return
+        if self._at_rest():
+            # Every step would leave it as it is: skip them. Stepping a servo left alone for
+            # 10 s took 50 ms, longer than the SDK waits for a status packet (34 ms at 1 Mbps),
+            # so the first request after a pause timed out and its reply came late.
+            self._store(FIELDS["Present Load"].address, 2, 0)
+            self._overload_s = 0.0
+            self._t = now
+            self._publish()
+            return
         steps = min(math.ceil(dt / STEP_S - 1e-9), 100_000)
         h = dt / steps
         for _ in range(steps):
             self._step(h)
         self._t = now
         self._publish()
+
+    def _at_rest(self) -> bool:
+        """Whether the rotor stands and nothing drives it: a step of :meth:`_step` changes nothing.
+
+        Still, and torque off, or in velocity mode with Goal Velocity 0, or
+        in a position mode within half a unit of the goal (where
+        :meth:`_step` asks for no speed), or in another mode (PWM: not modelled).
+        """
+        if self._vel != 0.0:
+            return False
+        if not self.torque:
+            return True
+        mode = self.table[ADDR_OPERATING_MODE]
+        if mode == OperatingMode.VELOCITY:
+            return self.get("Goal Velocity") == 0
+        if mode in (OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION):
+            err = (self.get("Goal Position") - self._pos) * _RAD_PER_UNIT
+            return abs(err) < 0.5 * _RAD_PER_UNIT  # as _step: no speed asked for
+        return True
 
     def _step(self, h: float) -> None:
         mode = self.table[ADDR_OPERATING_MODE]

@@ -234,7 +234,7 @@ class DynamixelJoint(BaseJoint):
         self._initialized = True
         try:
             self.get_flags()
-            self.mode = OperatingMode(self._read(ADDR_OPERATING_MODE, 1))
+            self.mode = self._read_mode()
             self._goal_position = self._read(ADDR_PRESENT_POSITION, 4, signed=True)
             profile = self.bus.read_block(self, ADDR_PROFILE_ACCELERATION, 8)
             self._profile_acceleration = int.from_bytes(profile[:4], "little")
@@ -242,6 +242,22 @@ class DynamixelJoint(BaseJoint):
         except BaseException:
             self._initialized = False
             raise
+
+    def _read_mode(self) -> OperatingMode:
+        """Read the Operating Mode.
+
+        Raises:
+            CommError: A value an XL430-W250 does not have (1, 3, 4, 16), naming the joint.
+        """
+        raw = self._read(ADDR_OPERATING_MODE, 1)
+        try:
+            return OperatingMode(raw)
+        except ValueError:
+            known = ", ".join(f"{m.value} ({m.name.lower().replace('_', ' ')})" for m in OperatingMode)
+            raise CommError(
+                f"the servo reports Operating Mode {raw}, which an XL430-W250 does not have ({known})",
+                joint=self.name,
+            ) from None
 
     def get_flags(self) -> Flag:
         """Read Torque Enable and Hardware Error Status (64-70) and return the flags."""
@@ -288,7 +304,7 @@ class DynamixelJoint(BaseJoint):
         self.clock.sleep(REBOOT_S)
         self.bus.ping(self, tries=PING_TRIES)
         self.get_flags()
-        self.mode = OperatingMode(self._read(ADDR_OPERATING_MODE, 1))
+        self.mode = self._read_mode()
         self._pv_pending = False
         self._torque_request = None
 

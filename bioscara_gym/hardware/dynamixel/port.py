@@ -100,6 +100,17 @@ class EmulatedPortHandler(PortHandler):
         """Drop unread status bytes, as flushing a serial port's input does."""
         self.emulated_bus.clear_output()
 
+    def discard_late_replies(self) -> int:
+        """Drop unread status bytes at once: the servos answer at once, so none can still be on its way.
+
+        What :class:`~bioscara_gym.hardware.dynamixel.bus.DynamixelBus` calls
+        after a failed exchange instead of waiting for the line to go quiet
+        (a serial port's ``drain_port``). Returns the bytes dropped.
+        """
+        dropped = self.emulated_bus.in_waiting
+        self.emulated_bus.clear_output()
+        return dropped
+
     def getBytesAvailable(self) -> int:
         """Status bytes waiting."""
         return self.emulated_bus.in_waiting
