@@ -304,6 +304,28 @@ def test_configure_with_a_joint_missing_raises_comm_error_and_stays_unconfigured
     assert not arm.gripper.is_initialized
 
 
+def test_a_configure_failed_on_one_joint_disables_the_joints_that_answered(
+    make_arm_backend: MakeBackend,
+) -> None:
+    # An earlier process left the arm enabled; now j1 does not answer. Seen: the
+    # configure stopped at j1 and its on-error cleanup disabled nothing, so
+    # `bioscara disable` left j2-j4 holding torque.
+    backend = make_arm_backend("emulated")
+    assert isinstance(backend, EmulatedBackend)
+    Arm(backend).__enter__()
+    for joint in backend.joints.values():
+        joint.deinit()  # the process ends; the firmware stays enabled
+    firmware = backend.bus.devices
+    assert not any(firmware[a].flags & Flag.NOT_ENABLED for a in (0x11, 0x12, 0x13, 0x14))
+    del firmware[0x11]
+    arm = Arm(backend)
+    with pytest.raises(CommError, match=r"j1 \(0x11\): PING failed"):
+        arm.configure()
+    assert all(firmware[a].flags & Flag.NOT_ENABLED for a in (0x12, 0x13, 0x14))
+    assert arm.state is Lifecycle.UNCONFIGURED
+    assert not any(j.initialized for j in arm.joints.values())
+
+
 def test_configure_on_a_dead_bus_names_the_first_joint(make_arm_backend: MakeBackend) -> None:
     arm = Arm(make_arm_backend("emulated", faults=FaultPlan(nack=1.0)))
     with pytest.raises(CommError, match=r"j1 \(0x11\): PING failed after 3 attempts"):

@@ -216,14 +216,26 @@ class Arm:
     def configure(self) -> None:
         """Connect and ping every joint (restoring homing offsets) and the gripper.
 
+        A joint that does not answer does not stop the others from being
+        connected: the failed configure then disables every joint that did
+        answer (an earlier process may have left them enabled; seen: with
+        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque).
+
         Raises:
-            CommError: A joint did not answer (the arm stays unconfigured).
+            CommError: A joint did not answer (the first; the arm stays
+                unconfigured, the joints that answered disabled).
         """
         self._require(Lifecycle.UNCONFIGURED, action="configure")
 
         def body() -> None:
+            first: JointError | None = None
             for joint in self.joints.values():
-                joint.init()
+                try:
+                    joint.init()
+                except JointError as e:
+                    first = first or e
+            if first is not None:
+                raise first
             self.gripper.init()
             self.state = Lifecycle.INACTIVE
             self.read()
