@@ -8,6 +8,9 @@ while one works on it (the console's ``--state`` file). :func:`read_json`
 reads such a file back, refusing what is not one (a device, a FIFO, a huge
 or absurdly nested file) in one line instead of hanging or overflowing;
 :func:`read_bytes` is its check for any file read whole (traces, configurations).
+:func:`output_problem` and :func:`replace_problem` say, before a command
+works, why its output cannot go where it is asked to: a command replaces
+only a file of its own kind (or an empty one), never one it did not write.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import os
 import secrets
 import stat
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import BinaryIO
 
@@ -120,6 +123,50 @@ def output_problem(path: str | os.PathLike[str], folder: bool = False, parents: 
     os.close(fd)
     os.unlink(probe)
     return None
+
+
+def replace_problem(path: str | os.PathLike[str], kind: str, is_kind: Callable[[Path], bool]) -> str | None:
+    """Why writing ``path`` would destroy a file that is not ``kind``, or ``None``.
+
+    A command replaces only what it wrote itself: nothing there, an empty
+    regular file, or one ``is_kind`` recognises (seen: ``deploy --log
+    model.zip`` replaced another run's model with JSON lines, ``export --onnx
+    notes.txt`` a text file). What is not a regular file is left to
+    :func:`output_problem`. A symlink is judged by its target, which is what
+    is written.
+
+    Args:
+        path: The output.
+        kind: What the command writes, for the message (``"a deploy run log"``).
+        is_kind: Whether a non-empty regular file is one; it may raise
+            :class:`OSError` (the file could not be read: it is refused).
+    """
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None  # not there (or a loop of symlinks: output_problem's to say)
+    if not stat.S_ISREG(st.st_mode) or st.st_size == 0:
+        return None
+    try:
+        if is_kind(path):
+            return None
+    except OSError as e:
+        return f"exists and cannot be read to tell whether it is {kind} ({e.strerror or e}); give a new file"
+    return f"exists and is not {kind}; give a new file, or {kind} to replace"
+
+
+def read_first_line(path: str | os.PathLike[str], max_bytes: int) -> bytes:
+    """The first line of a regular file (at most ``max_bytes``, its newline kept).
+
+    Raises:
+        OSError: It cannot be read, or is not a regular file.
+    """
+    path = Path(path)
+    if not stat.S_ISREG(os.stat(path).st_mode):
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
+    with open(path, "rb") as f:
+        return f.readline(max_bytes)
 
 
 def output_clash(

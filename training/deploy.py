@@ -16,7 +16,12 @@ Reads top to bottom, as a deployment runs:
    at a fixed rate; every cycle goes to the run log.
 6. **deactivate** (joints disabled, gripper width saved) and **clean up**.
 
-Before step 2, every argument is checked, and a policy is checked twice:
+Before step 2, every argument is checked, and the files the run writes
+(:mod:`~bioscara_gym.training.deploy_outputs`: the run log, the gripper
+state file, the bus trace; each may replace only a file of its own kind, and
+the gripper's defaults to ``gripper.json`` beside the log on simulated
+backends); the bus trace is started only once the policy has passed. A
+policy is checked twice:
 its metadata must state the task, the control mode and rate and the spaces
 (nothing is defaulted), and the policy's own inputs and outputs (the SB3
 model's spaces, the ONNX graph's input and output widths) must fit the env
@@ -96,6 +101,7 @@ from bioscara_gym.training.deploy_checks import (
     Policy,
     check_args,
     check_files,
+    check_input_order,
     load_policy,
     make_env,
     probe_policy,
@@ -110,6 +116,7 @@ from bioscara_gym.training.deploy_log import (
     trace_error,
 )
 from bioscara_gym.training.deploy_loop import ControlLoop, Target
+from bioscara_gym.training.deploy_parser import EPILOG, add_options
 from bioscara_gym.training.deploy_safety import (
     EXIT_REFUSED,
     EXIT_SAFETY_STOP,
@@ -234,21 +241,33 @@ class Deployment:
             Interrupted: SIGINT/SIGTERM; the arm is safe, ``self.summary`` is set.
         """
         loaded = self._load_policy()
-        env = self.env = make_env(self.args, self.state_file, loaded.metadata, self._extra_options)
-        self.target = env.unwrapped  # the Bioscara env's public API (Target)
+        self._make_env(loaded, record=False)  # the trace starts only once the policy is checked
         with warnings.catch_warnings():
             warnings.showwarning = self._show_warning  # one line each, with the phases
             try:
                 t = self.target
                 where = f"{self._env_id()} ({t.control_mode}, {t.control_freq:g} Hz) on {self.args.backend}"
                 self.console.print(f"[bold]deploy[/bold]     {escape(loaded.description)} -> {where}")
-                self._check(env, loaded)
-                return self._run(env, loaded.make(env), loaded.description)
+                self._check(self.env, loaded)
+                return self._run(self.env, loaded.make(self.env), loaded.description)
             except KeyboardInterrupt as e:  # also before the run's guard: the trace says where
                 note_signal(self.target.arm.backend, e)
                 raise
             finally:
-                env.close()  # the env shuts the arm down if it is still up (it is not, by now)
+                if self.env is not None:  # the env shuts the arm down if it is still up (not by now)
+                    self.env.close()
+
+    def _make_env(self, loaded: LoadedPolicy, record: bool) -> None:
+        """Make the env (closing one made before), with ``--record``'s trace or without.
+
+        Seen: a policy refused by its check left a trace holding a header only.
+        """
+        if self.env is not None:
+            self.env, old = None, self.env
+            old.close()
+        args = self.args if record else dataclasses.replace(self.args, record=None)
+        self.env = make_env(args, self.state_file, loaded.metadata, self._extra_options)
+        self.target = self.env.unwrapped  # the Bioscara env's public API (Target)
 
     def _env_id(self) -> str:
         """The registered id of the env (its own spec: no deep copy of the kwargs)."""
@@ -269,6 +288,12 @@ class Deployment:
         return LoadedPolicy(lambda env: given, metadata, "given policy")
 
     def _check(self, env: gym.Env, loaded: LoadedPolicy) -> None:
+        """Check the policy on ``env``; once it passes, start ``--record``'s trace (a new env with it)."""
+        self._check_policy(env, loaded)
+        if self.args.record is not None:
+            self._make_env(loaded, record=True)
+
+    def _check_policy(self, env: gym.Env, loaded: LoadedPolicy) -> None:
         """Refuse a policy trained for another env, or one that does not fit it, before anything is sent."""
         if loaded.metadata is None:
             self.done("check", "no metadata to check (scripted policy)")
@@ -279,6 +304,7 @@ class Deployment:
                 check_policy_shapes(loaded.shapes, env)
         except MetadataError as e:
             raise DeployError(f"refused: {e}; nothing was sent to the arm") from e
+        check_input_order(loaded, env)
         probe_policy(loaded, env, self.args.seed)
         checked = "metadata and own inputs and outputs match" if loaded.shapes else "metadata matches"
         self.done("check", f"policy {checked} the env, and acts finitely; nothing sent to the arm yet")
@@ -458,43 +484,14 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``deploy`` subcommand (and, until cli.py registers it, ``export``)."""
+    """Add the ``deploy`` subcommand (its options: :mod:`~bioscara_gym.training.deploy_parser`)."""
     p = sub.add_parser(
         "deploy",
         help="run a policy on the arm (or its emulation) behind the safety layer",
         description="Check the policy against the env, bring the arm up, run episodes at a fixed rate "
         "behind the safety layer, log every cycle. Exit codes: 0 done, 2 refused (nothing sent), "
         "3 safety stop (arm disabled), 130/143 SIGINT/SIGTERM (arm disabled).",
+        epilog=EPILOG,
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", type=Path, help="model.zip (metadata.json beside it)")
-    src.add_argument("--onnx", type=Path, help="ONNX policy from `bioscara export` (no torch needed)")
-    src.add_argument("--expert", action="store_true", help="run the scripted expert of --env")
-    p.add_argument("--env", help="env id (for --expert; with a policy it must match the metadata)")
-    p.add_argument("--backend", choices=DEPLOY_BACKENDS, default="emulated", help="default: emulated")
-    p.add_argument(
-        "--firmware",
-        type=Path,
-        metavar="DIR",
-        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
-    )
-    p.add_argument("--bus", type=int, help="I2C bus number, /dev/i2c-N (default: the config's)")
-    p.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
-    p.add_argument("--episodes", type=int, default=1)
-    p.add_argument(
-        "--rate",
-        type=float,
-        help="control rate in Hz (default: the policy's; a trained policy refuses another)",
-    )
-    p.add_argument("--log", type=Path, help="run log, JSON Lines (default: runs/deploy/deploy-<time>.jsonl)")
-    p.add_argument(
-        "--faults",
-        help="emulated bus faults: nack, short_read, corrupt (rates per transaction), latency_ms, "
-        "jitter_ms (extra time per transaction), drift_ppm (host clock), seed (of the faults' draws, "
-        "default 0; --seed is the episodes'), e.g. latency_ms=2,jitter_ms=3,seed=7",
-    )
-    p.add_argument("--seed", type=int, default=10_000, help="seed of the first episode")
-    p.add_argument("--realtime", action="store_true", help="pace mock/emulated on the wall clock too")
-    p.add_argument("--state-file", type=Path, help="gripper state file")
-    p.add_argument("--record", type=Path, metavar="FILE", help="bus trace to write (docs/traces.md)")
+    add_options(p)
     p.set_defaults(func=cmd_deploy)

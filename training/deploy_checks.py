@@ -1,6 +1,7 @@
 """What ``bioscara deploy`` checks before a byte reaches the arm: its arguments, its outputs, its policy.
 
-Every argument is checked (:func:`check_args`, :func:`check_outputs`), the
+Every argument is checked (:func:`check_args`; the files it writes by
+:func:`~bioscara_gym.training.deploy_outputs.check_files`), the
 policy loaded (:func:`load_policy`: the one ``--model``, ``--onnx`` or
 ``--expert`` names), its env's keyword arguments checked against the env's
 constructor (:func:`check_env_kwargs`) and the policy run once on a probe
@@ -19,22 +20,33 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+import bioscara_gym
 from bioscara_gym.errors import DeployError, TrainingError
-from bioscara_gym.fsutil import output_clash
 from bioscara_gym.hardware.arm import check_control_freq
 from bioscara_gym.hardware.config import load_config
 from bioscara_gym.hardware.emulated_bus import FaultPlan
 from bioscara_gym.hardware.errors import SitlError
 from bioscara_gym.hardware.registry import backend_names
 from bioscara_gym.tasks import Policy, task_of
+from bioscara_gym.training.deploy_outputs import check_files, check_outputs
 from bioscara_gym.training.extras import needed_by
-from bioscara_gym.training.metadata import (
-    PolicyShapes,
-    env_kwargs_problem,
-    policy_files,
-    read_metadata,
-    resolve_env_id,
-)
+from bioscara_gym.training.metadata import PolicyShapes, env_kwargs_problem, read_metadata, resolve_env_id
+
+__all__ = [
+    "DEPLOY_BACKENDS",
+    "DeployArgs",
+    "LoadedPolicy",
+    "Policy",
+    "backend_options",
+    "check_args",
+    "check_env_kwargs",
+    "check_files",
+    "check_input_order",
+    "check_outputs",
+    "load_policy",
+    "make_env",
+    "probe_policy",
+]
 
 #: Backends deploy drives, as the registry says (``sim`` has no bus: use ``bioscara eval``);
 #: ``sitl`` runs the firmware's own source behind the emulated bus (``--firmware DIR``).
@@ -56,13 +68,17 @@ class DeployArgs:
         config: Arm configuration YAML; default the packaged one.
         episodes: Episodes to run.
         rate: Control rate in Hz; default the policy's. Must match a trained policy's.
-        log: Run log (JSON Lines); default ``runs/deploy/deploy-<time>.jsonl``.
+        log: Run log (JSON Lines); default ``runs/deploy/deploy-<time>.jsonl``. It
+            replaces only an earlier run log or an empty file; missing folders are
+            made (:mod:`~bioscara_gym.training.deploy_outputs`, as for the others).
         faults: Fault injection on ``emulated``, e.g. ``nack=0.01,latency_ms=2``.
         seed: Seed of the first episode.
         realtime: On simulated backends, pace the loop on the wall clock too.
         state_file: Gripper state file; default the backend's (on the arm) or
-            ``gripper.json`` beside the log (simulated backends).
-        record: Bus trace: every I2C transaction as a JSON line (docs/traces.md).
+            ``gripper.json`` beside the log (simulated backends). It replaces only
+            a gripper state file or an empty file.
+        record: Bus trace: every I2C transaction as a JSON line (docs/traces.md);
+            a session is added to a trace or an empty file, nothing else.
         firmware: The joint firmware's folder for ``sitl`` (``Arduino/joint/``);
             default ``$BIOSCARA_FIRMWARE``.
     """
@@ -94,12 +110,16 @@ class LoadedPolicy:
         metadata: What the policy was trained for (``None`` for the expert).
         description: One line for the operator.
         shapes: What the policy itself takes and gives (``None`` for the expert).
+        concatenated: The policy takes the observation as one input, its parts
+            concatenated in the order of ``shapes.observation`` (an ONNX graph,
+            its ``obs_keys``); else it takes it by key (an SB3 model, the expert).
     """
 
     make: Callable[[gym.Env], Policy]
     metadata: dict[str, Any] | None
     description: str
     shapes: PolicyShapes | None = None
+    concatenated: bool = False
 
 
 def load_policy(args: DeployArgs) -> LoadedPolicy:
@@ -126,7 +146,7 @@ def load_policy(args: DeployArgs) -> LoadedPolicy:
 
         onnx_policy = OnnxPolicy(args.onnx)
         return LoadedPolicy(
-            lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes
+            lambda env: onnx_policy, onnx_policy.metadata, f"ONNX {args.onnx}", onnx_policy.shapes, True
         )
     read_metadata(Path(args.model))  # a missing metadata.json is refused before torch loads
     with needed_by("deploy --model"):
@@ -160,11 +180,41 @@ def probe_policy(loaded: LoadedPolicy, env: gym.Env, seed: int) -> None:
             f"refused: {loaded.description} fails on a probe observation ({type(e).__name__}: "
             f"{first_line(e)}); are its weights NaN or infinite? nothing was sent to the arm"
         ) from e
+    expected = tuple(env.action_space.shape or ())
+    if action.shape != expected:  # seen: an ONNX graph's [batch, 1, 4] passed, homed, then stopped
+        raise DeployError(
+            f"refused: {loaded.description} gives an action of shape {action.shape} on a probe "
+            f"observation; the env takes shape {expected}; nothing was sent to the arm"
+        )
     if not np.all(np.isfinite(action)):
         raise DeployError(
             f"refused: {loaded.description} gives a non-finite action "
             f"{np.array2string(action, precision=3, separator=', ')} on a probe observation; "
             "nothing was sent to the arm"
+        )
+
+
+def check_input_order(loaded: LoadedPolicy, env: gym.Env) -> None:
+    """Refuse a policy whose one input concatenates the observation in another order than the env's.
+
+    ``bioscara export`` concatenates the observation in the order of the
+    model's observation space, which is the env's (:func:`~bioscara_gym.training.export.obs_layout`);
+    an ONNX file whose ``obs_keys`` name another order would be fed each part
+    where the graph expects another (seen: ``desired_goal`` first, misses of
+    170-422 mm, exit 0).
+
+    Raises:
+        DeployError: One line naming both orders.
+    """
+    spaces = getattr(env.observation_space, "spaces", None)
+    if not loaded.concatenated or loaded.shapes is None or not isinstance(spaces, dict):
+        return
+    given, order = tuple(loaded.shapes.observation), tuple(spaces)
+    if given != order:
+        raise DeployError(
+            f"refused: {loaded.description} concatenates its input as {', '.join(given)} "
+            f"(its obs_keys), but `bioscara export` concatenates the env's observation as "
+            f"{', '.join(order)}; nothing was sent to the arm"
         )
 
 
@@ -188,47 +238,6 @@ def check_env_kwargs(env_id: str, kwargs: dict[str, Any]) -> None:
         raise DeployError(f"the policy's env_kwargs {problem}")
 
 
-def check_files(args: DeployArgs, log: Path, state_file: Path | None) -> None:
-    """:func:`check_outputs` on a deploy's outputs, against the files it reads.
-
-    Raises:
-        DeployError: As :func:`check_outputs`.
-    """
-    inputs: dict[str, Path | None] = {"--config": args.config, "--onnx": args.onnx}
-    if args.model is not None:  # model.zip or its folder
-        inputs.update(policy_files(args.model))
-    if args.onnx is not None:
-        inputs["policy's metadata.json"] = Path(args.onnx).parent / "metadata.json"
-    check_outputs({"--log": log, "--state-file": state_file, "--record": args.record}, inputs)
-
-
-def check_outputs(outputs: dict[str, Path | None], inputs: dict[str, Path | None] | None = None) -> None:
-    """Refuse output files that are one and the same, that cannot be files, or that are inputs.
-
-    The run log, the gripper state file (``None``: the backend's, on the arm)
-    and the bus trace are written side by side: one path for two of them
-    would leave neither readable. An output that names an input (the
-    configuration, the policy) would overwrite it before it is read.
-
-    Raises:
-        DeployError: Two options name one file, or one names a directory, a
-            device or a FIFO, or a path under something that is not a directory,
-            or an input file.
-    """
-    clash = output_clash(outputs, inputs)
-    if clash is not None:
-        raise DeployError(clash)
-    for option, path in outputs.items():
-        if path is None:
-            continue
-        resolved = Path(path).resolve()
-        if resolved.exists() and not resolved.is_file():
-            raise DeployError(f"{option} {path} is not a regular file")
-        parent = next((p for p in resolved.parents if p.exists()), None)
-        if parent is not None and not parent.is_dir():
-            raise DeployError(f"{option} {path}: {parent} is not a directory")
-
-
 def check_args(args: DeployArgs) -> None:
     """Refuse a bad argument before anything is built or sent.
 
@@ -248,8 +257,10 @@ def check_args(args: DeployArgs) -> None:
     if args.rate is not None:
         try:
             check_control_freq(args.rate, "--rate")
-        except ValueError as e:
-            raise DeployError(str(e)) from e
+        except ValueError as e:  # the rate as given: 100.0000001 read "--rate 100 Hz must be within 20-100"
+            raise DeployError(
+                str(e).replace(f"--rate {args.rate:g} Hz", f"--rate {as_given(args.rate)} Hz", 1)
+            ) from e
     if args.firmware is not None and args.backend != "sitl":
         raise DeployError("--firmware needs --backend sitl (the firmware in the loop)")
     if args.faults is not None:
@@ -263,6 +274,15 @@ def check_args(args: DeployArgs) -> None:
             FaultPlan.parse(args.faults)
         except ValueError as e:
             raise DeployError(f"--faults: {e}") from e
+
+
+def as_given(number: float) -> str:
+    """``number`` in the fewest significant digits that read back as it (``1e+09``, ``100.0000001``)."""
+    for digits in range(1, 18):
+        text = f"{number:.{digits}g}"
+        if float(text) == number:
+            return text
+    return repr(number)  # NaN
 
 
 def make_env(
@@ -285,6 +305,11 @@ def make_env(
         env_id = resolve_env_id(args.env if args.env is not None else metadata["env_id"])
     except TrainingError as e:
         raise DeployError(str(e)) from e
+    if env_id not in bioscara_gym.TASKS:  # seen: CartPole's TypeError, the whole ArmConfig in 5 kB
+        raise DeployError(
+            f"env {env_id!r} is not a Bioscara env: deploy drives the arm through one of "
+            f"{', '.join(bioscara_gym.TASKS)}"
+        )
     check_env_kwargs(env_id, kwargs)
     config = load_config(args.config)
     if args.bus is not None:
@@ -310,6 +335,7 @@ def backend_options(args: DeployArgs, state_file: Path | None) -> dict[str, Any]
     if args.record is not None:  # every bus transaction to a trace (docs/traces.md)
         from bioscara_gym.hardware.recording import Recording
 
+        Path(args.record).parent.mkdir(parents=True, exist_ok=True)  # as the run log's (deploy_outputs)
         options["record"] = Recording(args.record, "deploy", args)
     if args.backend == "sitl":
         options["firmware"] = args.firmware  # None: $BIOSCARA_FIRMWARE

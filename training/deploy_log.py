@@ -26,6 +26,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from bioscara_gym.fsutil import read_first_line
 from bioscara_gym.hardware.stats import CommStats
 from bioscara_gym.training.deploy_safety import SafetyStop, StopReason
 
@@ -55,6 +56,28 @@ def _jsonable(value: Any) -> Any:
 
 #: ``os.write``, looked up here so a test can fill the disk at the OS boundary.
 _os_write = os.write
+#: Longest first line read to tell a run log (its header is a few hundred bytes).
+_MAX_HEADER_BYTES = 64 * 1024
+
+
+def is_deploy_log(path: Path) -> bool:
+    """Whether ``path`` starts with a run log's header (what :class:`RunLog` may replace).
+
+    A bus trace's header (``format``) is no run log's.
+
+    Raises:
+        OSError: It cannot be read.
+    """
+    try:
+        doc = json.loads(read_first_line(path, _MAX_HEADER_BYTES))
+    except (ValueError, RecursionError):
+        return False
+    return (
+        isinstance(doc, dict)
+        and doc.get("type") == "header"
+        and {"policy", "env_id", "backend"} <= doc.keys()
+        and "format" not in doc
+    )
 
 
 def trace_error(backend: Any) -> str | None:
@@ -90,7 +113,9 @@ class RunLog:
     part is cut off again (``ftruncate`` to the last whole line).
 
     Args:
-        path: The log file (parents created; an existing file is replaced).
+        path: The log file (parents created; an existing file is replaced:
+            ``bioscara deploy`` lets it replace only an earlier run log or an
+            empty file, :func:`is_deploy_log`).
 
     Attributes:
         error: The first write that failed, if one did.

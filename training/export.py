@@ -35,7 +35,14 @@ import numpy as np
 from rich.console import Console
 
 from bioscara_gym.errors import CliError, ExportError, MetadataError
-from bioscara_gym.fsutil import output_clash, output_problem, path_argument, replaced_path, temporary_beside
+from bioscara_gym.fsutil import (
+    output_clash,
+    output_problem,
+    path_argument,
+    replace_problem,
+    replaced_path,
+    temporary_beside,
+)
 from bioscara_gym.training.extras import needed_by, needs_onnx, needs_train
 from bioscara_gym.training.metadata import PolicyShapes, policy_files, validate_metadata
 
@@ -128,7 +135,8 @@ def export_onnx(
 
     Args:
         model_path: ``model.zip`` (with ``metadata.json`` beside it) or its directory.
-        onnx_path: The file to write.
+        onnx_path: The file to write; what it holds is replaced (``bioscara export``
+            lets it replace only an ONNX model or an empty file: :func:`is_onnx_file`).
         check_samples: Observations to compare; 0 skips the check.
         atol: Largest difference accepted.
         seed: Seed of the check observations.
@@ -226,6 +234,37 @@ def _max_error(model: Any, onnx_policy: OnnxPolicy, observations: list[dict[str,
     return worst
 
 
+def parse_obs_keys(text: str) -> list[tuple[str, int]]:
+    """The ``obs_keys`` metadata as :func:`export_onnx` writes it: ``[[key, size], ...]``.
+
+    Keys are distinct strings, sizes whole numbers >= 1 (seen: 3.7 read as 3,
+    ``1e400`` an OverflowError traceback).
+
+    Raises:
+        ValueError: Not JSON, or not that list; the message names the entry.
+    """
+    entries = json.loads(text)
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(
+            f"expected a list of [key, size] pairs, got {type(entries).__name__} {entries!r:.60}"
+        )
+    layout: list[tuple[str, int]] = []
+    for entry in entries:
+        valid = isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], str)
+        size = entry[1] if valid else None
+        if not valid or isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ValueError(f"entry {entry!r:.60} is not [key, size] with size a whole number >= 1")
+        if any(entry[0] == key for key, _ in layout):
+            raise ValueError(f"key {entry[0]!r} is given twice")
+        layout.append((entry[0], size))
+    return layout
+
+
+def _dims(shape: list[Any]) -> str:
+    """An onnxruntime shape as ``[batch, 18]`` (``?`` for a dimension it does not know)."""
+    return "[" + ", ".join("?" if d is None else str(d) for d in shape) + "]"
+
+
 class OnnxPolicy:
     """A policy exported by :func:`export_onnx`, run with onnxruntime (no torch).
 
@@ -254,6 +293,7 @@ class OnnxPolicy:
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
+        options.log_severity_level = 3  # errors only: its warnings are lines before ours (a shape merge)
         try:
             self.session = ort.InferenceSession(
                 str(self.path), sess_options=options, providers=["CPUExecutionProvider"]
@@ -268,7 +308,7 @@ class OnnxPolicy:
             )
         try:
             metadata = json.loads(props[METADATA_KEY])
-            self.obs_keys: list[tuple[str, int]] = [(k, int(n)) for k, n in json.loads(props[OBS_KEYS_KEY])]
+            self.obs_keys: list[tuple[str, int]] = parse_obs_keys(props[OBS_KEYS_KEY])
         except (ValueError, TypeError, RecursionError) as e:
             raise ExportError(
                 f"{self.path}: its {METADATA_KEY}/{OBS_KEYS_KEY} metadata is not what `bioscara export` "
@@ -282,7 +322,9 @@ class OnnxPolicy:
 
         Raises:
             MetadataError: The graph's input width is not what ``obs_keys`` adds up to,
-                or its input or output is not the one :func:`export_onnx` writes.
+                or its input or output is not the one :func:`export_onnx` writes
+                (``[batch, n]``, ``n`` fixed: seen, an output ``[batch, 1, 4]``
+                passed and stopped the arm at the first cycle).
         """
         inputs = {i.name: i.shape for i in self.session.get_inputs()}
         outputs = {o.name: o.shape for o in self.session.get_outputs()}
@@ -291,9 +333,23 @@ class OnnxPolicy:
                 f"{self.path}: expected a graph from `bioscara export` with input '{INPUT_NAME}' and output "
                 f"'{OUTPUT_NAME}', got inputs {sorted(inputs)} and outputs {sorted(outputs)}"
             )
+        for kind, name, shape in (
+            ("input", INPUT_NAME, inputs[INPUT_NAME]),
+            ("output", OUTPUT_NAME, outputs[OUTPUT_NAME]),
+        ):
+            if len(shape) != 2:
+                raise MetadataError(
+                    f"{self.path}: the graph's {kind} '{name}' has shape {_dims(shape)}; `bioscara export` "
+                    "writes [batch, n]: one row per observation"
+                )
         width, act = inputs[INPUT_NAME][-1], outputs[OUTPUT_NAME][-1]
-        if not isinstance(width, int) or not isinstance(act, int):
-            raise MetadataError(f"{self.path}: the graph's last input and output dimensions must be fixed")
+        if not isinstance(width, int):
+            raise MetadataError(
+                f"{self.path}: the graph's input '{INPUT_NAME}' has shape {_dims(inputs[INPUT_NAME])}: "
+                "its width is not a fixed number, as `bioscara export` writes it"
+            )
+        if not isinstance(act, int):
+            raise MetadataError(self._unknown_width(width, outputs[OUTPUT_NAME]))
         layout = sum(n for _, n in self.obs_keys)
         if layout != width:
             raise MetadataError(
@@ -301,6 +357,22 @@ class OnnxPolicy:
                 f"{OBS_KEYS_KEY} add up to {layout}"
             )
         return PolicyShapes(dict(self.obs_keys), act, f"ONNX graph {self.path}")
+
+    def _unknown_width(self, width: int, shape: list[Any]) -> str:
+        """Why an output with no fixed width is refused, with what the graph gives run once on zeros.
+
+        Seen: a graph declaring ``[batch, 4]`` that computes 8 values, which
+        onnxruntime reads as ``[batch, ?]`` (after a warning of its own).
+        """
+        try:
+            (given,) = self.session.run([OUTPUT_NAME], {INPUT_NAME: np.zeros((1, width), np.float32)})
+            gives = f"run once it gives shape {tuple(np.shape(given))}"
+        except Exception as e:  # onnxruntime's own exception types
+            gives = f"run once it fails ({type(e).__name__})"
+        return (
+            f"{self.path}: onnxruntime reads the graph's output '{OUTPUT_NAME}' as {_dims(shape)}, no fixed "
+            f"width (what the graph computes is not what it declares, or it declares none); {gives}"
+        )
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The deterministic action for one observation (float32, shape of the action space)."""
@@ -312,6 +384,29 @@ class OnnxPolicy:
 
 
 # ----------------------------------------------------------------------- CLI
+#: Largest file :func:`is_onnx_file` reads: protobuf's limit for one message, 2 GiB.
+MAX_ONNX_BYTES = 2**31
+
+
+def is_onnx_file(path: Path) -> bool:
+    """Whether ``path`` holds an ONNX model (what ``export --onnx`` may replace): onnx parses it as one.
+
+    Raises:
+        OSError: It cannot be read.
+        MissingExtraError: onnx is not installed.
+    """
+    if os.stat(path).st_size > MAX_ONNX_BYTES:
+        return False
+    with needs_onnx("bioscara export"):
+        import onnx
+    data = Path(path).read_bytes()
+    try:
+        proto = onnx.load_model_from_string(data)
+    except Exception:  # protobuf's DecodeError and its like: not an ONNX model
+        return False
+    return proto.ir_version > 0 and proto.HasField("graph")
+
+
 #: Most observations ``--check`` compares (the default 256 takes a second; seen: 10^9 ran on, growing).
 MAX_CHECK = 100_000
 
@@ -328,6 +423,9 @@ def cmd_export(ns: argparse.Namespace) -> int:
     clash = output_clash({"--onnx": ns.onnx}, policy_files(ns.model))
     if clash is not None:
         raise CliError(clash)
+    problem = replace_problem(ns.onnx, "an ONNX model", is_onnx_file)  # seen: --onnx notes.txt replaced
+    if problem is not None:
+        raise CliError(f"--onnx {ns.onnx}: {problem}")
     result = export_onnx(ns.model, ns.onnx, check_samples=ns.check)
     con = Console(highlight=False, markup=False, soft_wrap=True)
     con.print(f"onnx      {result.path}")
@@ -345,7 +443,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``export`` subcommand."""
     p = sub.add_parser("export", help="export a trained policy to ONNX (checked against torch)")
     p.add_argument("--model", type=Path, required=True, help="model.zip (metadata.json beside it)")
-    p.add_argument("--onnx", type=path_argument, required=True, help="ONNX file to write")
+    p.add_argument(
+        "--onnx",
+        type=path_argument,
+        required=True,
+        help="ONNX file to write (it replaces only an ONNX model or an empty file; missing folders are made)",
+    )
     p.add_argument(
         "--check",
         type=int,

@@ -32,6 +32,14 @@ from bioscara_gym.hardware.registers import I2C_ADDRESS_MAX, I2C_ADDRESS_MIN
 #: Largest host clock drift the fault plan accepts, ppm: 1 % (a quartz is off by
 #: tens of ppm, an RC oscillator by up to about 1 %).
 MAX_DRIFT_PPM = 10_000.0
+#: Longest extra time per transaction the fault plan accepts, for its latency and for its
+#: jitter each, s. The Pi's I2C adapter (Linux ``i2c-bcm2835``: ``BCM2835_I2C_TIMEOUT``,
+#: 1000 ms; the I2C core's default is one second too) ends a transaction that takes longer
+#: with ETIMEDOUT, which the driver sees as a bus error: the ``nack`` fault. The Dynamixel
+#: SDK's packet timeouts are tens of ms. (Seen: ``latency_ms=1e308`` hung deploy at 100 % CPU,
+#: deaf to SIGTERM; ``latency_ms=100000`` took 85 s to act on it, each disable of the safe
+#: stop simulating 100 s.)
+MAX_EXTRA_S = 1.0
 
 
 class Fault(Enum):
@@ -83,6 +91,8 @@ RS485_FAULTS = FaultKinds(
 )
 #: Every rate of a plan.
 _RATES = ("nack", "short_read", "corrupt", "drop")
+#: Why a latency or jitter has a bound (:data:`MAX_EXTRA_S`), for messages.
+_WHY_EXTRA = " (the bus's timeout: a longer transaction is a lost one, the nack or drop fault)"
 
 
 @dataclass(frozen=True)
@@ -95,9 +105,9 @@ class FaultPlan:
         corrupt: Probability that one bit of a reply is flipped.
         drop: Probability that a reply is lost after the command was executed
             (a Dynamixel status packet).
-        latency_s: Extra time every transaction takes, seconds.
+        latency_s: Extra time every transaction takes, seconds, within 0-:data:`MAX_EXTRA_S`.
         jitter_s: Further extra time per transaction, drawn uniformly from
-            ``[0, jitter_s]`` by the fault generator, seconds.
+            ``[0, jitter_s]`` by the fault generator, seconds, within 0-:data:`MAX_EXTRA_S`.
         drift_ppm: Host clock drift: the control loop's periods last
             ``1 + drift_ppm * 1e-6`` times their nominal length on the
             emulated backend (> 0: the host's clock runs slow), within
@@ -130,6 +140,10 @@ class FaultPlan:
         for name in ("latency_s", "jitter_s"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+            if not getattr(self, name) <= MAX_EXTRA_S:
+                raise ValueError(
+                    f"{name}={getattr(self, name):g} must be within 0-{MAX_EXTRA_S:g} s{_WHY_EXTRA}"
+                )
         if not abs(self.drift_ppm) <= MAX_DRIFT_PPM:
             raise ValueError(
                 f"drift_ppm={self.drift_ppm:g} must be within ±{MAX_DRIFT_PPM:g} (a host clock off by "
@@ -215,7 +229,8 @@ def parse_fault_spec(
     Raises:
         ValueError: Not KEY=VALUE, an empty item (``"nack=0.1,"``), a value
             that is not a finite number, an unknown key (the message lists the
-            known ones) or a key given twice. A blank ``spec`` is no faults.
+            known ones), a time outside 0-:data:`MAX_EXTRA_S` or a key given
+            twice. A blank ``spec`` is no faults.
     """
     durations = (duration,) if isinstance(duration, str) else duration
     known = (*rates, *(f"{d}{unit}" for d in durations for unit in ("_ms", "_s")), *numbers)
@@ -239,6 +254,9 @@ def parse_fault_spec(
             key, number = f"{key[: -len('_ms')]}_s", number / 1000.0
         if key in durations_s and number < 0:
             raise ValueError(f"fault '{given}': {value} must be >= 0 (an extra time)")
+        if key in durations_s and number > MAX_EXTRA_S:
+            most = f"{MAX_EXTRA_S * 1000:g} ms" if given.endswith("_ms") else f"{MAX_EXTRA_S:g} s"
+            raise ValueError(f"fault '{given}': {value.strip()} must be within 0-{most}{_WHY_EXTRA}")
         if key in kwargs:
             stem = key.removesuffix("_s")
             raise ValueError(f"fault '{given}' given twice (counting {stem}_ms and {stem}_s as one)")
