@@ -375,3 +375,79 @@ def test_cli_disable_against_a_late_emulator_is_one_line(tmp_path: Path) -> None
         r"Check the cable, power, ID and baud rate\n",
         cli.stderr,
     ), cli.stderr
+
+
+# ------------------------------------------------- status_data, packet by packet
+# What the SDK's rxPacket hands over is checked again, byte by byte: a packet it
+# let through (its header, CRC and length were right) may still answer another
+# request. The packets below are built by the package's own protocol module.
+STATUS_3 = protocol.status_packet(1, 0x80, bytes((0x06, 0x04, 0x26)))  # a PING's reply, the Alert bit
+
+
+def test_status_data_gives_the_data_and_the_error_byte_of_the_servo_asked() -> None:
+    assert bus_module.status_data(STATUS_3, 1, 3) == (bytes((0x06, 0x04, 0x26)), 0x80)
+    assert bus_module.status_data(list(protocol.status_packet(7, 0, b"")), 7, 0) == (b"", 0)
+    long = bytes(range(256)) + bytes(44)  # LEN 304: its high byte counts
+    assert bus_module.status_data(protocol.status_packet(1, 0, long), 1, 300) == (long, 0)
+
+
+@pytest.mark.parametrize(
+    ("packet", "dxl_id", "size", "message"),
+    [
+        (
+            STATUS_3[:10],
+            1,
+            3,
+            "a status packet of 10 bytes, shorter than any (11); reply FF FF FD 00 01 07 00 55 80 06",
+        ),
+        (
+            STATUS_3,
+            2,
+            3,
+            "a status packet from ID 1, not ID 2; reply FF FF FD 00 01 07 00 55 80 06 04 26 "
+            + STATUS_3[-2:].hex(" ").upper(),
+        ),
+        (
+            protocol.build(1, 0x02, bytes(4)),
+            1,
+            3,
+            "a packet with instruction 0x02, not a status packet (0x55); reply "
+            + protocol.build(1, 0x02, bytes(4)).hex(" ").upper(),
+        ),
+        (
+            STATUS_3[:11],
+            1,
+            3,
+            "a truncated status packet (LEN 7, 11 bytes); reply FF FF FD 00 01 07 00 55 80 06 04",
+        ),
+        (
+            STATUS_3[:5] + bytes((3, 0)) + STATUS_3[7:],
+            1,
+            0,
+            "a truncated status packet (LEN 3, 14 bytes); reply FF FF FD 00 01 03 00 55 80 06 04 26 "
+            + STATUS_3[-2:].hex(" ").upper(),
+        ),
+        (
+            STATUS_3,
+            1,
+            1,
+            "a status packet with 3 data bytes where 1 was expected (a late reply to an earlier "
+            "request?); reply FF FF FD 00 01 07 00 55 80 06 04 26 " + STATUS_3[-2:].hex(" ").upper(),
+        ),
+        (
+            protocol.status_packet(1, 0, b"\x05"),
+            1,
+            2,
+            "a status packet with 1 data byte where 2 were expected (a late reply to an earlier "
+            "request?); reply " + protocol.status_packet(1, 0, b"\x05").hex(" ").upper(),
+        ),
+    ],
+    ids=["short", "another-id", "not-a-status", "truncated", "len-below-4", "more-data", "less-data"],
+)
+def test_status_data_refuses_a_packet_that_is_not_the_reply(
+    packet: bytes, dxl_id: int, size: int, message: str
+) -> None:
+    with pytest.raises(bus_module.BadReply) as e:
+        bus_module.status_data(packet, dxl_id, size)
+    assert str(e.value) == message
+    assert e.value.packet == bytes(packet)
