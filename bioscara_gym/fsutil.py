@@ -362,6 +362,10 @@ def _fsync_directory(directory: Path) -> None:
         os.close(dir_fd)
 
 
+#: How often :meth:`LockFile.acquire` tries to open a lock file that vanishes between its checks.
+_LOCK_OPEN_ROUNDS = 1000
+
+
 class LockFile:
     """An exclusive, non-blocking lock held through a lock file (``fcntl.flock``, POSIX).
 
@@ -424,9 +428,17 @@ class LockFile:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
 
     def _open(self) -> tuple[int, bool]:
-        """Open the lock file, creating it if missing; whether this call created it."""
-        flags = os.O_RDWR | getattr(os, "O_CLOEXEC", 0)
-        while True:
+        """Open the lock file, creating it if missing; whether this call created it.
+
+        Raises:
+            OSError: The path is a symlink (a lock file is a plain file of its
+                own; seen: a dangling one had this loop spin for ever, neither
+                creatable nor there), or it keeps appearing and vanishing.
+        """
+        flags = os.O_RDWR | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
+        for _ in range(_LOCK_OPEN_ROUNDS):
+            if self.path.is_symlink():
+                raise OSError(errno.ELOOP, "a symlink; a lock file must be a plain file", str(self.path))
             try:
                 return os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644), True
             except FileExistsError:
@@ -435,6 +447,7 @@ class LockFile:
                 return os.open(self.path, flags), False
             except FileNotFoundError:
                 continue  # removed by its holder in between: create it
+        raise OSError(errno.EAGAIN, "it keeps being made and removed", str(self.path))
 
     def _names(self, fd: int) -> bool:
         """Whether the lock file's path still names the file open as ``fd``."""

@@ -295,3 +295,20 @@ def test_a_state_keeps_any_max_velocity_the_firmware_takes(
     state.write_text(json.dumps(doc))
     code, _, err = bioscara("status", "--state", str(state))
     assert (code, err) == (0, "")
+
+
+@pytest.mark.parametrize("target", ["missing.json", "notes.txt"])
+def test_a_lock_path_that_is_a_symlink_is_one_line_not_a_hang(
+    bioscara: Run, tmp_path: Path, target: str
+) -> None:
+    # Seen (a reviewer): a dangling symlink as arm.json.lock span at 100 % CPU for ever.
+    state = tmp_path / "arm.json"
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "arm.json.lock").symlink_to(tmp_path / target)
+    code, _, err = bioscara("status", "--state", str(state))
+    assert code == 2
+    assert err == (
+        f"bioscara status: error: cannot lock state file {state}: {tmp_path / 'arm.json.lock'}: "
+        "a symlink; a lock file must be a plain file"
+    )
+    assert (tmp_path / "notes.txt").read_text() == "mine" and not (tmp_path / "missing.json").exists()
