@@ -24,37 +24,23 @@ where ``--log new/run.jsonl`` made its folder.)
 
 from __future__ import annotations
 
-import errno
 from pathlib import Path
 from typing import Any
 
 from bioscara_gym.errors import DeployError
-from bioscara_gym.fsutil import output_clash, output_problem, read_json, replace_problem
+from bioscara_gym.fsutil import output_clash, output_problem, replace_problem
+from bioscara_gym.hardware.gripper import read_saved_width
 from bioscara_gym.training.deploy_log import is_deploy_log
 from bioscara_gym.training.metadata import policy_files
 
-#: Largest gripper state file recognised as one, bytes (it holds one number; the gripper's limit).
-STATE_FILE_MAX_BYTES = 4096
 #: What each output replaces, for :func:`~bioscara_gym.fsutil.replace_problem`.
 LOG_KIND = "a deploy run log"
 STATE_KIND = 'a gripper state file ({"width_m": ...})'
 
 
 def is_state_file(path: Path) -> bool:
-    """Whether ``path`` is a gripper state file: a JSON object with ``width_m``.
-
-    Raises:
-        OSError: It cannot be read.
-    """
-    try:
-        doc = read_json(path, max_bytes=STATE_FILE_MAX_BYTES)
-    except OSError as e:
-        if e.errno == errno.EFBIG:  # larger than any state file
-            return False
-        raise
-    except ValueError:  # not UTF-8, not JSON
-        return False
-    return isinstance(doc, dict) and "width_m" in doc
+    """Whether ``path`` is a gripper state file: one the gripper reads a width from (``{"width_m": 1}``)."""
+    return read_saved_width(path) is not None
 
 
 def arm_state_file(args: Any, state_file: Path | None) -> Path | None:
