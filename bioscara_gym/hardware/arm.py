@@ -59,6 +59,18 @@ MIN_CONTROL_FREQ = 20.0
 MAX_CONTROL_FREQ = 1.0 / TICK_S
 
 
+def _as_given(number: float) -> str:
+    """``number`` in the fewest significant digits that read back as it (``1e+09``, ``100.0000001``).
+
+    Seen: ``--rate 100.0000001`` was refused as "--rate 100 Hz must be within 20-100 Hz".
+    """
+    for digits in range(6, 18):  # 6: what :g gives
+        text = f"{number:.{digits}g}"
+        if float(text) == number:
+            return text
+    return repr(number)  # NaN
+
+
 def check_control_freq(control_freq: object, name: str = "control_freq") -> float:
     """``control_freq`` as a float, if it is a rate the arm can be commanded at.
 
@@ -75,7 +87,8 @@ def check_control_freq(control_freq: object, name: str = "control_freq") -> floa
             else "the joints' 50 ms deadman would stop them between commands"
         )
         raise ValueError(
-            f"{name} {control_freq:g} Hz must be within {MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
+            f"{name} {_as_given(control_freq)} Hz must be within "
+            f"{MIN_CONTROL_FREQ:g}-{MAX_CONTROL_FREQ:g} Hz: {why}"
         )
     return float(control_freq)
 
