@@ -16,40 +16,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from rigs import train_tiny_sac
 
 from bioscara_gym.cli import main
 from bioscara_gym.errors import DeployError
-from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus, FaultPlan
+from bioscara_gym.hardware.emulated_bus import FaultPlan
 
 REACH = "Bioscara-Reach-v0"
-
-
-@pytest.fixture(scope="module")
-def sac_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny trained Reach policy (cartesian) with its metadata."""
-    return train_tiny_sac(tmp_path_factory.mktemp("sac")).parent
-
-
-@pytest.fixture(scope="module")
-def onnx_path(sac_dir: Path) -> Path:
-    from bioscara_gym.training.export import export_onnx
-
-    return export_onnx(sac_dir / "model.zip", sac_dir / "policy.onnx", check_samples=0).path
-
-
-@pytest.fixture
-def bus_traffic(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bytes]]:
-    """Every transaction any emulated bus carries during the test."""
-    sent: list[tuple[int, bytes]] = []
-    original = EmulatedI2CBus.transfer
-
-    def transfer(self: EmulatedI2CBus, address: int, data: bytes, read_len: int) -> bytes:
-        sent.append((address, bytes(data)))
-        return original(self, address, data, read_len)
-
-    monkeypatch.setattr(EmulatedI2CBus, "transfer", transfer)
-    return sent
 
 
 def refused(err: str, command: str = "deploy") -> str:

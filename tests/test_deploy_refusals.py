@@ -18,41 +18,13 @@ from typing import Any
 
 import gymnasium as gym
 import pytest
-from rigs import nan_actor_weights, train_tiny_sac
+from rigs import nan_actor_weights
 
 from bioscara_gym.cli import main
-from bioscara_gym.hardware.emulated_bus import EmulatedI2CBus
 from bioscara_gym.training.metadata import EMBEDDED_NAME, build_metadata, write_metadata
 
 REACH = "Bioscara-Reach-v0"
 PICK_PLACE = "Bioscara-PickPlace-v1"
-
-
-@pytest.fixture(scope="module")
-def sac_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny trained Reach policy (cartesian) with its metadata; rows copy it before editing."""
-    return train_tiny_sac(tmp_path_factory.mktemp("sac")).parent
-
-
-@pytest.fixture(scope="module")
-def onnx_path(sac_dir: Path) -> Path:
-    from bioscara_gym.training.export import export_onnx
-
-    return export_onnx(sac_dir / "model.zip", sac_dir / "policy.onnx", check_samples=0).path
-
-
-@pytest.fixture
-def bus_traffic(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bytes]]:
-    """Every transaction any emulated bus carries during the test."""
-    sent: list[tuple[int, bytes]] = []
-    original = EmulatedI2CBus.transfer
-
-    def transfer(self: EmulatedI2CBus, address: int, data: bytes, read_len: int) -> bytes:
-        sent.append((address, bytes(data)))
-        return original(self, address, data, read_len)
-
-    monkeypatch.setattr(EmulatedI2CBus, "transfer", transfer)
-    return sent
 
 
 # ------------------------------------------------------------ file editors
