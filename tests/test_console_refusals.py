@@ -17,6 +17,7 @@ In process through ``bioscara_gym.cli.main``, as ``tests/test_console.py``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import stat
@@ -312,3 +313,22 @@ def test_a_lock_path_that_is_a_symlink_is_one_line_not_a_hang(
         "a symlink; a lock file must be a plain file"
     )
     assert (tmp_path / "notes.txt").read_text() == "mine" and not (tmp_path / "missing.json").exists()
+
+
+def test_a_lock_file_that_keeps_vanishing_gives_up_with_one_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # There on the exclusive create, gone on the plain open, every round: acquire must
+    # not spin for ever (the rounds are bounded), and says why.
+    rounds = []
+
+    def flaky_open(path: object, flags: int, mode: int = 0o777) -> int:
+        rounds.append(flags & os.O_EXCL)
+        raise FileExistsError if flags & os.O_EXCL else FileNotFoundError
+
+    monkeypatch.setattr(fsutil.os, "open", flaky_open)
+    lock = LockFile(tmp_path / "arm.json.lock")
+    with pytest.raises(OSError) as e:
+        lock.acquire()
+    assert (e.value.errno, e.value.strerror) == (errno.EAGAIN, "it keeps being made and removed")
+    assert len(rounds) == 2 * 1000 and not lock.held
