@@ -8,6 +8,7 @@ the joint limits and max velocity), the order read asks each joint's position an
 
 from __future__ import annotations
 
+import errno
 import math
 from collections.abc import Callable
 
@@ -17,6 +18,7 @@ from rigs import (
     DT,
     KNOWN_JOINTS,
     NAMES,
+    NEAR_END_STOPS,
     MakeBackend,
     cycle_until,
     spy,
@@ -25,7 +27,9 @@ from rigs import (
 )
 
 from bioscara_gym.hardware.arm import Arm, ArmStateError, CommandMode, Lifecycle
+from bioscara_gym.hardware.backends import EmulatedBackend
 from bioscara_gym.hardware.errors import (
+    CommError,
     InvalidArgumentError,
     NotHomedError,
 )
@@ -132,6 +136,43 @@ def test_deactivate_brakes_a_turning_joint_before_its_current_is_cut(homed_arm: 
     before = sim.joint_positions().copy()
     homed_arm.backend.step(2.0)
     assert abs(sim.joint_positions() - before).max() < 1e-3
+
+
+def test_a_configure_failed_on_one_joint_brakes_a_turning_joint_before_its_current_is_cut(
+    make_arm_backend: MakeBackend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An earlier process left j3 turning; now j1 does not answer. The failed
+    # configure disables the joints that answered, and it had read no speed,
+    # so it sent STOP and cut j3's current a millisecond later: j3 coasted on.
+    backend = make_arm_backend("emulated", initial_qpos=NEAR_END_STOPS)
+    assert isinstance(backend, EmulatedBackend)
+    homed_arm = Arm(backend)
+    homed_arm.configure()
+    homed_arm.activate()
+    homed_arm.home()
+    for name in ("j1", "j2", "j4"):  # powered, holding where they are (an unclaimed joint freewheels)
+        homed_arm.claim(name, "position")
+    homed_arm.claim("j3", "velocity")
+    homed_arm.set_command("j3", -4.0)  # away from the max end stop it homed to
+    for _ in range(15):
+        homed_arm.cycle(DT)
+    assert homed_arm.joint_states["j3"].velocity < -2.0
+    for joint in backend.joints.values():
+        joint.deinit()  # the process ends; the firmware keeps turning j3
+    transfer = backend.bus.transfer
+
+    def j1_deaf(address: int, data: bytes, read_len: int) -> bytes:
+        if address == 0x11:  # its line broken; its firmware still holds j1
+            raise OSError(errno.EREMOTEIO, "Remote I/O error")
+        return transfer(address, data, read_len)
+
+    monkeypatch.setattr(backend.bus, "transfer", j1_deaf)
+    arm = Arm(backend)
+    with pytest.raises(CommError, match=r"j1 \(0x11\): PING failed"):
+        arm.configure()
+    before = backend.sim.joint_positions().copy()
+    backend.step(2.0)
+    assert abs(backend.sim.joint_positions() - before).max() < 1e-3
 
 
 @pytest.mark.parametrize(

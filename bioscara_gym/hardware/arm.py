@@ -232,7 +232,9 @@ class Arm:
         A joint that does not answer does not stop the others from being
         connected: the failed configure then disables every joint that did
         answer (an earlier process may have left them enabled; seen: with
-        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque).
+        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque). It
+        reads their speeds first, so one left turning is braked to rest
+        before its current is cut, as :meth:`disable` does.
 
         Raises:
             CommError: A joint did not answer (the first; the arm stays
@@ -248,6 +250,7 @@ class Arm:
                 except JointError as e:
                     first = first or e
             if first is not None:
+                self._read_speeds()  # for the cleanup: brake what an earlier process left turning
                 raise first
             self.gripper.init()
             self.state = Lifecycle.INACTIVE
@@ -519,6 +522,13 @@ class Arm:
             first = first or e
         if first is not None:
             raise first
+
+    def _read_speeds(self) -> None:
+        """Read the connected joints' speeds into :attr:`joint_states`, best effort."""
+        for name, joint in self.joints.items():
+            if joint.initialized:
+                with contextlib.suppress(JointError):
+                    self.joint_states[name].velocity = joint.get_velocity()
 
     def _moving(self, name: str) -> bool:
         """Whether the joint moved at the last read (faster than the rest speed)."""
