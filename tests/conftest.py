@@ -267,6 +267,19 @@ def gripper_state_file(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
+def pwm_tree(tmp_path: Path) -> Path:
+    """A sysfs PWM tree with ``pwmchip0/pwm0`` exported; returns the ``sysfs_root``."""
+    root = tmp_path / "sys" / "class" / "pwm"
+    pwm = root / "pwmchip0" / "pwm0"
+    pwm.mkdir(parents=True)
+    for name in ("export", "unexport"):
+        (pwm.parent / name).write_text("")
+    for attr in ("period", "duty_cycle", "enable"):
+        (pwm / attr).write_text("0\n")
+    return root
+
+
+@pytest.fixture
 def make_arm_backend(gripper_state_file: Path) -> Iterator[Callable[..., Backend]]:
     """Factory ``make(name, **options)`` of backends keeping the gripper width in ``tmp_path``.
 

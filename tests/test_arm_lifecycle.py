@@ -23,7 +23,9 @@ from bioscara_gym.hardware.errors import (
     IncorrectStateError,
     StalledError,
 )
+from bioscara_gym.hardware.gripper import Gripper
 from bioscara_gym.hardware.registers import Flag, Reg
+from bioscara_gym.hardware.safety import safe_stop
 
 # ---------------------------------------------------------------- lifecycle
 
@@ -324,6 +326,49 @@ def test_a_configure_failed_on_one_joint_disables_the_joints_that_answered(
     assert all(firmware[a].flags & Flag.NOT_ENABLED for a in (0x12, 0x13, 0x14))
     assert arm.state is Lifecycle.UNCONFIGURED
     assert not any(j.initialized for j in arm.joints.values())
+
+
+def backend_with_a_servo_left_driven(
+    make_arm_backend: MakeBackend, pwm_tree: Path, state_file: Path
+) -> tuple[EmulatedBackend, Gripper]:
+    """The emulated joints with the real gripper driver, whose PWM output an earlier process left on."""
+    backend = make_arm_backend("emulated")
+    assert isinstance(backend, EmulatedBackend)
+    g = CONFIG.gripper
+    gripper = Gripper(g.reduction, g.offset, g.min, g.max, g.backup_init_pos, state_file, sysfs_root=pwm_tree)
+    (pwm_tree / "pwmchip0" / "pwm0" / "enable").write_text("1\n")
+    backend.gripper = gripper
+    return backend, gripper
+
+
+def test_a_configure_failed_on_one_joint_switches_off_a_servo_left_driven(
+    make_arm_backend: MakeBackend, pwm_tree: Path, gripper_state_file: Path
+) -> None:
+    # An earlier command left the gripper driven (`bioscara gripper WIDTH`);
+    # now j1 does not answer. The failed configure never set the gripper up,
+    # so its cleanup left the servo's PWM output on.
+    backend, gripper = backend_with_a_servo_left_driven(make_arm_backend, pwm_tree, gripper_state_file)
+    enable = pwm_tree / "pwmchip0" / "pwm0" / "enable"
+    del backend.bus.devices[0x11]
+    arm = Arm(backend)
+    with pytest.raises(CommError, match=r"j1 \(0x11\): PING failed"):
+        arm.configure()
+    assert enable.read_text().strip() == "0"
+    assert not gripper.is_initialized
+    assert gripper_state_file.read_text() == '{"width_m": 0.08}\n'  # its width is not this process's to save
+
+
+def test_the_safe_stop_switches_off_a_servo_left_driven(
+    make_arm_backend: MakeBackend, pwm_tree: Path, gripper_state_file: Path
+) -> None:
+    # The arm configured, the gripper set up but never enabled by this process.
+    backend, gripper = backend_with_a_servo_left_driven(make_arm_backend, pwm_tree, gripper_state_file)
+    arm = Arm(backend)
+    arm.configure()
+    assert gripper.output_enabled and not gripper.is_enabled
+    report = safe_stop(arm)
+    assert (pwm_tree / "pwmchip0" / "pwm0" / "enable").read_text().strip() == "0"
+    assert report.problems == []
 
 
 def test_configure_on_a_dead_bus_names_the_first_joint(make_arm_backend: MakeBackend) -> None:

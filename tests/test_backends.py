@@ -62,19 +62,6 @@ class FakeWallClock:
 
 
 @pytest.fixture
-def pwm_tree(tmp_path: Path) -> Path:
-    """A sysfs PWM tree with ``pwmchip0/pwm0`` exported; returns the ``sysfs_root``."""
-    root = tmp_path / "sys" / "class" / "pwm"
-    pwm = root / "pwmchip0" / "pwm0"
-    pwm.mkdir(parents=True)
-    for name in ("export", "unexport"):
-        (pwm.parent / name).write_text("")
-    for attr in ("period", "duty_cycle", "enable"):
-        (pwm / attr).write_text("0\n")
-    return root
-
-
-@pytest.fixture
 def wall_clock(monkeypatch: pytest.MonkeyPatch) -> FakeWallClock:
     """The clock every ``i2c`` backend built from now on uses instead of the wall clock."""
     clock = FakeWallClock()

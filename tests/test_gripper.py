@@ -534,6 +534,43 @@ def test_disable_without_enable_keeps_saved_width(
     assert saved_width(state_file) == 0.1
 
 
+def test_release_of_an_enabled_gripper_disables_it_saving_its_width(
+    enabled: BaseGripper, kernel: FakePwmKernel, state_file: Path
+) -> None:
+    """release() is disable() for a gripper this driver enabled."""
+    enabled.set_position(0.05)
+    enabled.release()
+    assert not enabled.is_enabled
+    assert not output_on(enabled, kernel)
+    assert saved_width(state_file) == 0.05
+
+
+def test_release_switches_off_a_servo_an_earlier_process_left_driven(
+    sysfs_gripper: Gripper, kernel: FakePwmKernel, state_file: Path
+) -> None:
+    """The output goes off; the width saved before stays (this process does not know the servo's)."""
+    state_file.parent.mkdir(parents=True)
+    state_file.write_text('{"width_m": 0.1}\n')
+    kernel.create_channel(0)
+    (kernel.chip / "pwm0" / "enable").write_text("1\n")
+    sysfs_gripper.init()
+    assert sysfs_gripper.output_enabled and not sysfs_gripper.is_enabled
+    sysfs_gripper.release()
+    assert kernel.attr("enable") == 0
+    assert saved_width(state_file) == 0.1
+
+
+def test_release_of_a_servo_switched_off_writes_nothing(
+    sysfs_gripper: Gripper, kernel: FakePwmKernel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Nothing to switch off: no sysfs write (the output may belong to no one)."""
+    sysfs_gripper.init()
+    written: list[tuple[Path, int]] = []
+    monkeypatch.setattr(sysfs_gripper, "_write", lambda path, value: written.append((path, value)))
+    sysfs_gripper.release()
+    assert written == []
+
+
 def test_atomic_write_leaves_no_temp_files(enabled: BaseGripper, state_file: Path) -> None:
     """Saving leaves only the state file in its directory."""
     for width_m in (0.05, 0.1, 0.07):

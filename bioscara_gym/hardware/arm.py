@@ -234,7 +234,8 @@ class Arm:
         answer (an earlier process may have left them enabled; seen: with
         j1 unpowered, ``bioscara disable`` left j2-j4 holding torque). It
         reads their speeds first, so one left turning is braked to rest
-        before its current is cut, as :meth:`disable` does.
+        before its current is cut, as :meth:`disable` does, and switches
+        off a gripper servo left driven (:meth:`~bioscara_gym.hardware.gripper.BaseGripper.release`).
 
         Raises:
             CommError: A joint did not answer (the first; the arm stays
@@ -244,15 +245,14 @@ class Arm:
 
         def body() -> None:
             first: JointError | None = None
-            for joint in self.joints.values():
+            for device in (*self.joints.values(), self.gripper):
                 try:
-                    joint.init()
+                    device.init()
                 except JointError as e:
                     first = first or e
             if first is not None:
                 self._read_speeds()  # for the cleanup: brake what an earlier process left turning
                 raise first
-            self.gripper.init()
             self.state = Lifecycle.INACTIVE
             self.read()
 
@@ -516,8 +516,8 @@ class Arm:
             except JointError as e:
                 first = first or e
         try:
-            if gripper and self.gripper.is_enabled:
-                self.gripper.disable()
+            if gripper and self.gripper.is_initialized:
+                self.gripper.release()  # also a servo an earlier process left driven
         except JointError as e:
             first = first or e
         if first is not None:

@@ -356,6 +356,11 @@ class BaseGripper(abc.ABC):
         """Whether the servo is driven (between ``enable()`` and ``disable()``)."""
         return self._enabled
 
+    @property
+    def output_enabled(self) -> bool:
+        """Whether the servo's signal is on, as far as the backend can tell (else :attr:`is_enabled`)."""
+        return self._enabled
+
     # -- transmission ---------------------------------------------------------
 
     def clamp_width(self, width_m: float) -> float:
@@ -479,6 +484,23 @@ class BaseGripper(abc.ABC):
         self._save_width(self._width_m)
         self._stop_output()
         self._enabled = False
+
+    def release(self) -> None:
+        """Stop driving the servo, whoever switched it on: :meth:`disable` if enabled.
+
+        A servo an earlier process left driven (its output on, this driver
+        never enabled) is switched off without saving a width: this process
+        does not know it, and the width last saved stays.
+
+        Raises:
+            NotInitError: Called before ``init()``.
+            CommError: The backend could not switch the output off.
+        """
+        self._require_init()
+        if self._enabled:
+            self.disable()
+        elif self.output_enabled:
+            self._stop_output()
 
     def set_position(self, width_m: float) -> None:
         """Command a width in m; values outside ``[min, max]`` are clamped.

@@ -298,11 +298,11 @@ def _disable_joints(arm: StoppableArm, why: dict[str, str]) -> tuple[set[str], l
 
 
 def _disable_gripper(arm: StoppableArm) -> list[str]:
-    """Disable the gripper if it is driven; the failure, if any."""
-    if not arm.gripper.is_enabled:
+    """Switch the gripper's servo off if it is driven, by this process or an earlier one; the failure."""
+    if not arm.gripper.is_initialized:
         return []
     try:
-        arm.gripper.disable()
+        arm.gripper.release()
     except (JointError, OSError) as e:
         return [f"gripper: disable failed: {e}"]
     return []
