@@ -92,6 +92,18 @@ def test_safe_stop_does_not_call_a_gripper_saved_that_was_never_driven(
     assert report.problems == []
 
 
+def test_safe_stop_after_the_on_error_transition_leaves_the_released_gripper_alone(
+    make_arm_backend: MakeBackend, width_file: Path
+) -> None:
+    arm = Arm(make_arm_backend("mock", state_file=width_file))
+    arm.configure()
+    arm.activate()
+    arm.recover()  # the gripper disabled and disconnected
+    report = safe_stop(arm)
+    assert report.problems == []
+    assert not arm.gripper.is_initialized
+
+
 def test_safe_stop_does_not_call_a_gripper_saved_whose_disable_failed(
     make_arm_backend: MakeBackend, width_file: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
