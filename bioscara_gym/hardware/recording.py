@@ -38,9 +38,10 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from bioscara_gym.fsutil import read_bytes
@@ -231,8 +232,6 @@ class RecordingBus:
         self, inner: I2CBus, recording: Recording, clock: Clock, backend: str, config: ArmConfig
     ) -> None:
         """Open (append to) the trace file and write the session's header."""
-        import bioscara_gym
-
         self.inner = inner
         self.clock = clock
         self.path = Path(recording.path)
@@ -244,10 +243,27 @@ class RecordingBus:
         self.unrecorded_from: int | None = None
         self._cut_by_signal = False  # the last transaction was cut short by a signal
         self._signal_noted = False  # a signal line was written
+        self._fd: int | None = None
+        self._size = 0  # bytes of whole lines in the file
+        try:
+            with _HeldSignals() as held:
+                held.hold()
+                self._start(recording, backend, config)
+        except KeyboardInterrupt as e:  # stopped as the trace began: its replay stops before it starts
+            self.record_signal(e)
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
+            raise
+
+    def _start(self, recording: Recording, backend: str, config: ArmConfig) -> None:
+        """Open the trace file and write the header; remove a file this made if the header is refused."""
+        import bioscara_gym
+
         created = not self.path.exists()
         try:
-            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-            self._size = os.fstat(self._fd).st_size  # bytes of whole lines in the file
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            self._size = os.fstat(self._fd).st_size
         except OSError as e:
             raise OSError(e.errno, f"cannot write the bus trace {self.path} (--record): {e.strerror}") from e
         self._write(
@@ -261,7 +277,7 @@ class RecordingBus:
                 "command": recording.command,
                 "args": jsonable_args(recording.args),
                 "context": dict(recording.context),
-                "t0": clock.now(),
+                "t0": self.clock.now(),
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             }
         )
@@ -297,41 +313,44 @@ class RecordingBus:
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
         """One transaction of the inner bus, recorded with its reply or its error.
 
-        SIGINT and SIGTERM are held back while the transaction's line is made,
-        counted and written, and let through only during the exchange itself:
-        a Ctrl-C that landed in the bookkeeping left a transaction counted and
-        never written (2 of 8 deploys stopped early in bring-up), so the
-        signal line named a transaction the trace did not have. One that
-        lands in the exchange cuts it (``interrupted``); one held back is
-        raised once its line is written, between two transactions.
+        SIGINT and SIGTERM are held back (:class:`_HeldSignals`) while the
+        transaction's line is made, counted and written, and let through only
+        during the exchange itself: a Ctrl-C that landed in the bookkeeping
+        left a transaction counted and never written, or written and left out
+        of the digest chain, and the trace no longer replayed. One that lands
+        in the exchange, or as it ends, cuts it (``interrupted``); one held
+        back is raised once its line is written, between two transactions.
         """
-        with _signals_held() as let_through:
-            data = bytes(data)
-            t = self.clock.now()
-            record: dict[str, Any] = {
-                "type": "tx",
-                "i": self.transactions,
-                "t": t,
-                "dur": 0.0,
-                "addr": f"{address:#04x}",
-                "write": data.hex(),
-                "read_len": read_len,
-            }
+        data = bytes(data)
+        t = self.clock.now()
+        record: dict[str, Any] = {
+            "type": "tx",
+            "i": self.transactions,
+            "t": t,
+            "dur": 0.0,
+            "addr": f"{address:#04x}",
+            "write": data.hex(),
+            "read_len": read_len,
+        }
+        with _HeldSignals() as held:
             try:
-                with let_through():
+                try:
                     reply = bytes(self.inner.transfer(address, data, read_len))
+                finally:
+                    held.hold()
             except OSError as e:
                 record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
                 self._close_line(record, t)
                 raise
             except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
+                held.hold()  # (again: it may have landed as the hold began)
                 record["interrupted"] = signal_name(e)
                 self._close_line(record, t)
                 self._cut_by_signal = True
                 raise
             record["read"] = reply.hex()
             self._close_line(record, t)
-            return reply
+        return reply
 
     def _close_line(self, record: dict[str, Any], t: float) -> None:
         """Count a transaction and write its line, its duration measured to now."""
@@ -354,15 +373,17 @@ class RecordingBus:
             return  # (a closed trace: the session is over)
         self._signal_noted = True
         at = "cycle" if getattr(interrupted, "deferred", False) else "once"
-        self._write(
-            {
-                "type": "signal",
-                "i": self.transactions,
-                "t": self.clock.now(),
-                "signal": signal_name(interrupted),
-                "at": at,
-            }
-        )
+        with _HeldSignals() as held:  # a second signal waits until the line is whole
+            held.hold()
+            self._write(
+                {
+                    "type": "signal",
+                    "i": self.transactions,
+                    "t": self.clock.now(),
+                    "signal": signal_name(interrupted),
+                    "at": at,
+                }
+            )
 
     def close(self) -> None:
         """Close the inner bus and the trace file."""
@@ -381,36 +402,67 @@ class RecordingBus:
 
 
 #: The signals a command stops on: held back while a trace line is being written.
-STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+#: A signal handler as :func:`signal.signal` takes it.
+SignalHandler = Callable[[int, FrameType | None], Any]
 
 
-@contextlib.contextmanager
-def _signals_held() -> Iterator[Callable[[], contextlib.AbstractContextManager[None]]]:
-    """Hold SIGINT and SIGTERM back in this thread; yields a way to let them through for a while.
+class _HeldSignals:
+    """SIGINT's and SIGTERM's Python handlers held back from :meth:`hold` to the end of the ``with`` block.
 
-    A signal that arrives while held waits (blocked, ``pthread_sigmask``)
-    and is delivered when the hold ends or is lifted. Python runs its handler
-    in the main thread only, so outside it, or where the platform has no
-    signal masks, nothing is held. (A signal the kernel gives another thread
-    of this process still reaches the main thread's handler at once.)
+    Python runs a signal's handler in the main thread, between two bytecodes,
+    whichever thread of the process the kernel gave the signal to. Blocking
+    the signals in the main thread (``pthread_sigmask``) therefore held back
+    nothing once the process had a second thread (seen: 4 of 8 evals Ctrl-C'd
+    under ``--record`` left a trace ``replay`` refused; the eval's second
+    thread took the signal). So the handlers themselves are held: each
+    Python-level handler is replaced by one that only notes the signal, and
+    when the block ends the handlers are put back and called for the signals
+    noted, in order (a Ctrl-C raises there). A handler that is no Python
+    function (``SIG_DFL``, ``SIG_IGN``) is left alone, and outside the main
+    thread, where no handler runs, nothing is held.
     """
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
-        yield contextlib.nullcontext
+
+    def __init__(self) -> None:
+        """Hold nothing yet."""
+        self._handlers: dict[int, SignalHandler] = {}  # the handlers replaced, to put back
+        self._arrived: list[int] = []
+
+    def _note(self, signum: int, frame: FrameType | None) -> None:
+        self._arrived.append(signum)
+
+    def hold(self) -> None:
+        """From now on note the signals instead of handling them (again: completes a hold cut short)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum in STOP_SIGNALS:
+            handler = signal.getsignal(signum)
+            if callable(handler) and handler != self._note:
+                self._handlers[signum] = handler  # kept first: a signal landing here finds it put back
+                signal.signal(signum, self._note)
+
+    def __enter__(self) -> _HeldSignals:
+        """Start holding nothing: :meth:`hold` says where the signals start to wait."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Put the handlers back, then hand them the signals noted meanwhile."""
+        handlers, self._handlers = self._handlers, {}
+        _put_back(list(handlers.items()))
+        arrived, self._arrived = self._arrived, []
+        for signum in arrived:
+            handlers[signum](signum, None)
+
+
+def _put_back(handlers: Sequence[tuple[int, SignalHandler]]) -> None:
+    """Install each signal's handler; one that raises as soon as it is back leaves none of the rest out."""
+    if not handlers:
         return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-
-    @contextlib.contextmanager
-    def let_through() -> Iterator[None]:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
-        try:
-            yield
-        finally:
-            signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-
     try:
-        yield let_through
+        signal.signal(*handlers[0])
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        _put_back(handlers[1:])
 
 
 def signal_name(interrupted: KeyboardInterrupt) -> str:
