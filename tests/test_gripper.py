@@ -645,6 +645,70 @@ def test_failed_save_still_switches_output_off(
     assert not output_on(enabled, kernel)
 
 
+def test_a_failed_save_is_reported_in_words_with_its_reason(
+    enabled: BaseGripper, state_file: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """save_status() says the width was NOT saved, and why."""
+
+    def fail_replace(src: object, dst: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", fail_replace)
+    with pytest.warns(GripperStateWarning):
+        enabled.disable()
+    assert enabled.save_status() == f"NOT saved to {state_file}: No space left on device"
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda g: g.set_offset(float("nan")), "gripper: offset nan is not finite"),
+        (lambda g: g.set_offset("x"), "gripper: offset 'x' is not a number"),
+        (lambda g: g.set_reduction(float("inf")), "gripper: reduction inf is not finite"),
+        (lambda g: g.set_position(0.05), "gripper: set_position(0.05) while disabled; call enable() first"),
+    ],
+    ids=["offset-nan", "offset-text", "reduction-inf", "position-disabled"],
+)
+def test_a_refusal_names_the_gripper_and_the_parameter(
+    call: Callable[[BaseGripper], None], message: str
+) -> None:
+    g = MockGripper(**SPEC)
+    g.init()
+    with pytest.raises(JointError) as err:
+        call(g)
+    assert str(err.value) == message
+    assert err.value.joint == "gripper"
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("offset", math.nan, "gripper: offset nan is not finite"),
+        ("min", "a", "gripper: min width 'a' is not a number"),
+        ("max", math.inf, "gripper: max width inf is not finite"),
+        ("backup_init_pos", -math.inf, "gripper: backup initial width -inf is not finite"),
+        ("reduction", "r", "gripper: reduction 'r' is not a number"),
+        ("min", 0.2, "gripper: width limits [0.2, 0.12] m; min must be less than max"),
+    ],
+)
+def test_a_bad_parameter_is_refused_naming_the_gripper_and_the_parameter(
+    field: str, value: object, message: str
+) -> None:
+    with pytest.raises(InvalidArgumentError) as err:
+        MockGripper(**{**SPEC, field: value})
+    assert str(err.value) == message
+    assert err.value.joint == "gripper"
+
+
+def test_a_pulse_beyond_the_period_names_the_period() -> None:
+    # 10000 deg: 10000 / 90 * 500 + 1500 = 57055.6 us (mGripper.cpp's mapping), past the 20 ms period.
+    with pytest.raises(InvalidArgumentError) as err:
+        servo_duty_cycle_ns(1e4)
+    assert str(err.value) == (
+        "servo angle 10000 deg gives a 57055.6 us pulse; must be between 0 and 20000 us (the 50 Hz period)"
+    )
+
+
 # -- sysfs PWM backend ----------------------------------------------------------------
 
 
@@ -688,7 +752,7 @@ def test_export_timeout_raises_comm_error(tmp_path: Path) -> None:
     """A channel that never becomes writable raises after the timeout."""
     kernel = FakePwmKernel(tmp_path / "pwm", responsive=False)
     g = Gripper(**SPEC, sysfs_root=kernel.root, clock=kernel, export_timeout_s=0.5)
-    with pytest.raises(CommError, match=r"pwm0/period is not writable 0.5 s after"):
+    with pytest.raises(CommError, match=r"^gripper: .*pwm0/period is not writable 0.5 s after"):
         g.init()
     assert kernel.now() == pytest.approx(0.5, abs=0.02)
 
@@ -696,10 +760,27 @@ def test_export_timeout_raises_comm_error(tmp_path: Path) -> None:
 def test_missing_chip_raises_with_overlay_hint(tmp_path: Path) -> None:
     """A missing pwmchipN raises CommError with the overlay hint."""
     g = Gripper(**SPEC, sysfs_root=tmp_path / "no-pwm")
-    with pytest.raises(CommError, match=r"pwmchip0 does not exist.*dtoverlay=pwm") as info:
+    with pytest.raises(
+        CommError, match=r"^gripper: PWM chip .*pwmchip0 does not exist.*dtoverlay=pwm"
+    ) as info:
         g.init()
     assert isinstance(info.value, JointError)
-    assert isinstance(info.value.__cause__, FileNotFoundError)
+    cause = info.value.__cause__
+    assert isinstance(cause, FileNotFoundError)
+    assert (cause.errno, cause.strerror, cause.filename) == (
+        errno.ENOENT,
+        "No such file or directory",
+        str(tmp_path / "no-pwm" / "pwmchip0"),
+    )
+
+
+def test_an_export_timeout_of_zero_does_not_wait(tmp_path: Path) -> None:
+    """The deadline is met at once: no poll past it."""
+    kernel = FakePwmKernel(tmp_path / "pwm", responsive=False)
+    g = Gripper(**SPEC, sysfs_root=kernel.root, clock=kernel, export_timeout_s=0.0)
+    with pytest.raises(CommError, match=r"pwm0/period is not writable 0 s after"):
+        g.init()
+    assert kernel.now() == 0.0
 
 
 @pytest.fixture
@@ -725,7 +806,7 @@ def test_permission_error_names_file_with_hint(
 ) -> None:
     """Permission errors name the file and hint at the gpio group."""
     failing_attr("period", PermissionError(errno.EACCES, "Permission denied"))
-    expected = r"permission denied writing 20000000 to .*pwm0/period"
+    expected = r"^gripper: permission denied writing 20000000 to .*pwm0/period"
     with pytest.raises(CommError, match=expected) as info:
         sysfs_gripper.init()
     assert "group 'gpio'" in str(info.value)
@@ -740,7 +821,7 @@ def test_kernel_rejecting_a_write_raises_comm_error(
     sysfs_gripper.init()
     failing_attr("duty_cycle", OSError(errno.EINVAL, "Invalid argument"))
     with (
-        pytest.raises(CommError, match=r"duty_cycle failed: Invalid argument"),
+        pytest.raises(CommError, match=r"^gripper: writing \d+ to .*duty_cycle failed: Invalid argument"),
         pytest.warns(GripperStateWarning),
     ):
         sysfs_gripper.enable()
@@ -754,7 +835,9 @@ def test_unexported_channel_raises_comm_error(sysfs_gripper: Gripper, kernel: Fa
         attr.unlink()
     sysfs_gripper.pwm_path.rmdir()
     with (
-        pytest.raises(CommError, match="was the channel unexported"),
+        pytest.raises(
+            CommError, match=r"^gripper: .*pwm0/duty_cycle does not exist; was the channel unexported"
+        ),
         pytest.warns(GripperStateWarning),
     ):
         sysfs_gripper.enable()
