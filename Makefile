@@ -29,7 +29,10 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
 
 # The main job: train Reach with the default config, evaluate it, say where everything is.
+# It trains anew each time, replacing the run in $(RUN) (bioscara train refuses to
+# start a new run in a folder that holds one).
 train: $(STAMP)
+	rm -rf $(RUN)
 	$(VENV)/bin/bioscara train --env Bioscara-Reach --out $(RUN)
 	$(VENV)/bin/bioscara eval --model $(RUN)/model.zip --episodes 100 \
 		--video $(RUN)/reach.mp4 --json $(RUN)/eval.json

@@ -31,6 +31,15 @@ def sb3_class(name: str) -> type[BaseAlgorithm]:
     return getattr(stable_baselines3, name)
 
 
+def policy_base(name: str) -> type:
+    """The class every policy of SB3 algorithm ``name`` is (``SACPolicy``): its ``MlpPolicy``.
+
+    Custom policies subclass one of its aliases (``SACGoalErrorPolicy`` its
+    ``MultiInputPolicy``), and every alias subclasses ``MlpPolicy``'s class.
+    """
+    return sb3_class(name).policy_aliases["MlpPolicy"]
+
+
 #: The algorithms trained from rl-zoo3 files, by ``--algo`` name.
 ALGOS: dict[str, type[BaseAlgorithm]] = {n: sb3_class(s.model) for n, s in METHODS.items() if s.rl_zoo}
 #: The class each ``algo`` of a model's metadata loads with: behaviour cloning

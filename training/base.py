@@ -8,6 +8,9 @@ step                  what it does
 ====================  =============================================================
 :meth:`~TrainingMethod.plan`         check every input, settle the config and the budget;
                                      on ``--resume`` read the run's state (nothing written)
+(the checks)                         what needs the plan: the config's env kwargs (one env
+                                     made and closed), its envs, what HER needs of it,
+                                     the demonstrations against the env (nothing written)
 :meth:`~TrainingMethod.make_envs`    the training env(s) and the evaluation env
 :meth:`~TrainingMethod.callbacks`    what runs alongside learning (SB3 callbacks)
 :meth:`~TrainingMethod.build_model`  a new model, or the newest checkpoint that loads
@@ -39,6 +42,7 @@ import gymnasium as gym
 from bioscara_gym.errors import HyperparamError, TrainingError
 from bioscara_gym.training.checkpoints import (
     STATE_NAME,
+    check_checkpoint_policies,
     checkpoint_dir,
     checkpoint_steps,
     newest_checkpoint,
@@ -48,6 +52,7 @@ from bioscara_gym.training.checkpoints import (
 from bioscara_gym.training.demos import load_demos
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.hyperparams import check_her_episodes
 from bioscara_gym.training.metadata import build_metadata, env_kwargs_problem, save_policy
 from bioscara_gym.training.methods import MethodSpec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
@@ -56,6 +61,9 @@ from bioscara_gym.training.train import check_n_envs
 
 with needs_train():
     import torch
+
+    from bioscara_gym.training.algos import policy_base, sb3_class
+    from bioscara_gym.training.zoo import DemonstrationCallback
 
 
 @dataclass(frozen=True)
@@ -176,19 +184,7 @@ class TrainingMethod(abc.ABC):
             TrainingInterrupted: SIGINT or SIGTERM (a checkpoint saved, if there was a model).
         """
         plan = self.plan()
-        problem = env_kwargs_problem(self.env_id, plan.env_kwargs)
-        if problem is not None:  # before an env is made: the file named, not a traceback
-            raise HyperparamError(f"config {plan.config.source}: {self.env_id}.env_kwargs {problem}")
-        if self.args.n_envs is None:  # --n-envs was checked with the arguments; a config's here
-            check_n_envs(
-                getattr(plan.config, "n_envs", None), f"config {plan.config.source}: {self.env_id}.n_envs"
-            )
-        if self.args.demos:  # read once before anything is written: a missing or damaged one is one line
-            demos = load_demos(self.args.demos)
-            if demos.env_id != self.env_id:  # the rest of check_demos needs the env, made later
-                raise TrainingError(
-                    f"dataset {demos.dataset_id} was recorded on {demos.env_id}, not {self.env_id}"
-                )
+        self.check_plan(plan)
         torch.set_num_threads(self.args.threads or 1)
         self.start = time.perf_counter()
         with SignalGuard() as guard, contextlib.ExitStack() as stack:
@@ -221,6 +217,47 @@ class TrainingMethod(abc.ABC):
             target_reached_after_s=self.reached_after_s,
         )
 
+    def check_plan(self, plan: RunPlan) -> None:
+        """Check what needs the plan, before an env is built for training or a file written.
+
+        Each of these was seen refused only once the run had written
+        ``train_state.json`` and ``tb/`` (or by a traceback): the config's
+        env kwargs (an unknown keyword, a value the env refuses, such as
+        ``reward_type: bogus``), its ``n_envs``, a ``learning_starts`` or
+        ``buffer_size`` HER cannot sample from, and demonstrations recorded
+        on another task, control mode or spaces (``--demos``, or the
+        config's :class:`~bioscara_gym.training.zoo.DemonstrationCallback`).
+
+        Raises:
+            HyperparamError: A bad value of the config, the file and entry named.
+            TrainingError: Demonstrations that do not fit the env, or cannot be read.
+        """
+        where = f"config {plan.config.source}: {self.env_id}"
+        problem = env_kwargs_problem(self.env_id, plan.env_kwargs)
+        if problem is not None:  # before an env is made: the file named, not a traceback
+            raise HyperparamError(f"{where}.env_kwargs {problem}")
+        n_envs = self.args.n_envs  # --n-envs was checked with the arguments; a config's here
+        if n_envs is None:
+            n_envs = getattr(plan.config, "n_envs", None)
+            check_n_envs(n_envs, f"{where}.n_envs")
+        if self.spec.rl_zoo:  # the runner adds HER on the goal tasks (training/sb3.py)
+            steps = self.episode_steps(plan.env_kwargs)
+            check_her_episodes(plan.config, sb3_class(self.spec.model), self.env_id, steps, n_envs or 1)
+        try:  # one env, as training makes it, closed at once: a value it refuses names the file
+            env = gym.make(self.env_id, **plan.env_kwargs)
+        except (TypeError, ValueError) as e:
+            raise HyperparamError(f"{where}.env_kwargs: {e}") from e
+        with contextlib.closing(env):
+            for dataset in self.datasets(plan):  # a missing, damaged or unfitting one is one line
+                load_demos(dataset, env)
+
+    def datasets(self, plan: RunPlan) -> list[str]:
+        """The demonstration datasets the run learns from: ``--demos``, else the config's callback's."""
+        if self.args.demos:
+            return [self.args.demos]
+        callbacks = getattr(plan.config, "callbacks", ())
+        return [k["dataset"] for c, k in callbacks if c is DemonstrationCallback and k.get("dataset")]
+
     def _metadata(self, env: gym.Env, plan: RunPlan, final: EvalStats) -> dict[str, Any]:
         """``metadata.json``: the env, the method (as it loads), the run's facts, the final evaluation."""
         method = {} if self.spec.algo == self.spec.name else {"method": self.spec.name}
@@ -244,7 +281,7 @@ class TrainingMethod(abc.ABC):
         Raises:
             TrainingError: No or a damaged state, a run of another env or
                 method, a ``--timesteps`` or ``--seed`` that would change its
-                budget or seed, no checkpoint.
+                budget or seed, no checkpoint, or one of another algorithm.
         """
         args, out = self.args, self.out
         saved = read_run_state(out)
@@ -265,6 +302,10 @@ class TrainingMethod(abc.ABC):
         newest = newest_checkpoint(checkpoint_dir(out))
         if newest is None:
             raise TrainingError(f"nothing to resume in {checkpoint_dir(out)}: no checkpoint")
+        algo = self.spec.model  # a checkpoint of another algorithm fails deep inside SB3's load
+        check_checkpoint_policies(
+            checkpoint_dir(out), policy_base(algo), f"{algo}, the algorithm of this {self.spec.name} run"
+        )
         args.seed = saved["seed"]
         args.demos = args.demos or saved["demos"]
         config = saved["config"] or (str(args.config) if args.config else None)

@@ -2,18 +2,21 @@
 
 ``OUT/train_state.json`` says what a run is (env, method, seed, budget,
 config, demonstrations): :func:`write_run_state` writes it once the model is
-built, :func:`read_run_state` checks it for ``--resume``. A checkpoint is
+built, :func:`read_run_state` checks it for ``--resume``, and
+:func:`check_no_run` keeps a new run out of a folder that holds one. A checkpoint is
 ``OUT/checkpoints/ckpt_<env steps>_steps.zip`` plus its method's companion
 files beside it (the replay buffer, DAgger's aggregate). Every file is
 written atomically (:mod:`bioscara_gym.fsutil`), the companions before the
 model, so a checkpoint exists only once complete and an interrupted save
 leaves the earlier ones as they were. :func:`load_newest` loads the newest
 checkpoint that loads, skipping a damaged one with a
-:class:`~bioscara_gym.errors.CheckpointWarning`.
+:class:`~bioscara_gym.errors.CheckpointWarning`; :func:`check_checkpoint_policies`
+first refuses a checkpoint of another algorithm than the run's.
 """
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import pickle
@@ -56,6 +59,10 @@ CHECKPOINT_ERRORS = (
 )
 #: Members every stable-baselines3 model zip holds.
 MODEL_MEMBERS = frozenset({"data", "policy.pth"})
+#: What a run leaves in its output directory that a new run there would overwrite or mix with its own
+#: (its TensorBoard logs, ``tb/run_<n>``, are numbered and kept apart; a ``metadata.json`` without
+#: its model describes nothing to lose).
+RUN_FILES = (STATE_NAME, CHECKPOINT_DIR, "model.zip")
 
 T = TypeVar("T")
 
@@ -65,6 +72,25 @@ def write_run_state(out: Path, state: Mapping[str, Any]) -> None:
     """Write ``out/train_state.json`` (``out`` created): the first file a run writes."""
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / STATE_NAME, json.dumps(dict(state), indent=2))
+
+
+def check_no_run(out: Path) -> None:
+    """Refuse a new run into ``out`` when it holds a run: nothing of an earlier run is lost or mixed in.
+
+    Seen (a hostile test): a new run rewrote ``train_state.json`` and kept
+    the earlier run's checkpoints, so ``--resume`` continued a seed-1 SAC
+    checkpoint as the seed-2 run, or as a TD3 run (a traceback).
+
+    Raises:
+        TrainingError: ``out`` holds any of :data:`RUN_FILES` (named, with what to do instead).
+    """
+    held = [name for name in RUN_FILES if (out / name).exists() or (out / name).is_symlink()]
+    if held:
+        names = ", ".join(f"{name}/" if name == CHECKPOINT_DIR else name for name in held)
+        raise TrainingError(
+            f"--out {out} already holds a run ({names}); continue it with --resume, "
+            "or train a new one with another --out"
+        )
 
 
 def read_run_state(out: Path) -> dict[str, Any]:
@@ -198,6 +224,44 @@ def load_newest(directory: Path, load: Callable[[Path], T]) -> tuple[T, Path]:
     newest, error = failures[0]
     more = f" nor the {len(found) - 1} older ones" if len(found) > 1 else ""
     raise TrainingError(f"cannot resume: checkpoint {newest} cannot be loaded ({reason(error)}){more}")
+
+
+def checkpoint_policy(checkpoint: Path) -> type | None:
+    """The policy class a checkpoint's model was saved with; ``None`` if it cannot be read.
+
+    Read from the zip's ``data`` as stable-baselines3 reads it when loading
+    (its ``policy_class``, pickled); a checkpoint that does not say is left
+    to :func:`load_newest`, which names it as damaged.
+    """
+    try:
+        with zipfile.ZipFile(checkpoint) as archive:
+            policy = json.loads(archive.read("data"))["policy_class"]
+        found = pickle.loads(base64.b64decode(policy[":serialized:"].encode()))
+    except (*CHECKPOINT_ERRORS, TypeError, AttributeError, ImportError):
+        return None
+    return found if isinstance(found, type) else None
+
+
+def check_checkpoint_policies(directory: Path, policy_base: type, run: str) -> None:
+    """Refuse to resume when a checkpoint in ``directory`` holds a policy that is not a ``policy_base``.
+
+    Loading it as the run's algorithm failed deep inside stable-baselines3
+    (seen: ``AttributeError: 'SACGoalErrorPolicy' object has no attribute
+    'actor_target'``, a SAC checkpoint under a TD3 run's state), or would
+    continue another run. ``run`` says in the message whose policy that is
+    (``TD3, the algorithm of this td3 run``).
+
+    Raises:
+        TrainingError: The first such checkpoint, its policy class and the run's algorithm named.
+    """
+    for path in list_checkpoints(directory):
+        check_regular_files(path)
+        policy = checkpoint_policy(path)
+        if policy is not None and not issubclass(policy, policy_base):
+            raise TrainingError(
+                f"cannot resume from {path}: its policy is {policy.__module__}.{policy.__qualname__}, "
+                f"not a {policy_base.__qualname__} ({run}); the checkpoint is another run's"
+            )
 
 
 def check_regular_files(checkpoint: Path) -> None:

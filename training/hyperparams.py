@@ -24,7 +24,8 @@ them could not be evaluated, exported or deployed on the plain env. Counts
 ``quick_episodes``, ``first_eval``) must be whole numbers >= 1, ``target_success`` in
 [0, 1] and ``stop_success`` (where training stops) in
 [``target_success``, 1]; :func:`check_algo_kwargs` refuses keys the
-algorithm does not take.
+algorithm does not take, and :func:`check_her_episodes` a ``learning_starts``
+or ``buffer_size`` below the whole episodes HER samples.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from bioscara_gym.errors import HyperparamError
 from bioscara_gym.fsutil import read_bytes
 from bioscara_gym.hardware.config import MAX_CONFIG_BYTES
 from bioscara_gym.hardware.errors import closest_name
+from bioscara_gym.tasks import TASKS
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.literals import import_dotted, parse_literal_call
 
@@ -411,6 +413,48 @@ def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
         f"see the {algo_cls.__name__} documentation",
         near=EXTRA_KEYS,
     )
+
+
+def check_her_episodes(
+    hp: Hyperparams, algo_cls: type, env_id: str, episode_steps: int | None, n_envs: int
+) -> None:
+    """Refuse a ``learning_starts`` or ``buffer_size`` below an episode on each env, when HER samples.
+
+    ``HerReplayBuffer`` samples only finished episodes, and each env's share
+    of it (``buffer_size`` / ``n_envs``) must hold one: else the first
+    gradient step, after ``learning_starts`` env steps (counted over all
+    envs), raised "Unable to sample before the end of the first episode",
+    a traceback after ``train_state.json`` and ``tb/`` were written. HER
+    samples when the entry names it, or for an off-policy algorithm on a
+    goal task (:data:`~bioscara_gym.tasks.TASKS`) whose entry names no
+    replay buffer (the runner adds HER then). ``episode_steps`` ``None``:
+    episodes without a limit, nothing to check.
+
+    Raises:
+        HyperparamError: One line naming the file, the key (or the
+            algorithm's default it takes) and the least HER needs.
+    """
+    with needs_train("HER's replay buffer"):
+        from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    kwargs = hp.algo_kwargs
+    buffer = kwargs.get("replay_buffer_class")
+    named = buffer if isinstance(buffer, str) else getattr(buffer, "__name__", None)
+    off_policy = issubclass(algo_cls, OffPolicyAlgorithm)
+    added = "replay_buffer_class" not in kwargs and env_id in TASKS and off_policy
+    if episode_steps is None or not (named == "HerReplayBuffer" or added):
+        return
+    needed = int(episode_steps) * n_envs
+    defaults = {k: p.default for k, p in inspect.signature(algo_cls).parameters.items()}
+    for key in ("learning_starts", "buffer_size"):
+        value = _number(kwargs[key]) if key in kwargs else _number(defaults.get(key))
+        if value is None or value >= needed:  # not a number: check_algo_counts names it
+            continue
+        shown = repr(kwargs[key]) if key in kwargs else f"{defaults[key]} ({algo_cls.__name__}'s default)"
+        envs = "the 1 env" if n_envs == 1 else f"each of the {n_envs} envs"
+        raise HyperparamError(
+            f"config {hp.source}: {env_id}.{key} is {shown}; HerReplayBuffer samples only whole episodes, "
+            f"so it must be at least {needed} (an episode of {episode_steps} steps on {envs})"
+        )
 
 
 def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple[type, dict[str, Any]], ...]]:

@@ -10,7 +10,8 @@ envs, callbacks, build or resume the model, learn, evaluate, save
 
 Bad input (an unknown method, a key the algorithm does not take, an
 evaluation schedule or a budget below 1, a damaged ``train_state.json``,
-nothing to resume) is refused with a :class:`~bioscara_gym.errors.TrainingError`
+nothing to resume, an ``--out`` that cannot be made or that holds another
+run) is refused with a :class:`~bioscara_gym.errors.TrainingError`
 before anything is written. Ctrl-C and SIGTERM save a checkpoint and raise
 :class:`TrainingInterrupted`; checkpoints and the model are written
 atomically, and ``--resume`` skips a damaged newest checkpoint with a
@@ -24,8 +25,9 @@ from pathlib import Path
 
 import bioscara_gym  # noqa: F401 - registers the tasks
 from bioscara_gym.errors import TrainingError
+from bioscara_gym.fsutil import output_problem
 from bioscara_gym.tasks import TASKS
-from bioscara_gym.training.checkpoints import SEED_MAX, read_run_state
+from bioscara_gym.training.checkpoints import SEED_MAX, check_no_run, read_run_state
 from bioscara_gym.training.metadata import resolve_env_id
 from bioscara_gym.training.methods import MethodSpec, method_spec
 from bioscara_gym.training.run import TrainArgs, TrainingInterrupted, TrainResult
@@ -74,6 +76,34 @@ def check_n_envs(n_envs: int | None, what: str = "--n-envs") -> None:
         )
 
 
+def check_out(out: Path, resume: bool) -> None:
+    """Refuse an ``--out`` the run cannot write in, and (a new run) one that holds a run already.
+
+    Checked before an env or model is built: ``/proc/foo`` and a dangling
+    symlink failed only once the model was to be saved, 6-7 s in, naming
+    neither ``--out`` nor the symlink ("File exists: dangl").
+
+    Raises:
+        TrainingError: A file, a folder that takes no file, a path through a
+            symlink to nothing, or (not ``resume``) a folder holding a run.
+    """
+    if out.exists() and not out.is_dir():
+        raise TrainingError(f"--out {out} is a file; give a folder for the run")
+    problem = output_problem(out, folder=True)
+    if problem is not None:
+        raise TrainingError(f"--out {out}: {problem}")
+    for path in (out, *out.parents):
+        if path.exists():
+            break
+        if path.is_symlink():  # the folder cannot be made there
+            raise TrainingError(
+                f"--out {out}: {path} is a symlink to {os.readlink(path)}, which does not exist; "
+                "make its target or give another --out"
+            )
+    if not resume:
+        check_no_run(out)
+
+
 def choose_method(args: TrainArgs, env_id: str) -> MethodSpec:
     """The method ``bioscara train`` runs: ``--algo``; on ``--resume`` the run's; else the task's default.
 
@@ -96,8 +126,10 @@ def train(args: TrainArgs) -> TrainResult:
     """Train, evaluate and save a policy (see the module docstring).
 
     Every input is checked before anything is written; the output directory
-    appears once the model is built. SIGINT and SIGTERM save a checkpoint
-    (``--resume`` continues from it) and raise :class:`TrainingInterrupted`.
+    appears once the model is built. A new run never goes into a folder that
+    holds a run (:func:`~bioscara_gym.training.checkpoints.check_no_run`).
+    SIGINT and SIGTERM save a checkpoint (``--resume`` continues from it)
+    and raise :class:`TrainingInterrupted`.
 
     Raises:
         TrainingError: Bad input (nothing trained, nothing written).
@@ -114,8 +146,6 @@ def train(args: TrainArgs) -> TrainResult:
         args.seed = 0
     if args.threads is not None and args.threads < 1:
         raise TrainingError(f"--threads must be >= 1, got {args.threads}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise TrainingError(f"--out {out} is a file; give a folder for the run")
+    check_out(Path(args.out), args.resume)
     spec = choose_method(args, env_id)
     return spec.method_class()(args, env_id, spec).run()
