@@ -331,7 +331,7 @@ def test_sigterm_stops_eval_as_ctrl_c_does_leaving_no_partial_video(tmp_path: Pa
     argv = ["eval", "--expert", "--episodes", "500", "--video", "v/v.mp4", "--video-episodes", "500"]
     done = _terminated(argv, tmp_path, ready=8.0)
     assert (done.returncode, done.stderr.strip()) == (143, "bioscara eval: interrupted by SIGTERM")
-    assert list((tmp_path / "v").iterdir()) == []
+    assert not (tmp_path / "v").exists()  # the folder it made for the video is gone too
 
 
 def test_sigterm_stops_monitor_as_ctrl_c_does_disabling_the_joints(tmp_path: Path) -> None:

@@ -15,9 +15,11 @@ them (the ``[train]`` extra).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import shutil
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -32,6 +34,7 @@ import bioscara_gym  # noqa: F401 - registers the tasks (recover_environment nee
 from bioscara_gym.errors import TrainingError
 from bioscara_gym.tasks import GOAL_KEYS, Policy
 from bioscara_gym.training.extras import needs_extra
+from bioscara_gym.training.signals import SignalGuard
 
 #: Minari's dataset ids: ``(namespace/)name-v<version>``.
 VERSION_RE = re.compile(r"-v\d+$")
@@ -125,7 +128,8 @@ def collect(
 
     Episodes are seeded ``seed``, ``seed + 1``, ..., every step recorded (to the
     time limit or a stall). Nothing is left behind on failure or interruption:
-    the dataset is moved into place only once every episode is recorded.
+    the dataset is written beside the others and moved into place only once
+    it is complete; an old one (``overwrite``) is removed only after that.
 
     Args:
         env_id: Registered env id.
@@ -140,7 +144,8 @@ def collect(
         description: The dataset's description (default: env, policy and success).
 
     Raises:
-        TrainingError: ``episodes`` <= 0, or the dataset exists and ``overwrite`` is false.
+        TrainingError: ``episodes`` <= 0, or the dataset exists and ``overwrite``
+            is false (checked before the episodes, and again when they are written).
     """
     full_id, path = _new_dataset(name, episodes, overwrite)
     with needs_extra("bioscara collect", "train"):
@@ -157,18 +162,12 @@ def collect(
             f"{episodes} episodes of {algorithm_name} on {env_id} ({env_kwargs or {}}); "
             f"success {success_rate:.1%}"
         )
-        _write_dataset(collector, path, full_id, env.spec, algorithm_name, text)
+        metadata = {"eval_env": env.spec, "algorithm_name": algorithm_name, "description": text}
+        _write_dataset(collector, path, full_id, episodes, overwrite, metadata)
     finally:
         collector.close()  # removes the collector's temporary directory
-    return CollectResult(
-        dataset_id=full_id,
-        path=path,
-        episodes=episodes,
-        steps=steps,
-        success_rate=success_rate,
-        size_bytes=_size_bytes(path),
-        wall_time_s=time.perf_counter() - start,
-    )
+    size, wall_time_s = _size_bytes(path), time.perf_counter() - start
+    return CollectResult(full_id, path, episodes, steps, success_rate, size, wall_time_s)
 
 
 def _new_dataset(name: str, episodes: int, overwrite: bool) -> tuple[str, Path]:
@@ -206,19 +205,87 @@ def _record(
     return successes, steps
 
 
-def _write_dataset(collector: Any, path: Path, full_id: str, spec: Any, algorithm: str, text: str) -> None:
-    """Write the recorded episodes as dataset ``full_id`` at ``path``: whole, or not at all."""
-    if path.exists():  # --overwrite: replaced only once the new episodes are recorded
-        shutil.rmtree(path)
+def _write_dataset(
+    collector: Any, path: Path, full_id: str, episodes: int, overwrite: bool, metadata: dict[str, Any]
+) -> None:
+    """Write the recorded episodes (``metadata``: ``create_dataset``'s arguments) as ``full_id`` at ``path``.
+
+    Minari writes into a hidden folder of the root (it lists none), renamed to
+    ``path`` once complete. Seen: the old dataset removed first, so an
+    interruption left neither; a second ``collect`` into the name replacing
+    the first's without ``--overwrite``.
+
+    Raises:
+        TrainingError: Without ``overwrite``, a dataset appeared at ``path`` meanwhile (it is kept).
+    """
+    root = datasets_root()
+    staging = Path(tempfile.mkdtemp(dir=root, prefix=".collect-", suffix=".tmp"))
     try:
-        with warnings.catch_warnings():
+        with _datasets_path(staging), warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=r"`(author|author_email|code_permalink)` is set")
-            collector.create_dataset(
-                dataset_id=full_id, eval_env=spec, algorithm_name=algorithm, description=text
-            )
-    except BaseException:
-        shutil.rmtree(path, ignore_errors=True)  # never a half-written dataset
-        raise
+            collector.create_dataset(dataset_id=full_id, **metadata)
+        _adopt_namespaces(staging, root, full_id)
+        try:
+            _move_into_place(staging / full_id, path, staging / ".replaced", overwrite)
+        except OSError as e:
+            if e.errno not in (errno.EEXIST, errno.ENOTEMPTY, errno.ENOTDIR):  # others say what failed
+                raise
+            hint = "" if overwrite else ": pass --overwrite to replace it, or name another dataset"
+            raise TrainingError(
+                f"dataset {full_id} was written at {path} by another command while these {episodes} "
+                f"episodes were recorded; they are not kept{hint}"
+            ) from e
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # never a half-written dataset, nor the replaced one
+
+
+@contextlib.contextmanager
+def _datasets_path(root: Path) -> Iterator[None]:
+    """``$MINARI_DATASETS_PATH`` set to ``root`` for the block: Minari's only way to write elsewhere."""
+    before = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(root)
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["MINARI_DATASETS_PATH"]
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = before
+
+
+def _adopt_namespaces(staging: Path, root: Path, full_id: str) -> None:
+    """Make in ``root`` the namespace folders and metadata of ``full_id`` that Minari made in ``staging``."""
+    for level in reversed(Path(full_id).parents[:-1]):  # outermost first
+        (root / level).mkdir(exist_ok=True)
+        for made in (staging / level).iterdir():
+            if made.is_file() and not (root / level / made.name).exists():  # a namespace's own is kept
+                shutil.copyfile(made, root / level / made.name)
+
+
+def _move_into_place(new: Path, path: Path, replaced: Path, overwrite: bool) -> None:
+    """Rename the complete dataset ``new`` to ``path``; with ``overwrite`` the old one goes to ``replaced``.
+
+    SIGINT and SIGTERM wait for the renames (between them no dataset is at ``path``).
+    Without ``overwrite`` nothing is replaced: a rename onto a folder that is not empty fails.
+
+    Raises:
+        OSError: A rename failed (``EEXIST``, ``ENOTEMPTY``: something is at ``path``; the old one is kept).
+    """
+    with SignalGuard() as guard, contextlib.ExitStack() as stack:
+        stack.callback(guard.check)  # a signal wins over an error
+        with guard.shielded():
+            if overwrite:
+                with contextlib.suppress(FileNotFoundError):
+                    os.rename(path, replaced)
+            elif os.path.lexists(path):  # the rename would replace an empty folder
+                raise FileExistsError(errno.EEXIST, "exists", os.fspath(path))
+            try:
+                os.rename(new, path)
+            except OSError:
+                if os.path.lexists(replaced):
+                    with contextlib.suppress(OSError):
+                        os.rename(replaced, path)
+                raise
 
 
 def _progress(total: int, enabled: bool, desc: str) -> Any:
@@ -398,10 +465,7 @@ def rollout_demos(
     """
     if episodes <= 0:
         raise TrainingError(f"episodes must be > 0, got {episodes}")
-    obs_l: list[dict[str, np.ndarray]] = []
-    next_l: list[dict[str, np.ndarray]] = []
-    act_l: list[np.ndarray] = []
-    done_l: list[bool] = []
+    kept: list[tuple[Any, ...]] = []  # (obs, action, next obs, terminated) of the episodes kept
     starts, successes = [], []
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed + ep)
@@ -416,24 +480,20 @@ def rollout_demos(
         success = bool(info.get("is_success", False))
         if successful_only and not success:
             continue
-        starts.append(len(act_l))
+        starts.append(len(kept))
         successes.append(success)
-        for o, a, n, d in rows:
-            obs_l.append(o)
-            act_l.append(a)
-            next_l.append(n)
-            done_l.append(d)
-    if not act_l:
+        kept.extend(rows)
+    if not kept:
         raise TrainingError(f"none of the {episodes} demonstration episodes succeeded")
     spec = env.spec
     return Demos(
         dataset_id="(collected in memory)",
         env_id=spec.id if spec is not None else "",
         env_kwargs=dict(spec.kwargs) if spec is not None else {},
-        obs={k: np.array([o[k] for o in obs_l]) for k in GOAL_KEYS},
-        next_obs={k: np.array([o[k] for o in next_l]) for k in GOAL_KEYS},
-        actions=np.array(act_l),
-        dones=np.array(done_l),
+        obs={k: np.array([row[0][k] for row in kept]) for k in GOAL_KEYS},
+        next_obs={k: np.array([row[2][k] for row in kept]) for k in GOAL_KEYS},
+        actions=np.array([row[1] for row in kept]),
+        dones=np.array([row[3] for row in kept]),
         episode_starts=np.asarray(starts),
         successes=np.asarray(successes),
     )

@@ -297,7 +297,8 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
 
     Yields a frame sink (``None`` when ``path`` is ``None``). The video is
     written to a temporary file beside ``path`` and moved into place only when
-    the block completes, so an interrupted evaluation leaves no broken video.
+    the block completes, so an interrupted evaluation leaves no broken video,
+    nor the folders made for it (seen: ``--video nd1/a/b/v.mp4`` left ``nd1/a/b/``).
     """
     if path is None:
         yield None
@@ -305,15 +306,34 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
     import imageio.v2 as imageio
 
     path = replaced_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temporary_beside(path, prefix=f".{path.stem}.", suffix=path.suffix)  # path's mode
-    os.close(fd)
+    made: list[Path] = []
     try:
-        with imageio.get_writer(tmp, **_writer_settings(path.suffix.lower(), fps)) as writer:
-            yield writer.append_data
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+        _make_folders(path.parent, made)
+        fd, tmp = temporary_beside(path, prefix=f".{path.stem}.", suffix=path.suffix)  # path's mode
+        os.close(fd)
+        try:
+            with imageio.get_writer(tmp, **_writer_settings(path.suffix.lower(), fps)) as writer:
+                yield writer.append_data
+            os.replace(tmp, path)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+    except BaseException:
+        for folder in reversed(made):  # deepest first; one that holds another's file stays
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _make_folders(folder: Path, made: list[Path]) -> None:
+    """Make ``folder`` and its missing parents, adding each to ``made`` (outermost first) once made.
+
+    A folder someone else makes meanwhile is not added, so it is never removed.
+    """
+    missing = [p for p in (folder, *folder.parents) if not os.path.lexists(p)]
+    for p in reversed(missing):
+        with contextlib.suppress(FileExistsError):
+            p.mkdir()
+            made.append(p)
 
 
 def write_json(path: Path, stats: EvalStats, **extra: Any) -> None:
