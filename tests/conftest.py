@@ -267,6 +267,14 @@ def gripper_state_file(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
+def datasets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Minari's datasets folder (``$MINARI_DATASETS_PATH``) under ``tmp_path``, not yet made."""
+    root = tmp_path / "minari"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    return root
+
+
+@pytest.fixture
 def pwm_tree(tmp_path: Path) -> Path:
     """A sysfs PWM tree with ``pwmchip0/pwm0`` exported; returns the ``sysfs_root``."""
     root = tmp_path / "sys" / "class" / "pwm"

@@ -118,6 +118,17 @@ def test_release_velocity_stops_the_joint(homed_arm: Arm) -> None:
     assert homed_arm.state is Lifecycle.ACTIVE
 
 
+def turn_j3(homed_arm: Arm) -> None:
+    """j3 turning at some 4 rad/s, the other joints powered and holding (an unclaimed joint freewheels)."""
+    for name in ("j1", "j2", "j4"):
+        homed_arm.claim(name, "position")
+    homed_arm.claim("j3", "velocity")
+    homed_arm.set_command("j3", -4.0)  # away from the max end stop it homed to
+    for _ in range(15):
+        homed_arm.cycle(DT)
+    assert homed_arm.joint_states["j3"].velocity < -2.0
+
+
 def test_deactivate_brakes_a_turning_joint_before_its_current_is_cut(homed_arm: Arm) -> None:
     # Seen (a hostile test, through the safe stop): STOP then currents 0 a millisecond
     # later; the firmware's STOP ramps the speed down, which takes current, so the
@@ -125,13 +136,7 @@ def test_deactivate_brakes_a_turning_joint_before_its_current_is_cut(homed_arm: 
     sim = getattr(homed_arm.backend, "sim", None)
     if sim is None:
         pytest.skip("the mock has no rotor to coast")
-    for name in ("j1", "j2", "j4"):  # powered, holding where they are (an unclaimed joint freewheels)
-        homed_arm.claim(name, "position")
-    homed_arm.claim("j3", "velocity")
-    homed_arm.set_command("j3", -4.0)  # away from the max end stop it homed to
-    for _ in range(15):
-        homed_arm.cycle(DT)
-    assert homed_arm.joint_states["j3"].velocity < -2.0
+    turn_j3(homed_arm)
     homed_arm.deactivate()
     before = sim.joint_positions().copy()
     homed_arm.backend.step(2.0)
@@ -150,13 +155,7 @@ def test_a_configure_failed_on_one_joint_brakes_a_turning_joint_before_its_curre
     homed_arm.configure()
     homed_arm.activate()
     homed_arm.home()
-    for name in ("j1", "j2", "j4"):  # powered, holding where they are (an unclaimed joint freewheels)
-        homed_arm.claim(name, "position")
-    homed_arm.claim("j3", "velocity")
-    homed_arm.set_command("j3", -4.0)  # away from the max end stop it homed to
-    for _ in range(15):
-        homed_arm.cycle(DT)
-    assert homed_arm.joint_states["j3"].velocity < -2.0
+    turn_j3(homed_arm)
     for joint in backend.joints.values():
         joint.deinit()  # the process ends; the firmware keeps turning j3
     transfer = backend.bus.transfer

@@ -35,11 +35,7 @@ minari = pytest.importorskip("minari", reason="minari is in the [train] extra")
 REACH = "Bioscara-Reach-v0"
 
 
-@pytest.fixture(autouse=True)
-def datasets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    root = tmp_path / "minari"
-    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
-    return root
+pytestmark = pytest.mark.usefixtures("datasets")  # Minari's datasets in the test's tmp_path
 
 
 def collect(*args: str) -> int:

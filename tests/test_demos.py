@@ -21,11 +21,7 @@ PICK = "Bioscara-PickPlace-v1"
 REACH = "Bioscara-Reach-v0"
 
 
-@pytest.fixture(autouse=True)
-def datasets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    root = tmp_path / "minari"
-    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
-    return root
+pytestmark = pytest.mark.usefixtures("datasets")  # Minari's datasets in the test's tmp_path
 
 
 def collect(*args: str) -> int:

@@ -39,6 +39,7 @@ from bioscara_gym.hardware.gripper import (
     read_saved_width,
     save_width,
     servo_duty_cycle_ns,
+    servo_pulse_us,
 )
 
 SPEC = {
@@ -689,6 +690,7 @@ def test_a_refusal_names_the_gripper_and_the_parameter(
         ("backup_init_pos", -math.inf, "gripper: backup initial width -inf is not finite"),
         ("reduction", "r", "gripper: reduction 'r' is not a number"),
         ("min", 0.2, "gripper: width limits [0.2, 0.12] m; min must be less than max"),
+        ("min", 0.12, "gripper: width limits [0.12, 0.12] m; min must be less than max"),
     ],
 )
 def test_a_bad_parameter_is_refused_naming_the_gripper_and_the_parameter(
@@ -698,6 +700,36 @@ def test_a_bad_parameter_is_refused_naming_the_gripper_and_the_parameter(
         MockGripper(**{**SPEC, field: value})
     assert str(err.value) == message
     assert err.value.joint == "gripper"
+
+
+@pytest.mark.parametrize("backup", [0.04, 0.12], ids=["at-min", "at-max"])
+def test_a_backup_width_at_a_limit_is_taken(backup: float) -> None:
+    assert MockGripper(**{**SPEC, "backup_init_pos": backup}).backup_init_pos == backup
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("pwm_channel", -1, "gripper: pwm_channel -1 must be a non-negative integer"),
+        ("pwm_chip", True, "gripper: pwm_chip True must be a non-negative integer"),
+        ("export_timeout_s", math.nan, "gripper: export_timeout_s nan must be finite and >= 0"),
+    ],
+)
+def test_a_bad_pwm_setting_is_refused_naming_it(field: str, value: object, message: str) -> None:
+    with pytest.raises(InvalidArgumentError) as err:
+        Gripper(**SPEC, **{field: value})
+    assert str(err.value) == message
+    assert err.value.joint == "gripper"
+
+
+def test_a_gripper_never_enabled_says_it_saved_nothing(state_file: Path) -> None:
+    g = MockGripper(**SPEC, state_file=state_file)
+    assert g.save_status() == f"not saved (the gripper was not enabled; {state_file} unchanged)"
+
+
+def test_a_pulse_just_above_zero_is_taken() -> None:
+    # -269.91 deg: -269.91 / 90 * 500 + 1500 = 0.5 us, inside (0, 20000) us.
+    assert servo_pulse_us(-269.91) == pytest.approx(0.5)
 
 
 def test_a_pulse_beyond_the_period_names_the_period() -> None:
