@@ -496,11 +496,12 @@ def test_interrupted_train_writes_no_final_model(interrupted_run: InterruptedRun
     assert not (interrupted_run.out / "model.zip").exists()
 
 
-def test_resume_says_in_one_line_that_the_cut_episode_was_dropped(resumed_run: ResumedRun) -> None:
-    # Seen: stable-baselines3's raw 4-line HER warning, suggesting an option that would be wrong here.
+def test_resume_says_in_one_line_that_the_cut_episode_ends_where_it_was_cut(resumed_run: ResumedRun) -> None:
+    # Seen: stable-baselines3's raw 4-line HER warning, suggesting an option that would be wrong here;
+    # then our line said the episode was dropped, where SB3's truncate_last_trajectory keeps it, ended.
     assert resumed_run.stderr.strip() == (
-        "bioscara train: warning: the episode the checkpoint cut short was dropped from the replay "
-        "buffer (HER relabels whole episodes; training starts a new one)"
+        "bioscara train: warning: the episode the checkpoint cut short stays in the replay buffer, "
+        "ended where it was cut (training starts a new one)"
     )
 
 
@@ -599,8 +600,8 @@ def test_resume_skips_a_truncated_newest_checkpoint_with_a_one_line_warning(
     err = capsys.readouterr().err
     assert rc == 0
     assert err.strip().splitlines() == [
-        "bioscara train: warning: the episode the checkpoint cut short was dropped from the replay "
-        "buffer (HER relabels whole episodes; training starts a new one)",
+        "bioscara train: warning: the episode the checkpoint cut short stays in the replay buffer, "
+        "ended where it was cut (training starts a new one)",
         f"bioscara train: warning: checkpoint {newest} cannot be loaded (BadZipFile: no data, policy.pth "
         f"in it (truncated?)); resuming from {good.name} instead",
     ]

@@ -76,12 +76,15 @@ class RunPlan:
         total: Training budget (env steps; ``bc``: gradient steps).
         state: The ``train_state.json`` to write once the model is built
             (``None``: the method cannot resume, nothing is written for it).
+        n_envs: The envs training steps when the plan settles them (on ``--resume``
+            the run's own); ``None``: ``--n-envs``, else the config's ``n_envs``.
     """
 
     config: Any
     env_kwargs: dict[str, Any]
     total: int
     state: dict[str, Any] | None
+    n_envs: int | None = None
 
 
 @dataclass(frozen=True)
@@ -237,7 +240,10 @@ class TrainingMethod(abc.ABC):
         if problem is not None:  # before an env is made: the file named, not a traceback
             raise HyperparamError(f"{where}.env_kwargs {problem}")
         n_envs = self.args.n_envs  # --n-envs was checked with the arguments; a config's here
-        if n_envs is None:
+        if plan.n_envs is not None:  # the run's own, on --resume: HER's check for the envs it steps
+            n_envs = plan.n_envs
+            check_n_envs(n_envs, f"--resume continues {self.out}'s n_envs")
+        elif n_envs is None:
             n_envs = getattr(plan.config, "n_envs", None)
             check_n_envs(n_envs, f"{where}.n_envs")
         if self.spec.rl_zoo:  # the runner adds HER on the goal tasks (training/sb3.py)
@@ -280,8 +286,9 @@ class TrainingMethod(abc.ABC):
 
         Raises:
             TrainingError: No or a damaged state, a run of another env or
-                method, a ``--timesteps`` or ``--seed`` that would change its
-                budget or seed, no checkpoint, or one of another algorithm.
+                method, a ``--timesteps``, ``--seed`` or ``--config`` that would
+                change its budget, seed or config, no checkpoint, or one of
+                another algorithm.
         """
         args, out = self.args, self.out
         saved = read_run_state(out)
@@ -299,6 +306,7 @@ class TrainingMethod(abc.ABC):
                 f"--resume continues {out}'s seed {saved['seed']}; --seed {args.seed} "
                 "would change it (drop it, or train a new run with --out elsewhere)"
             )
+        self._check_config(saved["config"])
         newest = newest_checkpoint(checkpoint_dir(out))
         if newest is None:
             raise TrainingError(f"nothing to resume in {checkpoint_dir(out)}: no checkpoint")
@@ -308,8 +316,28 @@ class TrainingMethod(abc.ABC):
         )
         args.seed = saved["seed"]
         args.demos = args.demos or saved["demos"]
-        config = saved["config"] or (str(args.config) if args.config else None)
-        return Resumed(seed=saved["seed"], total=total, config=config, demos=saved["demos"], newest=newest)
+        return Resumed(
+            seed=saved["seed"], total=total, config=saved["config"], demos=saved["demos"], newest=newest
+        )
+
+    def _check_config(self, recorded: str | None) -> None:
+        """Refuse a ``--config`` other than the run's, ``recorded`` (``None``: the packaged file).
+
+        Seen: a run on the packaged config, resumed with ``--config FILE``,
+        trained on FILE's entry and recorded FILE in ``train_state.json``; a
+        run on a file of its own ignored ``--config`` without a word.
+
+        Raises:
+            TrainingError: ``--config`` names another file than the run's.
+        """
+        given = self.args.config
+        own = Path(recorded) if recorded is not None else self.spec.default_config()
+        if given is not None and Path(given).resolve() != own.resolve():
+            shown = recorded if recorded is not None else f"the packaged {own.name}"
+            raise TrainingError(
+                f"--resume continues {self.out}'s config {shown}; --config {given} would change it "
+                "(drop it, or train a new run with --out elsewhere)"
+            )
 
     def episode_steps(self, env_kwargs: Mapping[str, Any]) -> int | None:
         """An episode's most steps: the config's ``max_episode_steps``, else the registered one."""

@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.errors import CheckpointWarning, HyperparamError, TrainingError
-from bioscara_gym.training.base import RunPlan, TrainingMethod
+from bioscara_gym.training.base import Resumed, RunPlan, TrainingMethod
 from bioscara_gym.training.checkpoints import (
     checkpoint_dir,
     companion_path,
@@ -138,25 +138,35 @@ def load_sb3_checkpoint(algo_cls: type[BaseAlgorithm], path: Path, env: Any) -> 
     """A checkpoint of ``algo_cls`` with (off-policy) its replay buffer.
 
     Raises:
-        FileNotFoundError: An off-policy checkpoint without its replay buffer: it
-            would train on an empty one (seen: HER's "Unable to sample" traceback).
+        FileNotFoundError: See :func:`check_replay_buffer`.
+    """
+    check_replay_buffer(algo_cls, path)
+    model = algo_cls.load(path, env=env, device="cpu")
+    if isinstance(model, OffPolicyAlgorithm):
+        _load_replay_buffer(model, companion_path(path, REPLAY_SUFFIX))
+    return model
+
+
+def check_replay_buffer(algo_cls: type[BaseAlgorithm], path: Path) -> None:
+    """Refuse an off-policy checkpoint without its replay buffer.
+
+    Raises:
+        FileNotFoundError: It would train on an empty one (seen: HER's
+            "Unable to sample" traceback).
     """
     replay = companion_path(path, REPLAY_SUFFIX)
     if issubclass(algo_cls, OffPolicyAlgorithm) and not replay.exists():
         raise FileNotFoundError(f"its replay buffer {replay.name} is missing")
-    model = algo_cls.load(path, env=env, device="cpu")
-    if isinstance(model, OffPolicyAlgorithm):
-        _load_replay_buffer(model, replay)
-    return model
 
 
 def _load_replay_buffer(model: OffPolicyAlgorithm, path: Path) -> None:
     """Load a checkpoint's replay buffer; stable-baselines3's warnings become one line each.
 
-    HER's buffer drops the episode the checkpoint cut short (training
-    restarts the env, so it never ends); stable-baselines3 says so in a
-    four-line warning that suggests ``truncate_last_trajectory=False``, which
-    would be wrong here.
+    HER's buffer keeps the episode the checkpoint cut short, marked as
+    ended where it was cut (a time-out, so its last value is bootstrapped),
+    and samples it: training restarts the env, so that episode never ends
+    otherwise. stable-baselines3 says so in a four-line warning that
+    suggests ``truncate_last_trajectory=False``, which would be wrong here.
     """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -165,8 +175,8 @@ def _load_replay_buffer(model: OffPolicyAlgorithm, path: Path) -> None:
         text = str(warning.message)
         if "last trajectory in the replay buffer will be truncated" in text:
             text = (
-                "the episode the checkpoint cut short was dropped from the replay buffer "
-                "(HER relabels whole episodes; training starts a new one)"
+                "the episode the checkpoint cut short stays in the replay buffer, ended where it "
+                "was cut (training starts a new one)"
             )
         warnings.warn(" ".join(text.split()), CheckpointWarning, stacklevel=3)
 
@@ -228,7 +238,10 @@ class SB3Method(TrainingMethod):
     """A stable-baselines3 algorithm trained from its rl-zoo3 file (see the module docstring)."""
 
     def plan(self) -> RunPlan:
-        """The config's entry (``--config``, the run's on ``--resume``, else the packaged one) and budget."""
+        """The config's entry (``--config``, the run's on ``--resume``, else the packaged one) and budget.
+
+        On ``--resume`` also the run's envs (:meth:`_resumed_n_envs`).
+        """
         args = self.args
         if args.resume:
             resumed = self.resumed()
@@ -238,13 +251,40 @@ class SB3Method(TrainingMethod):
             steps = self.episode_steps(hp.env_kwargs)
             self.check_budget(resumed, collection_steps(hp, sb3_class(self.spec.model), n_envs, steps))
             total, config, demos = resumed.total, resumed.config, resumed.demos
+            n_envs = self._resumed_n_envs(resumed)
         else:
             config = str(args.config) if args.config else None
             hp = self._hyperparams(config)
-            total, demos = args.timesteps or hp.n_timesteps, args.demos
+            total, demos, n_envs = args.timesteps or hp.n_timesteps, args.demos, None
         if args.demos and self.spec.name != "sac":
             raise TrainingError(f"demonstrations are learned with --algo sac (or bc), not {self.spec.name}")
-        return RunPlan(hp, hp.env_kwargs, int(total), self.run_state(total, config, demos))
+        return RunPlan(hp, hp.env_kwargs, int(total), self.run_state(total, config, demos), n_envs)
+
+    def _resumed_n_envs(self, resumed: Resumed) -> int:
+        """The envs a resumed run steps: its checkpoint's, or (PPO) ``--n-envs``.
+
+        The checkpoint is the newest whole one with its replay buffer (as
+        :meth:`build_model` will load), found before any env is made. An
+        off-policy run keeps its envs: its replay buffer holds a column of
+        each (seen: a run on 2 resumed on the config's 1 ended in "cannot
+        reshape array of size 4 into shape (2,4)"); PPO's rollouts start anew.
+
+        Raises:
+            TrainingError: No such checkpoint, or another ``--n-envs`` than an
+                off-policy run's.
+        """
+        algo_cls = sb3_class(self.spec.model)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", CheckpointWarning)  # build_model's load names a skipped one
+            _, path = load_newest(checkpoint_dir(self.out), lambda p: check_replay_buffer(algo_cls, p))
+        saved, given = saved_n_envs(path), self.args.n_envs
+        if given is not None and given != saved and issubclass(algo_cls, OffPolicyAlgorithm):
+            envs = "1 env" if saved == 1 else f"{saved} envs"
+            raise TrainingError(
+                f"--resume continues {self.out}'s {envs}, whose episodes its replay buffer holds; "
+                f"--n-envs {given} would change them (drop it, or train a new run with --out elsewhere)"
+            )
+        return given or saved
 
     def _hyperparams(self, config: str | None) -> Hyperparams:
         """The entry of ``config`` (``None``: the packaged file), checked against the algorithm."""
@@ -256,7 +296,7 @@ class SB3Method(TrainingMethod):
         hp = plan.config
         self.eval_env = stack.enter_context(contextlib.closing(gym.make(self.env_id, **hp.env_kwargs)))
         self.algo_kwargs = algo_kwargs(hp, self.eval_env, self.spec.name)  # the training envs' spaces
-        n_envs = self.args.n_envs or hp.n_envs
+        n_envs = plan.n_envs or self.args.n_envs or hp.n_envs
         self.env = make_vec_env(
             env_maker(self.env_id),
             n_envs=n_envs,
