@@ -778,6 +778,21 @@ def wait_for_homing_end(arm: Arm, name: str) -> None:
 
 
 # ------------------------------------------------------------ a trained policy
+#: A tiny SAC + HER entry on Reach (as tests/test_training.py's), valid as it stands: 300 steps.
+TINY_SAC_ENTRY: dict[str, Any] = {
+    "n_timesteps": 300,
+    "policy": "MultiInputPolicy",
+    "buffer_size": 1000,
+    "batch_size": 32,
+    "learning_starts": 100,
+    "replay_buffer_class": "HerReplayBuffer",
+    "policy_kwargs": "dict(net_arch=[16, 16])",
+    "env_kwargs": {"control_mode": "cartesian", "reward_type": "dense"},
+    "eval_freq": 200,
+    "eval_episodes": 2,
+}
+
+
 def train_tiny_sac(out: Path, env_id: str = "Bioscara-Reach-v0") -> Path:
     """A SAC + HER policy (as the Reach config trains) after 200 steps, saved with its metadata."""
     import gymnasium as gym

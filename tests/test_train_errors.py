@@ -23,25 +23,15 @@ from typing import Any
 
 import pytest
 import yaml
+from rigs import TINY_SAC_ENTRY
 
 from bioscara_gym.cli import main
 from bioscara_gym.errors import EXIT_ERROR
 
 REACH = "Bioscara-Reach-v0"
 
-#: A tiny SAC + HER entry (as tests/test_training.py's), valid as it stands.
-ENTRY: dict[str, Any] = {
-    "n_timesteps": 300,
-    "policy": "MultiInputPolicy",
-    "buffer_size": 1000,
-    "batch_size": 32,
-    "learning_starts": 100,
-    "replay_buffer_class": "HerReplayBuffer",
-    "policy_kwargs": "dict(net_arch=[16, 16])",
-    "env_kwargs": {"control_mode": "cartesian", "reward_type": "dense"},
-    "eval_freq": 200,
-    "eval_episodes": 2,
-}
+#: A tiny SAC + HER entry, valid as it stands.
+ENTRY: dict[str, Any] = TINY_SAC_ENTRY
 
 #: A valid ``train_state.json`` of a SAC run on Reach (the config is filled in per case).
 STATE: dict[str, Any] = {

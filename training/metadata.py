@@ -27,6 +27,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs import registration
 from gymnasium.envs.registration import load_env_creator
 
 import bioscara_gym
@@ -377,8 +378,12 @@ def resolve_env_id(env: str) -> str:
     raise TrainingError(f"unknown env {env!r}; registered: {known}")
 
 
-#: Keywords ``gym.make`` takes itself (``max_episode_steps``, ...), not the env's constructor.
-GYM_MAKE_KEYWORDS = frozenset(p for p in inspect.signature(gym.make).parameters if p not in ("id", "kwargs"))
+#: Keywords ``gym.make`` takes itself (``max_episode_steps``, ...), not the env's constructor. Read
+#: off registration's ``make``, not ``gym.make``: a ``gym.make`` replaced when this module is first
+#: imported (a test's stand-in taking ``**kwargs``) left it empty for the whole process.
+GYM_MAKE_KEYWORDS = frozenset(
+    p for p in inspect.signature(registration.make).parameters if p not in ("id", "kwargs")
+)
 
 
 def env_kwargs_problem(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
