@@ -20,7 +20,9 @@ recorded on    replayed on
 Everything a command writes besides the bus (run log, gripper and console
 state files) goes to a temporary directory; its output is not shown. Exit
 codes: 0 every transaction matched, 1 a mismatch (or a trace that cannot be
-replayed), 2 a trace that cannot be read.
+replayed), 2 a trace that cannot be read, or that was cut (a session without
+its closing line that the driver goes on past: the recorder was killed, the
+disk filled, or the file was truncated, so nothing can be said of the driver).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from bioscara_gym.hardware.config import config_from_dict
 from bioscara_gym.hardware.recording import (
     ReplayBus,
     ReplayClock,
+    TraceCut,
     TraceError,
     TraceMismatch,
     TraceSession,
@@ -76,6 +79,8 @@ class SessionResult:
         recorded: Transactions in the session.
         errors_replayed: Recorded bus errors raised again to the driver.
         mismatch: The first difference, or ``None``.
+        cut_off: The driver went on past the end of a session that was cut
+            (no closing line): the trace is damaged, nothing is said of the driver.
         stopped_early: The driver stopped with recorded transactions left.
         error: What the replayed command raised, if anything (a recorded
             safety stop raises as it did, a recorded signal interrupts it
@@ -87,13 +92,14 @@ class SessionResult:
     recorded: int
     errors_replayed: int
     mismatch: TraceMismatch | None = None
+    cut_off: TraceCut | None = None
     stopped_early: bool = False
     error: BaseException | None = None
 
     @property
     def ok(self) -> bool:
         """Whether every recorded transaction, and nothing else, was sent."""
-        return self.mismatch is None and not self.stopped_early
+        return self.mismatch is None and self.cut_off is None and not self.stopped_early
 
 
 @dataclass
@@ -255,6 +261,7 @@ def replay_session(session: TraceSession) -> SessionResult:
         recorded=len(session.transactions),
         errors_replayed=bus.errors_served,
         mismatch=bus.mismatch,
+        cut_off=bus.cut_off,
         stopped_early=bus.mismatch is None and bus.remaining > 0,
         error=error,
     )
@@ -329,6 +336,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         out.print(f"{result.matched} transactions matched ({n} session{'s' if n != 1 else ''})")
         return 0
     failed = result.sessions[-1]
+    if failed.cut_off is not None:  # the trace's damage, not the driver's: no count of matches
+        where = f"session {len(result.sessions)} ({failed.command})"
+        err.print(f"bioscara replay: error: {args.file}: {where} {failed.cut_off}")
+        return EXIT_ERROR
     out.print(f"{result.matched} transactions matched before the first difference")
     err.print(f"bioscara replay: {args.file}: {_explain(failed, len(result.sessions), sessions)}")
     return EXIT_MISMATCH
@@ -390,8 +401,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run a recorded bus trace's commands again and check every byte the driver sends",
         description="Replay a trace written with --record: the recorded command runs again against the "
         "recorded replies; exit 0 if the driver sent exactly the recorded bytes in the recorded order, "
-        "1 at the first difference (index, expected bytes, bytes sent), 2 if the trace cannot be read or a "
-        "line was changed after recording (its digest names it).",
+        "1 at the first difference (index, expected bytes, bytes sent), 2 if the trace cannot be read, was "
+        "cut short (a session without its closing line) or a line was changed after recording (its digest "
+        "names it).",
     )
     p.add_argument("file", type=Path, metavar="FILE", help="trace (JSON Lines) written with --record")
     p.add_argument(

@@ -117,8 +117,9 @@ def test_each_line_has_its_index_start_and_duration_on_the_backends_clock(tmp_pa
     assert bus.transfer(0x11, b"\x0f", 2) == b"\x4f\x00"
     assert bus.transfer(0x12, b"\x0f", 2) == b"\x4f\x00"
     bus.close()
-    header, first, second = raw_lines(path)
+    header, first, second, end = raw_lines(path)
     assert header["t0"] == 1.0
+    assert (end["type"], end["transactions"], end["t"]) == ("end", 2, 1.5)
     del first["digest"]
     assert first == {
         "type": "tx",
@@ -225,7 +226,7 @@ def test_a_closed_recording_refuses_to_write_and_closes_once(tmp_path: Path) -> 
         bus.transfer(0x11, b"\x0f", 2)
     assert str(caught.value) == f"trace {path} is closed"
     bus.close()  # a second close does nothing
-    assert len(raw_lines(path)) == 1
+    assert [d["type"] for d in raw_lines(path)] == ["header", "end"]
 
 
 def test_attributes_the_recording_bus_lacks_are_the_inner_buss(tmp_path: Path) -> None:
@@ -351,7 +352,10 @@ def test_a_bad_header_is_named_with_file_line_and_key(
     ("text", "message"),
     [
         ("[1]\n", "hand.jsonl line 1: not a JSON object"),
-        ('{"type": "note"}\n', "hand.jsonl line 1: 'type' must be 'header', 'tx' or 'signal', got 'note'"),
+        (
+            '{"type": "note"}\n',
+            "hand.jsonl line 1: 'type' must be 'header', 'tx', 'signal' or 'end', got 'note'",
+        ),
         ("\n\n", "hand.jsonl: empty; a trace starts with a header line"),
         ("[" * 100_000 + "]" * 100_000 + "\n", "hand.jsonl line 1: nested too deeply to be a trace line"),
     ],
@@ -492,7 +496,7 @@ def test_one_signal_line_a_session_and_none_once_the_trace_is_closed(tmp_path: P
     bus.record_signal(KeyboardInterrupt())  # the same interruption, raised again on its way out
     bus.close()
     bus.record_signal(KeyboardInterrupt())  # after the arm was shut down: nothing, no error
-    assert [d["type"] for d in raw_lines(path)] == ["header", "tx", "signal", "tx"]
+    assert [d["type"] for d in raw_lines(path)] == ["header", "tx", "signal", "tx", "end"]
 
 
 def test_every_recorded_signal_is_counted(sigterm_calls: list[int]) -> None:

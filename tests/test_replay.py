@@ -161,12 +161,14 @@ def test_a_truncated_trace_fails_when_the_driver_sends_more(tmp_path: Path) -> N
 def test_a_trace_longer_than_the_driver_sends_fails(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     trace = tmp_path / "ping.jsonl"
     assert main(["ping", "--record", str(trace)]) == 0
-    docs = lines(trace)
-    longer = write_lines(tmp_path / "longer.jsonl", [*docs, {**docs[-1], "i": len(docs) - 1}])
+    *docs, end = lines(trace)  # the header, the transactions, the closing line
+    n = len(docs) - 1
+    extra = {**docs[-1], "i": n}  # one more transaction, and the closing line counting it
+    longer = write_lines(tmp_path / "longer.jsonl", [*docs, extra, {**end, "transactions": n + 1}])
     result = replay(longer, check_digests=False)  # the added line is made by hand: its digest is wrong
     assert result.sessions[-1].stopped_early
     assert main(["replay", "--unchecked", str(longer)]) == 1
-    assert f"stopped after {len(docs) - 1} of {len(docs)} transactions" in capsys.readouterr().err
+    assert f"stopped after {n} of {n + 1} transactions" in capsys.readouterr().err
 
 
 def test_a_recorded_error_is_raised_again_as_the_same_oserror() -> None:

@@ -223,18 +223,24 @@ def evaluate_model(
 def closed_at_the_end(env: gym.Env) -> Iterator[gym.Env]:
     """Close ``env`` (the arm shut down) however the block ends.
 
-    A Ctrl-C is first noted in the bus trace, if one is recorded, so the
-    replay stops where this evaluation stopped (docs/traces.md).
+    A Ctrl-C or SIGTERM is noted in the bus trace, if one is recorded, where
+    it lands (``signals_noted``), so the replay stops where this evaluation
+    stopped (docs/traces.md). Noted only here, on its way out, it came too
+    late when stopped in the start-up: the arm's failed configure or
+    activate disables the joints before it re-raises, and those
+    transactions came before the signal line (seen: the replay failed).
     """
-    try:
-        yield env
-    except KeyboardInterrupt as e:
-        from bioscara_gym.hardware.recording import note_signal
+    from bioscara_gym.hardware.recording import note_signal, signals_noted
 
-        note_signal(getattr(env.unwrapped, "backend", None), e)
-        raise
-    finally:
-        env.close()
+    backend = getattr(env.unwrapped, "backend", None)
+    with signals_noted(backend):
+        try:
+            yield env
+        except KeyboardInterrupt as e:  # raised by no signal's handler: noted here
+            note_signal(backend, e)
+            raise
+        finally:
+            env.close()
 
 
 def load_model(path: Path) -> tuple[Any, dict[str, Any]]:

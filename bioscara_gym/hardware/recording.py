@@ -2,9 +2,10 @@
 
 A trace (``docs/traces.md``) is a JSON Lines file of one or more sessions.
 Each session is a ``header`` line, then one ``tx`` line per transaction, in
-the order the driver sent them. Every line carries a ``digest`` of itself
-chained to the line before it in its session (:func:`line_digest`), so a
-changed byte, or a line removed, is found and named when the trace is read::
+the order the driver sent them, then an ``end`` line when the recording was
+closed. Every line carries a ``digest`` of itself chained to the line before
+it in its session (:func:`line_digest`), so a changed byte, or a line
+removed, is found and named when the trace is read::
 
     {"type": "header", "format": "bioscara-bus-trace", "version": 1, "bioscara_gym": "0.1.0",
      "backend": "emulated", "config": {...}, "command": "deploy", "args": {...},
@@ -14,12 +15,17 @@ changed byte, or a line removed, is found and named when the trace is read::
     {"type": "tx", "i": 1, ..., "error": {"errno": 121, "message": "Remote I/O error (address 0x11)"}}
     {"type": "tx", "i": 2, ..., "interrupted": "SIGINT"}
     {"type": "signal", "i": 3, "t": 0.012, "signal": "SIGINT", "at": "cycle"}
+    {"type": "end", "transactions": 3, "t": 0.015}
 
 A ``signal`` line says where a SIGINT or SIGTERM stopped the command, so a
 replay delivers it at the same place (``at``: ``"cycle"``, it arrived
 during the transactions before ``i`` and was raised at the next cycle
 boundary; ``"once"``, raised before transaction ``i``); a transaction that
-one cut short has ``interrupted`` in place of its reply.
+one cut short has ``interrupted`` in place of its reply. The ``end`` line
+counts the session's transactions: a session of version 4 or later without
+one was cut (the recorder killed, the disk full, the file truncated), and a
+replay that runs past its last line says so (:class:`TraceCut`) rather than
+blaming the driver.
 
 :class:`RecordingBus` writes a session around any :class:`~.bus.I2CBus`;
 :func:`read_trace` reads a file back; :class:`ReplayBus` serves a session's
@@ -31,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -38,7 +45,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -53,16 +60,23 @@ from bioscara_gym.hardware.registry import backend_names
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
 #: Version 2 added the per-line ``digest``; version 1 traces have none.
 #: Version 3 added ``signal`` lines and a transaction's ``interrupted``.
+#: Version 4 added the ``end`` line that closes a session.
 TRACE_FORMAT = "bioscara-bus-trace"
 #: Largest trace :func:`read_trace` reads whole, bytes: some 200 bytes a transaction, so an
 #: hour's deploy at 25 Hz (1.1 million transactions) is about a fifth of it.
 MAX_TRACE_BYTES = 1024**3
-TRACE_VERSION = 3
+TRACE_VERSION = 4
+#: The first version whose sessions end with an ``end`` line: one without it was cut.
+CLOSING_LINE_VERSION = 4
+#: What a session cut short is told by (:class:`TraceCut`, a partial last line).
+CUT_REASON = "the recording was cut (killed, disk full, or truncated)"
 #: Where a signal line's signal is raised again (:class:`SignalNote`).
 SIGNAL_AT = ("cycle", "once")
 #: Hex digits of a line's digest kept (64 bits of SHA-256: a changed line is
 #: found, not a forgery resisted: anyone can recompute a digest).
 DIGEST_HEX = 16
+#: The ``type`` of each kind of trace line.
+LINE_TYPES = ("header", "tx", "signal", "end")
 #: Backends whose joints talk over an I2C bus, so they can be recorded.
 RECORDABLE_BACKENDS = backend_names("records")
 
@@ -92,6 +106,27 @@ class TraceMismatch(Exception):
         where = f"transaction {index}" + (f" (trace line {line})" if line is not None else "")
         expected_text = "the end of the trace" if expected is None else describe(expected.request)
         super().__init__(f"{where}: expected {expected_text}, sent {describe(sent)}")
+
+
+class TraceCut(Exception):
+    """The driver went on past the last line of a session that has no closing line: the trace is damaged.
+
+    Seen: a trace cut at a line boundary (the recorder killed with -9, ``head
+    -n 1000``) was replayed as the driver's "mismatch ...: expected the end
+    of the trace". A session of version 4 or later ends with an ``end`` line
+    when its recording is closed; without one, what the driver sends next
+    was never written down, so nothing can be said of the driver.
+
+    Attributes:
+        index: The transactions the session holds (the index of the one asked for).
+        line: The trace line of its last transaction (``None``: it has none).
+    """
+
+    def __init__(self, index: int, line: int | None) -> None:
+        """Say where the session ends."""
+        self.index, self.line = index, line
+        where = "its header" if line is None else f"transaction {index - 1} (trace line {line})"
+        super().__init__(f"ends after {where} without its closing line: {CUT_REASON}")
 
 
 def line_digest(record: Mapping[str, Any], previous: str) -> str:
@@ -165,7 +200,7 @@ def _append_problem(path: Path) -> str | None:
     if not end.endswith(b"\n"):  # a new session would be glued onto its last line
         return "does not end with a whole line; it is no trace a session can be added to"
     last = _json_line(end[:-1].rsplit(b"\n", 1)[-1])
-    if last is None or last.get("type") not in ("header", "tx", "signal"):
+    if last is None or last.get("type") not in LINE_TYPES:
         return "does not end with a trace's line; it is no trace a session can be added to"
     return None
 
@@ -212,7 +247,8 @@ class RecordingBus:
     """An :class:`~.bus.I2CBus` that writes every transaction of ``inner`` to a trace.
 
     Each line is written (one unbuffered ``write``) as the transaction ends,
-    so a trace is complete up to a crash or Ctrl-C. A line the disk takes
+    so a trace is complete up to a crash or Ctrl-C, and :meth:`close` ends
+    the session with its closing line. A line the disk takes
     only in part is cut off again, and from then on nothing more is
     recorded: the trace stays a whole prefix of the session, :attr:`error`
     says why and :attr:`unrecorded_from` from which transaction. A trace that
@@ -243,6 +279,9 @@ class RecordingBus:
         self.unrecorded_from: int | None = None
         self._cut_by_signal = False  # the last transaction was cut short by a signal
         self._signal_noted = False  # a signal line was written
+        self._exchanging = False  # in the exchange: a signal landing now cuts the transaction short
+        #: A stop signal's handler call waiting for the next transaction (:func:`signals_noted`).
+        self._pending: Callable[[], object] | None = None
         self._fd: int | None = None
         self._size = 0  # bytes of whole lines in the file
         try:
@@ -251,9 +290,7 @@ class RecordingBus:
                 self._start(recording, backend, config)
         except KeyboardInterrupt as e:  # stopped as the trace began: its replay stops before it starts
             self.record_signal(e)
-            if self._fd is not None:
-                os.close(self._fd)
-                self._fd = None
+            self._end_session()
             raise
 
     def _start(self, recording: Recording, backend: str, config: ArmConfig) -> None:
@@ -321,6 +358,8 @@ class RecordingBus:
         in the exchange, or as it ends, cuts it (``interrupted``); one held
         back is raised once its line is written, between two transactions.
         """
+        if self._pending is not None:  # landed since the last transaction: raised before this one
+            self._raise_pending()
         data = bytes(data)
         t = self.clock.now()
         record: dict[str, Any] = {
@@ -334,16 +373,21 @@ class RecordingBus:
         }
         with _HeldSignals() as held:
             try:
+                # First inside the ``try``: from here a signal is this transaction's (``interrupted``),
+                # not one :meth:`record_signal` notes before it. No handler runs between the two.
+                self._exchanging = True
                 try:
                     reply = bytes(self.inner.transfer(address, data, read_len))
                 finally:
                     held.hold()
+                    self._exchanging = False
             except OSError as e:
                 record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
                 self._close_line(record, t)
                 raise
             except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
                 held.hold()  # (again: it may have landed as the hold began)
+                self._exchanging = False
                 record["interrupted"] = signal_name(e)
                 self._close_line(record, t)
                 self._cut_by_signal = True
@@ -351,6 +395,16 @@ class RecordingBus:
             record["read"] = reply.hex()
             self._close_line(record, t)
         return reply
+
+    def _raise_pending(self) -> None:
+        """Call the handler of the signal that waited for this transaction, noting what it raises."""
+        handle, self._pending = self._pending, None
+        try:
+            if handle is not None:
+                handle()
+        except KeyboardInterrupt as e:
+            self.record_signal(e)
+            raise
 
     def _close_line(self, record: dict[str, Any], t: float) -> None:
         """Count a transaction and write its line, its duration measured to now."""
@@ -361,15 +415,17 @@ class RecordingBus:
     def record_signal(self, interrupted: KeyboardInterrupt) -> None:
         """Write where a signal stopped the command (a ``signal`` line), for its replay.
 
-        Nothing when the signal cut a transaction short (that line says it),
-        or when a signal line was written already: the first interruption
+        Nothing when the signal cut a transaction short, or lands in one
+        that it will cut short (that line says it: a handler wrapped by
+        :func:`signals_noted` calls this from inside the exchange), or when
+        a signal line was written already: the first interruption
         ends a session (a deploy shields its safe stop from a second one), and
         the same one may be noted again on its way out of the command.
         A signal the command raised at a cycle boundary (``deferred``, see
         :class:`~bioscara_gym.training.signals.Interrupted`) is ``at`` that
         ``"cycle"``; any other was raised where it landed (``"once"``).
         """
-        if self._cut_by_signal or self._signal_noted or self._fd is None:
+        if self._cut_by_signal or self._exchanging or self._signal_noted or self._fd is None:
             return  # (a closed trace: the session is over)
         self._signal_noted = True
         at = "cycle" if getattr(interrupted, "deferred", False) else "once"
@@ -386,11 +442,27 @@ class RecordingBus:
             )
 
     def close(self) -> None:
-        """Close the inner bus and the trace file."""
+        """Close the inner bus, then end the session with its closing line and close the trace file."""
         try:
             self.inner.close()
         finally:
-            if self._fd is not None:
+            self._end_session()
+
+    def _end_session(self) -> None:
+        """Write the closing line (``end``: the session's transaction count) and close the file; once.
+
+        It tells a session that ended from one cut short: a trace without it
+        ends where the recorder was killed, the disk filled (nothing is
+        written after a failed line) or the file was truncated, so a replay
+        that runs past its last line blames the trace, not the driver.
+        """
+        if self._fd is None:
+            return
+        with _HeldSignals() as held:  # a signal waits until the line is whole
+            held.hold()
+            try:
+                self._write({"type": "end", "transactions": self.transactions, "t": self.clock.now()})
+            finally:
                 os.close(self._fd)
                 self._fd = None
 
@@ -488,6 +560,70 @@ def note_signal(backend: object, stopped_by: BaseException | None) -> None:
         bus.record_signal(stopped_by)
 
 
+@contextlib.contextmanager
+def signals_noted(backend: object) -> Iterator[None]:
+    """In the block, a SIGINT or SIGTERM stops the command where its bus trace says (``--record``).
+
+    :func:`note_signal` where a command catches the interrupt is too late
+    when something sends bytes on its way there. Seen: ``eval --record``
+    stopped by Ctrl-C in its start-up (configure, activate) left the signal
+    line after the transactions of the arm's failed transition (which
+    disables the joints before it re-raises), and its replay failed. Noted
+    where it lands, it still did not replay: between two transactions it
+    can cut the driver's bookkeeping anywhere (a joint pinged but not yet
+    counted as connected was not disabled), and a replay can only raise it
+    before the next transaction. So the handler of each stop signal is
+    wrapped: a signal landing between two transactions waits, and is
+    raised (and noted, ``"once"``) just before the next one, exactly where
+    its replay raises it; one landing in an exchange cuts it short
+    (``interrupted``), as ever. One still waiting as the block ends is
+    raised then; a second signal is raised at once, where it lands. A
+    handler put in the wrapper's place meanwhile (the CLI's, which ignores
+    a second signal during the clean-up) is left there at the end. Nothing
+    is wrapped without a trace, for a signal without a Python handler, or
+    outside the main thread (where no handler runs).
+    """
+    bus = recording_bus(backend)
+    if bus is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    installed: list[tuple[int, SignalHandler, SignalHandler]] = []
+    try:
+        for signum in STOP_SIGNALS:
+            handler = signal.getsignal(signum)
+            if callable(handler):
+                waiting = _waiting(handler, bus)
+                installed.append((signum, handler, waiting))
+                signal.signal(signum, waiting)
+        yield
+    finally:
+        _put_back(
+            [
+                (signum, handler)
+                for signum, handler, waiting in installed
+                if signal.getsignal(signum) is waiting
+            ]
+        )
+        bus._raise_pending()  # it landed after the last transaction (the trace is closed by now)
+
+
+def _waiting(handler: SignalHandler, bus: RecordingBus) -> SignalHandler:
+    """``handler``, called before ``bus``'s next transaction when its signal lands between two."""
+
+    def waiting(signum: int, frame: FrameType | None) -> Any:
+        if not (bus._exchanging or bus._fd is None or bus._pending is not None):
+            bus._pending = functools.partial(handler, signum, None)
+            return None
+        bus._pending = None  # in an exchange, after the trace's end, or a second signal: at once
+        try:
+            return handler(signum, frame)
+        except KeyboardInterrupt as e:
+            bus.record_signal(e)  # (nothing in an exchange: the transaction's line says it)
+            raise
+
+    return waiting
+
+
 def recorder(recording: Recording, backend: str, config: ArmConfig) -> BusWrapper:
     """A :data:`BusWrapper` that records the backend's bus into ``recording``."""
 
@@ -553,17 +689,33 @@ class SignalNote:
 
 @dataclass(frozen=True)
 class TraceSession:
-    """One session of a trace: its header, its transactions and the signals that stopped it.
+    """One session of a trace: its header, its transactions, the signals that stopped it, its end.
 
     Attributes:
         header: The header line as read.
         transactions: The transactions, in order.
         signals: Where signals stopped the command.
+        end_line: The trace line of its closing line (``None``: it has none).
     """
 
     header: Mapping[str, Any]
     transactions: Sequence[Transaction]
     signals: Sequence[SignalNote] = ()
+    end_line: int | None = None
+
+    @property
+    def cut(self) -> bool:
+        """Whether it lacks the closing line its format version writes: its recording was cut short.
+
+        Sessions of versions before :data:`CLOSING_LINE_VERSION` have none, and are never cut.
+        """
+        version = self.header.get("version")
+        return (
+            self.end_line is None
+            and isinstance(version, int)
+            and not isinstance(version, bool)
+            and version >= CLOSING_LINE_VERSION
+        )
 
     @property
     def command(self) -> str:
@@ -728,15 +880,18 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
         raise TraceError(f"{path}: cannot be read ({e.strerror or e})") from e
     except UnicodeDecodeError as e:
         raise TraceError(f"{path}: cannot be read (not UTF-8 text: {e})") from e
-    sessions: list[tuple[Mapping[str, Any], list[Transaction], list[SignalNote]]] = []
+    sessions: list[_SessionLines] = []
     previous = ""
-    for number, raw in enumerate(text.splitlines(), start=1):
+    lines = text.splitlines()
+    for number, raw in enumerate(lines, start=1):
         if not raw.strip():
             continue
         where = f"{name} line {number}"
         try:
             doc = json.loads(raw)
         except json.JSONDecodeError:
+            if number == len(lines) and not text.endswith("\n"):  # a write cut short, or `head -c`
+                raise TraceError(f"{where}: a last line cut off mid-line (not JSON): {CUT_REASON}") from None
             raise TraceError(f"{where}: not JSON") from None
         except ValueError:  # Python's limit on the digits of an int (4300)
             raise TraceError(f"{where}: holds a number too long to be a trace's") from None
@@ -747,25 +902,55 @@ def read_trace(path: str | os.PathLike[str], check_digests: bool = True) -> list
         kind = doc.get("type")
         if kind == "header":
             _check_header(doc, where)
-            sessions.append((doc, [], []))
+            sessions.append(_SessionLines(doc))
             previous = ""
-        elif kind in ("tx", "signal"):
+        elif kind in _SESSION_LINES:
             if not sessions:
-                raise TraceError(
-                    f"{where}: a {'transaction' if kind == 'tx' else 'signal'} before the first header"
-                )
-            _, txs, signals = sessions[-1]
-            if kind == "tx":
-                txs.append(_transaction(doc, number, where))
-            else:
-                signals.append(_signal_note(doc, number, where, len(txs)))
+                raise TraceError(f"{where}: a {_SESSION_LINES[kind]} before the first header")
+            sessions[-1].add(kind, doc, number, where)
         else:
-            raise TraceError(f"{where}: 'type' must be 'header', 'tx' or 'signal', got {kind!r}")
+            types = ", ".join(f"'{t}'" for t in LINE_TYPES[:-1])
+            raise TraceError(f"{where}: 'type' must be {types} or '{LINE_TYPES[-1]}', got {kind!r}")
         if check_digests:
             previous = _check_digest(doc, previous, where)
     if not sessions:
         raise TraceError(f"{name}: empty; a trace starts with a header line")
-    return [TraceSession(header, tuple(txs), tuple(signals)) for header, txs, signals in sessions]
+    return [s.session() for s in sessions]
+
+
+#: The lines of a session after its header, by ``type``, as a message names them.
+_SESSION_LINES = {"tx": "transaction", "signal": "signal", "end": "closing line"}
+
+
+@dataclass
+class _SessionLines:
+    """A session as :func:`read_trace` reads it, line by line."""
+
+    header: Mapping[str, Any]
+    transactions: list[Transaction] = field(default_factory=list)
+    signals: list[SignalNote] = field(default_factory=list)
+    end_line: int | None = None
+
+    def add(self, kind: str, doc: Mapping[str, Any], line: int, where: str) -> None:
+        """Add a ``tx``, ``signal`` or ``end`` line; none after the closing line."""
+        if self.end_line is not None:
+            raise TraceError(f"{where}: a {_SESSION_LINES[kind]} after its session's closing line")
+        if kind == "tx":
+            self.transactions.append(_transaction(doc, line, where))
+        elif kind == "signal":
+            self.signals.append(_signal_note(doc, line, where, len(self.transactions)))
+        else:
+            count = doc.get("transactions")
+            if isinstance(count, bool) or count != len(self.transactions):
+                raise TraceError(
+                    f"{where}: the closing line counts {count!r} transactions; "
+                    f"its session has {len(self.transactions)}"
+                )
+            self.end_line = line
+
+    def session(self) -> TraceSession:
+        """The session read."""
+        return TraceSession(self.header, tuple(self.transactions), tuple(self.signals), self.end_line)
 
 
 # -------------------------------------------------------------------- replay
@@ -792,7 +977,9 @@ class ReplayBus:
     bytes are checked), so an interrupted command stops as it did. The first
     difference raises :class:`TraceMismatch` (kept in :attr:`mismatch`, and
     raised again by every later transfer, so a driver that catches it cannot
-    go on as if nothing happened).
+    go on as if nothing happened). A transfer past the last line of a
+    session that was cut (:attr:`TraceSession.cut`) raises :class:`TraceCut`
+    instead (kept in :attr:`cut_off`, and raised again the same way).
 
     Args:
         session: The recorded session.
@@ -806,6 +993,7 @@ class ReplayBus:
         self.served = 0
         self.errors_served = 0
         self.mismatch: TraceMismatch | None = None
+        self.cut_off: TraceCut | None = None
         self.closed = False
         self._signals = {note.before: note for note in session.signals}
         #: Recorded signals handed to their handlers so far.
@@ -825,9 +1013,14 @@ class ReplayBus:
         """Serve the next recorded transaction if the driver asks for exactly it."""
         if self.mismatch is not None:
             raise self.mismatch
+        if self.cut_off is not None:
+            raise self.cut_off
         sent = (address, bytes(data), read_len)
         self._deliver("once")  # raised where it landed, before this transaction
         txs = self.session.transactions
+        if self.served >= len(txs) and self.session.cut:  # what came next was never written down
+            self.cut_off = TraceCut(self.served, txs[-1].line if txs else None)
+            raise self.cut_off
         if self.served >= len(txs):
             self.mismatch = TraceMismatch(self.served, None, None, sent)
             raise self.mismatch
