@@ -328,6 +328,33 @@ def test_a_configure_failed_on_one_joint_disables_the_joints_that_answered(
     assert not any(j.initialized for j in arm.joints.values())
 
 
+def test_a_configure_cut_short_by_ctrl_c_still_disables_every_joint(
+    make_arm_backend: MakeBackend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An earlier process left the arm enabled; Ctrl-C lands while j2 is connected.
+    # The cleanup disables only the joints connected, so j2-j4 kept their torque.
+    backend = make_arm_backend("emulated")
+    assert isinstance(backend, EmulatedBackend)
+    Arm(backend).__enter__()
+    for joint in backend.joints.values():
+        joint.deinit()  # the process ends; the firmware stays enabled
+    firmware = backend.bus.devices
+    j2 = backend.joints["j2"]
+    connect = j2.init
+
+    def cut_short() -> None:
+        monkeypatch.setattr(j2, "init", connect)  # once
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(j2, "init", cut_short)
+    arm = Arm(backend)
+    with pytest.raises(KeyboardInterrupt):
+        arm.configure()
+    assert all(firmware[a].flags & Flag.NOT_ENABLED for a in (0x11, 0x12, 0x13, 0x14))
+    assert arm.state is Lifecycle.UNCONFIGURED
+    assert not any(j.initialized for j in arm.joints.values())
+
+
 def backend_with_a_servo_left_driven(
     make_arm_backend: MakeBackend, pwm_tree: Path, state_file: Path
 ) -> tuple[EmulatedBackend, Gripper]:

@@ -232,7 +232,9 @@ class Arm:
         A joint that does not answer does not stop the others from being
         connected: the failed configure then disables every joint that did
         answer (an earlier process may have left them enabled; seen: with
-        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque). It
+        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque); one
+        cut short (Ctrl-C) connects the rest before it raises, for the same
+        cleanup. It
         reads their speeds first, so one left turning is braked to rest
         before its current is cut, as :meth:`disable` does, and switches
         off a gripper servo left driven (:meth:`~bioscara_gym.hardware.gripper.BaseGripper.release`).
@@ -245,11 +247,16 @@ class Arm:
 
         def body() -> None:
             first: JointError | None = None
-            for device in (*self.joints.values(), self.gripper):
-                try:
-                    device.init()
-                except JointError as e:
-                    first = first or e
+            try:
+                for device in (*self.joints.values(), self.gripper):
+                    try:
+                        device.init()
+                    except JointError as e:
+                        first = first or e
+            except BaseException:  # cut short (Ctrl-C): the rest too, so that the cleanup reaches them
+                self._connect_the_rest()
+                self._read_speeds()
+                raise
             if first is not None:
                 self._read_speeds()  # for the cleanup: brake what an earlier process left turning
                 raise first
@@ -522,6 +529,16 @@ class Arm:
             first = first or e
         if first is not None:
             raise first
+
+    def _connect_the_rest(self) -> None:
+        """Connect the joints and the gripper not connected yet, best effort."""
+        for joint in self.joints.values():
+            if not joint.initialized:
+                with contextlib.suppress(JointError):
+                    joint.init()
+        if not self.gripper.is_initialized:
+            with contextlib.suppress(JointError):
+                self.gripper.init()
 
     def _read_speeds(self) -> None:
         """Read the connected joints' speeds into :attr:`joint_states`, best effort."""
