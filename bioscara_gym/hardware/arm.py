@@ -232,12 +232,12 @@ class Arm:
         A joint that does not answer does not stop the others from being
         connected: the failed configure then disables every joint that did
         answer (an earlier process may have left them enabled; seen: with
-        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque); one
-        cut short (Ctrl-C) connects the rest before it raises, for the same
-        cleanup. It
-        reads their speeds first, so one left turning is braked to rest
-        before its current is cut, as :meth:`disable` does, and switches
-        off a gripper servo left driven (:meth:`~bioscara_gym.hardware.gripper.BaseGripper.release`).
+        j1 unpowered, ``bioscara disable`` left j2-j4 holding torque), and a
+        configure cut short (Ctrl-C) connects the rest before it raises, for
+        the same cleanup. It reads their speeds first, so one left turning
+        is braked to rest before its current is cut, as :meth:`disable`
+        does, and it switches off a gripper servo left driven
+        (:meth:`~bioscara_gym.hardware.gripper.BaseGripper.release`).
 
         Raises:
             CommError: A joint did not answer (the first; the arm stays
