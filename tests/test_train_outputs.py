@@ -457,3 +457,45 @@ def test_resume_with_the_runs_own_config_keeps_its_recorded_state(tmp_path: Path
     args = TrainArgs(env=REACH, config=given, out=run, resume=True, progress=False)
     plan = spec.method_class()(args, REACH, spec).plan()
     assert plan.state == state
+
+
+@pytest.mark.parametrize(
+    ("recorded", "given"), [("pp", "other"), (None, "pp")], ids=["another", "none-before"]
+)
+def test_resume_with_other_demonstrations_than_the_runs_is_refused_and_keeps_its_state(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    recorded: str | None,
+    given: str,
+) -> None:
+    # Before: --resume --demos X trained on X while train_state.json still named the run's own.
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "train_state.json").write_text(json.dumps({**STATE, "demos": recorded}), encoding="utf-8")
+    _sac_checkpoint(run / "checkpoints", 200)
+    _forbid_envs(monkeypatch)
+    before = snapshot(tmp_path)
+    line = refused(capsys, ["train", "--resume", "--out", str(run), "--demos", given, "--no-progress"])
+    shown = f"demonstrations {recorded}" if recorded else "run without demonstrations"
+    assert line.endswith(
+        f"--resume continues {run}'s {shown}; --demos {given} would change them "
+        "(drop it, or train a new run with --out elsewhere)"
+    ), line
+    assert snapshot(tmp_path) == before
+
+
+def test_resume_with_the_runs_own_demonstrations_by_their_full_id_keeps_its_state(tmp_path: Path) -> None:
+    from bioscara_gym.training.methods import method_spec
+    from bioscara_gym.training.run import TrainArgs
+
+    spec = method_spec("sac")
+    run = tmp_path / "run"
+    run.mkdir()
+    state = {**STATE, "demos": "pp"}
+    (run / "train_state.json").write_text(json.dumps(state), encoding="utf-8")
+    _sac_checkpoint(run / "checkpoints", 200)
+    args = TrainArgs(env=REACH, demos="pp-v0", out=run, resume=True, progress=False)
+    method = spec.method_class()(args, REACH, spec)
+    assert method.resumed().demos == "pp"
+    assert args.demos == "pp"

@@ -49,7 +49,7 @@ from bioscara_gym.training.checkpoints import (
     read_run_state,
     write_run_state,
 )
-from bioscara_gym.training.demos import load_demos
+from bioscara_gym.training.demos import dataset_id, load_demos
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
 from bioscara_gym.training.hyperparams import check_her_episodes
@@ -286,9 +286,9 @@ class TrainingMethod(abc.ABC):
 
         Raises:
             TrainingError: No or a damaged state, a run of another env or
-                method, a ``--timesteps``, ``--seed`` or ``--config`` that would
-                change its budget, seed or config, no checkpoint, or one of
-                another algorithm.
+                method, a ``--timesteps``, ``--seed``, ``--config`` or
+                ``--demos`` that would change its budget, seed, config or
+                demonstrations, no checkpoint, or one of another algorithm.
         """
         args, out = self.args, self.out
         saved = read_run_state(out)
@@ -307,6 +307,7 @@ class TrainingMethod(abc.ABC):
                 "would change it (drop it, or train a new run with --out elsewhere)"
             )
         self._check_config(saved["config"])
+        self._check_demos(saved["demos"])
         newest = newest_checkpoint(checkpoint_dir(out))
         if newest is None:
             raise TrainingError(f"nothing to resume in {checkpoint_dir(out)}: no checkpoint")
@@ -315,7 +316,7 @@ class TrainingMethod(abc.ABC):
             checkpoint_dir(out), policy_base(algo), f"{algo}, the algorithm of this {self.spec.name} run"
         )
         args.seed = saved["seed"]
-        args.demos = args.demos or saved["demos"]
+        args.demos = saved["demos"]
         return Resumed(
             seed=saved["seed"], total=total, config=saved["config"], demos=saved["demos"], newest=newest
         )
@@ -338,6 +339,24 @@ class TrainingMethod(abc.ABC):
                 f"--resume continues {self.out}'s config {shown}; --config {given} would change it "
                 "(drop it, or train a new run with --out elsewhere)"
             )
+
+    def _check_demos(self, recorded: str | None) -> None:
+        """Refuse a ``--demos`` other than the run's, ``recorded`` (``None``: none), as Minari names them.
+
+        Before, the run trained on the dataset given while its state still
+        named the one it was started with.
+
+        Raises:
+            TrainingError: ``--demos`` names another dataset than the run's.
+        """
+        given = self.args.demos
+        if given is None or (recorded is not None and dataset_id(given) == dataset_id(recorded)):
+            return
+        shown = f"demonstrations {recorded}" if recorded is not None else "run without demonstrations"
+        raise TrainingError(
+            f"--resume continues {self.out}'s {shown}; --demos {given} would change them "
+            "(drop it, or train a new run with --out elsewhere)"
+        )
 
     def episode_steps(self, env_kwargs: Mapping[str, Any]) -> int | None:
         """An episode's most steps: the config's ``max_episode_steps``, else the registered one."""
