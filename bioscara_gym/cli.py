@@ -129,6 +129,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     """``bioscara eval``."""
     from bioscara_gym.training.evaluate import VIDEO_SUFFIXES, evaluate_expert, evaluate_model, write_json
 
+    if args.episodes < 1:  # before a backend is built (sitl: seconds of compiling)
+        raise CliError(f"--episodes must be >= 1, got {args.episodes}")
     if args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.video_episodes is not None and args.video is None:

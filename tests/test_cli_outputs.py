@@ -257,6 +257,22 @@ def test_collect_refuses_an_empty_datasets_path(
     assert one_line_error(capsys, "collect") == message
 
 
+@pytest.mark.parametrize("episodes", ["0", "-1"])
+def test_eval_refuses_a_count_of_episodes_below_one_before_any_backend_is_built(
+    run: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, episodes: str
+) -> None:
+    # Seen (a hostile test): on the sitl backend the firmware was built first (7 s, four
+    # libraries cached), and with a firmware that did not build the count was never reported.
+    from bioscara_gym.hardware import backends
+
+    def built(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a backend was built before the refusal")
+
+    monkeypatch.setattr(backends, "make_backend", built)
+    assert main(["eval", "--expert", "--backend", "sitl", "--episodes", episodes]) == 2
+    assert one_line_error(capsys, "eval") == f"--episodes must be >= 1, got {episodes}"
+
+
 def test_eval_expert_without_env_evaluates_reach(
     run: Path, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
