@@ -5,9 +5,10 @@
     bioscara emulate dynamixel --ids 1-4 --link /tmp/dxl
     # elsewhere: PortHandler("/tmp/dxl") of the official SDK, 1 Mbps, protocol 2.0
 
-Serves until SIGINT or SIGTERM, then removes the symlink. An existing
-``--link`` is replaced only if it is a symlink into ``/dev/pts/`` (a stale
-link of an emulator that was killed). ``--faults``
+Serves until SIGINT or SIGTERM, then removes the symlink if it still points
+at this emulator's pty. An existing ``--link`` is replaced only if it is a
+symlink into ``/dev/pts/`` to a pty that is gone (a stale link of an emulator
+that was killed); one to a pty still in use is refused. ``--faults``
 takes ``drop=0.01,corrupt=0.001,delay_ms=2``.
 """
 
@@ -64,12 +65,15 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    print("stopped; link removed", flush=True)
+    if server.link_removed:
+        print("stopped; link removed", flush=True)
+    else:  # someone re-pointed it meanwhile: theirs now
+        print(f"stopped; link {link} not removed: it no longer points at {server.slave_path}", flush=True)
     return 0
 
 
 def _check_link(text: str) -> Path:
-    """The ``--link`` path, refused when empty, in no folder, or anything but a stale link to a pty.
+    """The ``--link`` path, refused when empty, in no folder, or anything but a stale link to a pty gone.
 
     Raises:
         CliError: One line naming the path and what is wrong.
@@ -86,6 +90,14 @@ def _check_link(text: str) -> Path:
         if not target.startswith(PTY_FOLDER):  # a stale link of a killed emulator points into it
             raise CliError(
                 f"--link {link}: a symlink to {target}, not to a pseudo-terminal ({PTY_FOLDER}*); "
+                "not replacing it"
+            )
+        # A pty's slave device exists while its master is open: the link of a killed emulator
+        # points at nothing, one of a running emulator (or a user's link to a terminal) at a
+        # live pty. Replacing that one left the running emulator unreachable, still naming it.
+        if os.path.exists(target):
+            raise CliError(
+                f"--link {link}: points at {target}, a pseudo-terminal still in use (another emulator?); "
                 "not replacing it"
             )
     elif link.exists() or link.name in ("", ".", ".."):

@@ -255,8 +255,8 @@ class XL430:
     def _alert(self) -> int:
         return ALERT if self.hardware_error else 0
 
-    def _status(self, error: int = 0, data: bytes = b"") -> bytes:
-        return protocol.status_packet(self.id, error | self._alert(), data)
+    def _status(self, error: int = 0, data: bytes = b"", dxl_id: int | None = None) -> bytes:
+        return protocol.status_packet(self.id if dxl_id is None else dxl_id, error | self._alert(), data)
 
     def _check_read(self, address: int, length: int) -> int:
         if length < 1 or address < 0 or address + length > TABLE_SIZE:
@@ -334,13 +334,16 @@ class XL430:
         inst, p = packet.instruction, packet.params
         level = self.get("Status Return Level")
         broadcast = packet.id == BROADCAST_ID
+        # The WRITE that changes the ID is acknowledged under the ID it was sent to (our choice: the
+        # SDK's write1ByteTxRx, and DynamixelWorkbench's changeID with it, waits for that ID).
+        answering_id = self.id
 
         def reply(error: int = 0, data: bytes = b"", read: bool = False) -> bytes | None:
             if broadcast and inst != Instruction.PING:
                 return None
             if inst != Instruction.PING and (level == 0 or (level == 1 and not read)):
                 return None
-            return self._status(error, data)
+            return self._status(error, data, answering_id)
 
         if not packet.crc_ok:
             return reply(StatusError.CRC)
@@ -383,8 +386,15 @@ class EmulatedRS485Bus:
     SYNC READ or BULK READ is answered by each listed servo in turn. Packets
     for absent IDs get no answer (the host times out).
 
+    A servo is addressed by its ID item as it is now: after a WRITE of a new
+    ID it answers to that one and no longer to the old (as a real servo, whose
+    ID is in EEPROM). :attr:`servos` stays keyed by the ID each servo was built
+    with (the tests' handle on it). Two servos given one ID are both addressed,
+    as on a real bus: both execute the instruction and answer at once, and
+    their status packets collide on the wire (:meth:`_collide`).
+
     Args:
-        servos: The servos (IDs must be unique).
+        servos: The servos (IDs must be unique when attached).
         faults: Faults injected into status packets.
         clock: Time source; defaults to the first servo's.
     """
@@ -420,6 +430,16 @@ class EmulatedRS485Bus:
         return cls([XL430(i, clock) for i in ids], clock=clock, **kwargs)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------ stream
+    @property
+    def in_receive(self) -> int:
+        """Bytes of an instruction packet received in part (the pty server drops them when the line idles)."""
+        return self._parser.pending
+
+    def clear_input(self) -> None:
+        """Drop a partly received packet: what comes next starts a new one."""
+        with self.lock:
+            self._parser.clear()
+
     def write(self, data: bytes) -> int:
         """Receive bytes from the host; execute every complete instruction packet."""
         with self.lock:
@@ -460,6 +480,28 @@ class EmulatedRS485Bus:
                 servo.update()
 
     # ------------------------------------------------------------ execution
+    def _addressed(self, dxl_id: int) -> list[XL430]:
+        """The responsive servos whose ID item is ``dxl_id`` now (one, unless two were given one ID)."""
+        return [s for s in self.servos.values() if s.id == dxl_id and s.responsive()]
+
+    @staticmethod
+    def _collide(replies: list[bytes]) -> bytes:
+        """What the host receives when servos answer at once: their bytes superimposed.
+
+        Our model of the collision: a 0 bit from either driver wins (the bytes
+        AND-ed), and the longer packet's tail comes through alone. Identical
+        replies (two servos acknowledging one WRITE) so look like one, as they
+        would on the wire; different ones reach the host garbled (a bad CRC).
+        """
+        replies = [r for r in replies if r]
+        if len(replies) < 2:
+            return replies[0] if replies else b""
+        out = bytearray(max(replies, key=len))
+        for r in replies:
+            for i, b in enumerate(r):
+                out[i] &= b
+        return bytes(out)
+
     def _execute(self, packet: Packet) -> bytes:
         if packet.instruction == Instruction.STATUS:
             return b""  # another device's status packet: not for us
@@ -467,13 +509,12 @@ class EmulatedRS485Bus:
         if packet.id == BROADCAST_ID:
             targets = [s for s in self.servos.values() if s.responsive()]
         else:
-            servo = self.servos.get(packet.id)
-            targets = [servo] if servo is not None and servo.responsive() else []
+            targets = self._addressed(packet.id)
         if not packet.crc_ok:
             # a corrupted packet: a servo whose ID is intact answers with a CRC error
-            return b"".join(
-                self._fault(r) for s in targets if (r := s.handle(packet)) and packet.id != BROADCAST_ID
-            )
+            if packet.id == BROADCAST_ID:
+                return b""
+            return self._collide([self._fault(r) for s in targets if (r := s.handle(packet))])
         inst = packet.instruction
         if packet.id == BROADCAST_ID and inst in (
             Instruction.SYNC_READ,
@@ -482,21 +523,28 @@ class EmulatedRS485Bus:
             Instruction.BULK_WRITE,
         ):
             return self._group(packet)
-        out = bytearray()
+        # a broadcast PING is answered in ID order (each servo waits its turn); servos sharing an
+        # ID answer at once.
+        replies: dict[int, list[bytes]] = {}
         for servo in sorted(targets, key=lambda s: s.id):
+            answering_id = servo.id
             status = servo.handle(packet)
             if status is not None:
-                out.extend(self._fault(status))
-        return bytes(out)
+                replies.setdefault(answering_id, []).append(self._fault(status))
+        return b"".join(self._collide(r) for _, r in sorted(replies.items()))
 
     def _group(self, packet: Packet) -> bytes:
         """SYNC READ/WRITE and BULK READ/WRITE (protocol: broadcast, parameters per servo)."""
         p, inst = packet.params, packet.instruction
         out = bytearray()
 
-        def servo(i: int) -> XL430 | None:
-            s = self.servos.get(i)
-            return s if s is not None and s.responsive() else None
+        def answer(i: int, address: int, length: int) -> None:
+            """Servo ``i``'s turn to answer: absent, the host times out waiting for it."""
+            replies = []
+            for s in self._addressed(i):
+                error, data = s.read(address, length)
+                replies.append(self._fault(s._status(error, data)))
+            out.extend(self._collide(replies))
 
         if inst in (Instruction.SYNC_READ, Instruction.SYNC_WRITE):
             if len(p) < 4:
@@ -504,32 +552,22 @@ class EmulatedRS485Bus:
             address, length = p[0] | p[1] << 8, p[2] | p[3] << 8
             if inst == Instruction.SYNC_READ:
                 for i in p[4:]:
-                    s = servo(i)
-                    if s is None:
-                        continue  # absent: the host times out waiting for it
-                    error, data = s.read(address, length)
-                    out.extend(self._fault(s._status(error, data)))
+                    answer(i, address, length)
             else:
                 chunk = 1 + length
                 body = p[4:]
                 for k in range(0, len(body) - chunk + 1, chunk):
-                    s = servo(body[k])
-                    if s is not None:
+                    for s in self._addressed(body[k]):
                         s.write(address, bytes(body[k + 1 : k + chunk]))
             return bytes(out)
         if inst == Instruction.BULK_READ:
             for k in range(0, len(p) - 4, 5):
-                s = servo(p[k])
-                if s is None:
-                    continue
-                error, data = s.read(p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8)
-                out.extend(self._fault(s._status(error, data)))
+                answer(p[k], p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8)
             return bytes(out)
         k = 0  # BULK WRITE
         while k + 5 <= len(p):
             address, length = p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8
-            s = servo(p[k])
-            if s is not None:
+            for s in self._addressed(p[k]):
                 s.write(address, bytes(p[k + 5 : k + 5 + length]))
             k += 5 + length
         return b""

@@ -122,7 +122,12 @@ class PacketParser:
     """Splits a byte stream into packets, as a device's receiver does.
 
     Bytes before a header are discarded (noise, a half packet); a header whose
-    length is implausible is skipped one byte at a time.
+    length is implausible is skipped one byte at a time. A header inside a
+    packet still arriving ends that packet: byte stuffing keeps ``FF FF FD 00``
+    out of a body, so a new packet began and the one before was cut short (a
+    client that closed partway through); waiting for its claimed length would
+    swallow the packets that follow. Only the last four bytes (body ending
+    ``FF FF``, CRC ``FD 00``) may look like a header.
     """
 
     def __init__(self) -> None:
@@ -148,6 +153,10 @@ class PacketParser:
                 del self._buf[0]
                 continue
             total = 7 + length
+            restart = self._buf.find(HEADER, 7, min(len(self._buf), total - 1))
+            if restart >= 0:
+                del self._buf[:restart]  # cut short: a new packet starts there
+                continue
             if len(self._buf) < total:
                 return packets
             raw = bytes(self._buf[:total])
@@ -155,6 +164,11 @@ class PacketParser:
             crc_ok = crc16(raw[:-2]) == (raw[-2] | (raw[-1] << 8))
             body = unstuff(raw[7:-2])
             packets.append(Packet(raw[4], body[0] if body else -1, body[1:], crc_ok, raw))
+
+    @property
+    def pending(self) -> int:
+        """Bytes held: a packet (or header) not complete yet."""
+        return len(self._buf)
 
     def clear(self) -> None:
         """Drop buffered bytes."""

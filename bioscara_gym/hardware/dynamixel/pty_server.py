@@ -6,7 +6,12 @@ emulated servos on the master from a thread: whatever a program writes to
 ``link`` (the official SDK's ``PortHandler(link)``, at any baud rate) reaches
 the servos, and their status packets come back. The motors run on the wall
 clock. ``bioscara emulate dynamixel --ids 1-4 --link PATH`` runs one until
-SIGINT or SIGTERM, then removes the symlink.
+SIGINT or SIGTERM, then removes the symlink if it still points at its pty.
+
+A packet left incomplete (a client that closed or was killed partway through
+one) is dropped once the line has been idle for :data:`RX_IDLE_S`, and at the
+next header (:class:`~bioscara_gym.hardware.dynamixel.protocol.PacketParser`):
+the bytes that come next are a new packet, not the rest of that one.
 """
 
 from __future__ import annotations
@@ -27,6 +32,12 @@ from bioscara_gym.hardware.emulated_bus import FaultPlan
 MAX_ID = 252
 #: How often the server wakes up without traffic, s (to notice stop()).
 POLL_S = 0.05
+#: Idle line after which a partial packet is dropped, s (our choice: 20 ms). Inside a packet the
+#: bytes follow each other: 1.04 ms apart at the XL430's slowest baud rate (9600), microseconds at
+#: 1 Mbps, and on the pty the SDK writes a packet in one go. It is shorter than the SDK's wait for
+#: a status packet (two 16 ms latency timers + 2 ms), so a client that retries after a lost reply
+#: finds the parser clear. A real servo's receiver also gives up on a packet that stops coming.
+RX_IDLE_S = 0.02
 
 
 def parse_ids(spec: str) -> list[int]:
@@ -76,6 +87,7 @@ class PtyServer:
             if self.link.is_symlink():
                 self.link.unlink()  # a stale link from a server that was killed
             os.symlink(self.slave_path, self.link)
+        self.link_removed = False  # by stop(): False when the link pointed elsewhere by then
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -91,14 +103,23 @@ class PtyServer:
         return self
 
     def serve_forever(self) -> None:
-        """Answer instruction packets until :meth:`stop`."""
+        """Answer instruction packets until :meth:`stop`; drop a partial packet once the line is idle.
+
+        The idle time is measured by select() while this thread waits, so a
+        busy server (a slow reply, the GIL elsewhere) does not count as an
+        idle line and split a packet that was arriving meanwhile.
+        """
         while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], POLL_S)
+            partial = self.bus.in_receive > 0
+            ready, _, _ = select.select([self.master], [], [], RX_IDLE_S if partial else POLL_S)
             if not ready:
+                if partial:  # the rest is not coming: the next bytes start a new packet
+                    self.bus.clear_input()
                 continue
             try:
                 data = os.read(self.master, 4096)
-            except OSError:  # EIO: no client has the slave open; keep waiting
+            except OSError:  # EIO: no client has the slave open; what one left is not continued
+                self.bus.clear_input()
                 time.sleep(POLL_S)
                 continue
             if not data:
@@ -115,12 +136,19 @@ class PtyServer:
                     os.write(self.master, reply)
 
     def stop(self) -> None:
-        """Stop serving, close the pty and remove the symlink."""
+        """Stop serving, close the pty and remove the symlink if it still points at this pty.
+
+        A link re-pointed meanwhile (another emulator's, a user's) is theirs:
+        removing it cut their clients off. :attr:`link_removed` says which.
+        """
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
-        if self.link is not None and self.link.is_symlink():
-            self.link.unlink()
+        if self.link is not None and not self.link_removed:
+            with contextlib.suppress(OSError):  # gone already, or not a symlink any more
+                if os.readlink(self.link) == self.slave_path:
+                    self.link.unlink()
+                    self.link_removed = True
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
