@@ -127,19 +127,38 @@ class _Library:
     """One private, loaded copy of a built firmware library and its power-up image."""
 
     def __init__(self, path: Path) -> None:
+        """Load a copy of the cached library ``path``.
+
+        Raises:
+            SitlError: The cached file is not a library of this runtime (another
+                library, cut short, another version): one line naming it, and
+                saying to delete it. It is not deleted here: the build writes
+                the cache only by an atomic rename of a linked library, so a
+                file that fails here was changed by something else (or the
+                loader itself fails), and that is for the user to see.
+        """
         fd, copy = tempfile.mkstemp(prefix="bioscara-sitl-", suffix=".so")
         try:
             with os.fdopen(fd, "wb") as out, open(path, "rb") as src:
-                shutil.copyfileobj(src, out)
+                shutil.copyfileobj(src, out)  # failing (a full /tmp) is no fault of the cached file
             # A copy of its own (a new inode): dlopen gives each copy its own globals.
-            lib = ctypes.CDLL(copy, mode=os.RTLD_NOW | os.RTLD_LOCAL)
+            try:
+                lib = ctypes.CDLL(copy, mode=os.RTLD_NOW | os.RTLD_LOCAL)
+            except OSError as e:  # the loader's message names the copy, which is gone
+                raise _damaged(path, str(e).replace(f"{copy}: ", "").replace(copy, "the copy")) from e
         finally:
             os.unlink(copy)  # the mapping stays; nothing is left on disk
+        try:
+            _declare(lib)
+            version = lib.sitl_api_version()
+        except AttributeError as e:  # another shared library: "<copy>: undefined symbol: sitl_..."
+            _unload(lib._handle)
+            raise _damaged(path, str(e).replace(f"{copy}: ", "")) from e
+        if version != _API_VERSION:
+            _unload(lib._handle)
+            raise _damaged(path, f"built for runtime version {version}, this is version {_API_VERSION}")
         self.path = path
         self.lib = lib
-        _declare(lib)
-        if lib.sitl_api_version() != _API_VERSION:
-            raise SitlError(f"{path}: built for another version of the runtime; remove the cache folder")
         self.image_size = int(lib.sitl_image_size())
         self.power_up_image = self.save()
         self._finalizer = weakref.finalize(self, _unload, lib._handle)
@@ -156,6 +175,14 @@ class _Library:
 
     def close(self) -> None:
         self._finalizer()
+
+
+def _damaged(path: Path, reason: str) -> SitlError:
+    """A cached library that cannot be loaded: the file to delete (the next run builds it again)."""
+    return SitlError(
+        f"the cached firmware library {path} cannot be loaded ({reason}); delete it and the next run "
+        "builds it again"
+    )
 
 
 def _unload(handle: int) -> None:
