@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import select
 import signal
+import threading
 import time
 import tty
 from pathlib import Path
@@ -150,6 +151,28 @@ def test_a_packet_cut_short_by_a_closing_client_is_dropped_once_the_line_is_idle
         finally:
             os.close(client)
     assert status.id == 1 and status.crc_ok and status.instruction == ct.Instruction.STATUS
+
+
+def test_a_half_packet_is_dropped_by_the_idle_line_alone() -> None:
+    # The next packet's header drops it too (below); here no byte follows, so only the idle gap can.
+    bus = make_bus([1])
+    cleared = threading.Event()
+    clear = bus.clear_input
+
+    def clear_input() -> None:
+        if bus.in_receive:
+            cleared.set()
+        clear()
+
+    bus.clear_input = clear_input  # type: ignore[method-assign]
+    with PtyServer(bus) as server:
+        client = open_client(server.slave_path)
+        try:
+            os.write(client, CUT_SHORT)
+            assert cleared.wait(2.0), "the half packet was never dropped"
+            assert bus.in_receive == 0
+        finally:
+            os.close(client)
 
 
 def test_the_sdk_pings_after_a_client_left_a_half_packet() -> None:
