@@ -256,6 +256,8 @@ class SitlError(RuntimeError):
 
     No firmware source was given, no C++ compiler is found, the firmware
     does not build (the message is the compiler's first error, naming the
-    file), or the stand-in saw the firmware do what the chip could not (a
-    wait inside an interrupt handler).
+    file, or the function nothing defines: "undefined reference to
+    loop()"), a cached library cannot be loaded (named, to be deleted), or
+    the stand-in saw the firmware do what the chip could not (a wait inside
+    an interrupt handler).
     """
