@@ -778,6 +778,28 @@ def wait_for_homing_end(arm: Arm, name: str) -> None:
 
 
 # ------------------------------------------------------------ a trained policy
+#: A bus trace's header (format version 2) and one PING transaction, for the trace readers' tests.
+TRACE_HEADER: dict[str, Any] = {
+    "type": "header",
+    "format": "bioscara-bus-trace",
+    "version": 2,
+    "backend": "emulated",
+    "command": "ping",
+    "config": {},
+    "args": {},
+}
+TRACE_TX: dict[str, Any] = {
+    "type": "tx",
+    "i": 0,
+    "t": 0.5,
+    "dur": 0.25,
+    "addr": "0x11",
+    "write": "0f",
+    "read_len": 2,
+    "read": "4f0c",
+}
+
+
 #: A tiny SAC + HER entry on Reach (as tests/test_training.py's), valid as it stands: 300 steps.
 TINY_SAC_ENTRY: dict[str, Any] = {
     "n_timesteps": 300,

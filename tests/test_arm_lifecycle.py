@@ -306,17 +306,23 @@ def test_configure_with_a_joint_missing_raises_comm_error_and_stays_unconfigured
     assert not arm.gripper.is_initialized
 
 
+def arm_left_enabled(make_arm_backend: MakeBackend) -> EmulatedBackend:
+    """The emulated arm as an earlier process left it: configured and active, then let go, still enabled."""
+    backend = make_arm_backend("emulated")
+    assert isinstance(backend, EmulatedBackend)
+    Arm(backend).__enter__()
+    for joint in backend.joints.values():
+        joint.deinit()  # the process ends; the firmware stays enabled
+    return backend
+
+
 def test_a_configure_failed_on_one_joint_disables_the_joints_that_answered(
     make_arm_backend: MakeBackend,
 ) -> None:
     # An earlier process left the arm enabled; now j1 does not answer. Seen: the
     # configure stopped at j1 and its on-error cleanup disabled nothing, so
     # `bioscara disable` left j2-j4 holding torque.
-    backend = make_arm_backend("emulated")
-    assert isinstance(backend, EmulatedBackend)
-    Arm(backend).__enter__()
-    for joint in backend.joints.values():
-        joint.deinit()  # the process ends; the firmware stays enabled
+    backend = arm_left_enabled(make_arm_backend)
     firmware = backend.bus.devices
     assert not any(firmware[a].flags & Flag.NOT_ENABLED for a in (0x11, 0x12, 0x13, 0x14))
     del firmware[0x11]
@@ -333,11 +339,7 @@ def test_a_configure_cut_short_by_ctrl_c_still_disables_every_joint(
 ) -> None:
     # An earlier process left the arm enabled; Ctrl-C lands while j2 is connected.
     # The cleanup disables only the joints connected, so j2-j4 kept their torque.
-    backend = make_arm_backend("emulated")
-    assert isinstance(backend, EmulatedBackend)
-    Arm(backend).__enter__()
-    for joint in backend.joints.values():
-        joint.deinit()  # the process ends; the firmware stays enabled
+    backend = arm_left_enabled(make_arm_backend)
     firmware = backend.bus.devices
     j2 = backend.joints["j2"]
     connect = j2.init

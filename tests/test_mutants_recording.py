@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rigs import TRACE_HEADER, TRACE_TX
 
 from bioscara_gym.hardware import recording
 from bioscara_gym.hardware.clock import ManualClock
@@ -39,25 +40,8 @@ from bioscara_gym.hardware.recording import (
     read_trace,
 )
 
-HEADER = {
-    "type": "header",
-    "format": "bioscara-bus-trace",
-    "version": 2,
-    "backend": "emulated",
-    "command": "ping",
-    "config": {},
-    "args": {},
-}
-TX = {
-    "type": "tx",
-    "i": 0,
-    "t": 0.5,
-    "dur": 0.25,
-    "addr": "0x11",
-    "write": "0f",
-    "read_len": 2,
-    "read": "4f0c",
-}
+HEADER = TRACE_HEADER
+TX = TRACE_TX
 
 
 class SlowBus:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rigs import TRACE_HEADER, TRACE_TX
 
 from bioscara_gym.cli import main
 from bioscara_gym.hardware import recording
@@ -78,27 +79,10 @@ def replay_cli(path: Path, capsys: pytest.CaptureFixture[str], *options: str) ->
 
 
 def header(version: int) -> dict[str, Any]:
-    return {
-        "type": "header",
-        "format": "bioscara-bus-trace",
-        "version": version,
-        "backend": "emulated",
-        "command": "ping",
-        "config": {},
-        "args": {},
-    }
+    return {**TRACE_HEADER, "version": version}
 
 
-TX = {
-    "type": "tx",
-    "i": 0,
-    "t": 0.5,
-    "dur": 0.25,
-    "addr": "0x11",
-    "write": "0f",
-    "read_len": 2,
-    "read": "4f0c",
-}
+TX = TRACE_TX
 PING = Transaction(line=2, t=0.5, dur=0.25, address=0x11, write=b"\x0f", read_len=2, read=b"\x4f\x0c")
 
 
