@@ -25,6 +25,7 @@ from rich.table import Table
 from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
+from bioscara_gym.hardware.sitl.build import add_firmware_option
 from bioscara_gym.training.signals import Interrupted
 
 #: The env of ``train`` and ``eval --expert`` when none is given.
@@ -273,12 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--backend", choices=("sim", "emulated", "sitl", "mock"), help="default: as trained (sim)")
-    p.add_argument(
-        "--firmware",
-        type=Path,
-        metavar="DIR",
-        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
-    )
+    add_firmware_option(p)
     p.add_argument("--video", type=path_argument, help="write an MP4 of the first --video-episodes episodes")
     p.add_argument("--video-episodes", type=int, help="episodes in the video (default 3)")
     p.add_argument("--json", type=path_argument, help="write the results as JSON")

@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 from bioscara_gym.hardware.emulated_bus import MAX_DRIFT_PPM, MAX_EXTRA_S
+from bioscara_gym.hardware.sitl.build import add_firmware_option
 from bioscara_gym.training.deploy_checks import DEPLOY_BACKENDS
 
 #: The help's last paragraph: the files deploy writes (deploy_outputs.py) and the faults' bounds.
@@ -32,12 +33,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     src.add_argument("--expert", action="store_true", help="run the scripted expert of --env")
     p.add_argument("--env", help="env id (for --expert; with a policy it must match the metadata)")
     p.add_argument("--backend", choices=DEPLOY_BACKENDS, default="emulated", help="default: emulated")
-    p.add_argument(
-        "--firmware",
-        type=Path,
-        metavar="DIR",
-        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
-    )
+    add_firmware_option(p)
     p.add_argument("--bus", type=int, help="I2C bus number, /dev/i2c-N (default: the config's)")
     p.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
     p.add_argument("--episodes", type=int, default=1)

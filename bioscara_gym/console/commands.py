@@ -98,6 +98,7 @@ from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import InvalidArgumentError, JointError, MissingExtraError
 from bioscara_gym.hardware.i2c_timing import wire_time_s
 from bioscara_gym.hardware.registers import Flag
+from bioscara_gym.hardware.sitl.build import add_firmware_option
 
 #: One ``ping`` reply: device, address (``"-"`` without a bus), ``"OK"`` or the error, flags.
 PingReply = tuple[str, str, str, Flag | None]
@@ -568,12 +569,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--backend", choices=ALL_BACKENDS, default="emulated", help="arm backend (default: emulated)"
     )
-    parser.add_argument(
-        "--firmware",
-        type=Path,
-        metavar="DIR",
-        help="joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
-    )
+    add_firmware_option(parser)
     parser.add_argument(
         "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
     )

@@ -27,6 +27,7 @@ a checkout of the arm's repository, DALSA-Lab/bioscara).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import functools
 import hashlib
@@ -46,6 +47,7 @@ __all__ = [
     "FIRMWARE_ENV",
     "JOINTS",
     "NATIVE_DIR",
+    "add_firmware_option",
     "build_firmware",
     "cache_root",
     "find_compiler",
@@ -89,6 +91,16 @@ _SOURCE_SUFFIXES = (".ino", ".cpp", ".c", ".h", ".hpp")
 _COMPILE_TIMEOUT_S = 600
 #: Version of the build recipe; part of the hash.
 _RECIPE = "1"
+
+
+def add_firmware_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--firmware DIR`` (the firmware source for ``--backend sitl``) to a command's parser."""
+    parser.add_argument(
+        "--firmware",
+        type=Path,
+        metavar="DIR",
+        help=f"joint firmware source for --backend sitl (Arduino/joint/; default ${FIRMWARE_ENV})",
+    )
 
 
 def firmware_dir(option: str | os.PathLike[str] | None = None) -> Path:
