@@ -26,6 +26,7 @@ from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning,
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
 from bioscara_gym.hardware.sitl.build import add_firmware_option
+from bioscara_gym.stop_signals import after_signal, caught
 from bioscara_gym.training.signals import Interrupted
 
 #: The env of ``train`` and ``eval --expert`` when none is given.
@@ -38,7 +39,7 @@ def _console() -> Console:
 
 # ----------------------------------------------------------------- train
 def cmd_train(args: argparse.Namespace) -> int:
-    """``bioscara train``; SIGINT and SIGTERM save a checkpoint and exit 130 and 143."""
+    """``bioscara train``; SIGINT, SIGTERM and SIGHUP save a checkpoint and exit 130, 143 and 129."""
     from bioscara_gym.training.signals import Interrupted
     from bioscara_gym.training.train import TrainArgs, TrainingInterrupted, train
 
@@ -317,34 +318,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _signals_as_interrupt():
             return int(args.func(args) or 0)
     except CliError as e:
-        err.print(f"bioscara {args.command}: error: {e}")
+        _last_line(err, f"bioscara {args.command}: error: {e}")
         return e.code
-    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM: the command cleaned up on the way out
+    except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM or SIGHUP: the command cleaned up on the way out
         if isinstance(e, Interrupted):
-            err.print(f"bioscara {args.command}: interrupted by {e}")
+            _last_line(err, f"bioscara {args.command}: interrupted by {e}")
             return e.exit_code
-        err.print(f"bioscara {args.command}: interrupted")
+        _last_line(err, f"bioscara {args.command}: interrupted")
         return EXIT_INTERRUPTED
     except OSError as e:
-        err.print(f"bioscara {args.command}: error: {_os_error(e)}")
+        _last_line(err, f"bioscara {args.command}: error: {_os_error(e)}")
         return EXIT_ERROR
     except (ValueError, MissingExtraError, JointError, SitlError) as e:
-        err.print(f"bioscara {args.command}: error: {e}")
+        _last_line(err, f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file
-        err.print(f"bioscara {args.command}: error: an input file is nested too deeply to be read")
+        _last_line(err, f"bioscara {args.command}: error: an input file is nested too deeply to be read")
         return EXIT_ERROR
     except Exception as e:
         interrupt = _interrupt_behind(e)
         if interrupt is None:
             raise
         # Seen: a signal landing in MuJoCo's import became "ImportError: initialization failed".
-        err.print(f"bioscara {args.command}: interrupted" + (f" by {interrupt}" if interrupt.args else ""))
+        by = f" by {interrupt}" if interrupt.args else ""
+        _last_line(err, f"bioscara {args.command}: interrupted{by}")
         return interrupt.exit_code if isinstance(interrupt, Interrupted) else EXIT_INTERRUPTED
 
 
+def _last_line(err: Console, line: str) -> None:
+    """Print a command's last line; a terminal gone (EIO) or a reader gone takes nothing, and no traceback."""
+    with contextlib.suppress(OSError):
+        err.print(line)
+
+
 def _interrupt_behind(e: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C or SIGTERM an exception was raised while handling (a library's error in its place)."""
+    """The stop signal an exception was raised while handling (a library's error in its place)."""
     seen: set[int] = set()
     cause: BaseException | None = e
     while cause is not None and id(cause) not in seen:
@@ -357,28 +365,32 @@ def _interrupt_behind(e: BaseException) -> KeyboardInterrupt | None:
 
 @contextlib.contextmanager
 def _signals_as_interrupt() -> Iterator[None]:
-    """The first SIGINT or SIGTERM interrupts a command; later ones do not interrupt its clean-up.
+    """The first stop signal interrupts a command; later ones do not interrupt its clean-up.
 
-    By default SIGTERM ended the process at once: temporary files stayed
-    behind (``export``, ``eval --video``, ``collect``) and ``monitor`` left
-    the joints as they were, where Ctrl-C cleans up and makes the arm safe.
-    Now both take that way out (``KeyboardInterrupt`` for SIGINT, exit 130;
-    :class:`Interrupted` for SIGTERM, exit 143), and a second signal while
-    the command makes the arm safe and removes its files is only noted
-    (seen: a second SIGTERM 20 ms after the first left ``move``'s joints
-    enabled). ``train`` and ``deploy`` install their own guard inside this one.
+    By default SIGTERM and SIGHUP (the terminal closed) ended the process at
+    once: temporary files stayed behind (``export``, ``eval --video``,
+    ``collect``) and ``monitor`` left the joints as they were, where Ctrl-C
+    cleans up and makes the arm safe. Now all take that way out
+    (``KeyboardInterrupt`` for SIGINT, exit 130; :class:`Interrupted` for
+    SIGTERM and SIGHUP, exit 143 and 129; :mod:`bioscara_gym.stop_signals`),
+    and a second signal while the command makes the arm safe and removes its
+    files is only noted (seen: a second SIGTERM 20 ms after the first left
+    ``move``'s joints enabled). ``train`` and ``deploy`` install their own
+    guard inside this one.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    signals = (signal.SIGINT, signal.SIGTERM)
+    signals = caught()
 
     def noted(signum: int, frame: object) -> None:
         """A signal after the first: the clean-up it interrupted runs to its end."""
+        after_signal(signum)
 
     def interrupt(signum: int, frame: object) -> None:
         for s in signals:
             signal.signal(s, noted)
+        after_signal(signum)
         raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
 
     before = {s: signal.signal(s, interrupt) for s in signals}

@@ -34,7 +34,7 @@ __all__ = [
 
 #: Exit code of a refused request (bad input; nothing was sent to the arm).
 EXIT_ERROR = 2
-#: Exit code after Ctrl-C or SIGTERM (128 + SIGINT).
+#: Exit code after Ctrl-C (128 + SIGINT); SIGTERM and SIGHUP exit 143 and 129.
 EXIT_INTERRUPTED = 130
 
 

@@ -57,6 +57,7 @@ from bioscara_gym.hardware.recording import (
     describe,
     read_trace,
 )
+from bioscara_gym.stop_signals import STOP_SIGNALS
 from bioscara_gym.training.signals import Interrupted
 
 #: Exit code of a trace the driver does not follow.
@@ -328,7 +329,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             return EXIT_MISMATCH
         signum = received()
     if signum is not None and not result.ok:
-        # The replayed command stopped for this replay's own Ctrl-C or SIGTERM (a deploy's safe
+        # The replayed command stopped for this replay's own stop signal (a deploy's safe
         # stop sends what the trace has not): no difference of the driver's. Seen: "mismatch", exit 1.
         raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
     if result.ok:
@@ -347,7 +348,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _own_stop_handlers() -> Iterator[None]:
-    """SIGINT's and SIGTERM's handlers as they were before a session, whatever it did to them.
+    """The stop signals' handlers as they were before a session, whatever it did to them.
 
     A recorded signal calls the installed handler; the CLI's turns every later
     signal into a note (seen: a real Ctrl-C ignored for the rest of the replay).
@@ -355,7 +356,7 @@ def _own_stop_handlers() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
     try:
         yield
     finally:
@@ -365,7 +366,7 @@ def _own_stop_handlers() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _stop_signals_received() -> Iterator[Callable[[], int | None]]:
-    """A function telling the first SIGINT or SIGTERM this process really received in the block.
+    """A function telling the first stop signal this process really received in the block.
 
     Replayed signals call their handlers directly; a real one also writes
     its number to the wakeup file descriptor set here, whichever handler the
@@ -384,7 +385,7 @@ def _stop_signals_received() -> Iterator[Callable[[], int | None]]:
             data = os.read(r, 4096)
         except BlockingIOError:
             return None
-        return next((b for b in data if b in (signal.SIGINT, signal.SIGTERM)), None)
+        return next((b for b in data if b in STOP_SIGNALS), None)
 
     try:
         yield first

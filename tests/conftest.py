@@ -15,6 +15,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import contextlib
 import dataclasses
+import signal
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -272,6 +273,16 @@ def datasets(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     root = tmp_path / "minari"
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
     return root
+
+
+@pytest.fixture
+def sighup_default() -> Iterator[None]:
+    """SIGHUP at its default, as under a terminal (a test runner may itself run under ``nohup``)."""
+    before = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGHUP, before)
 
 
 @pytest.fixture

@@ -459,7 +459,7 @@ def test_bioscara_deploy_help_states_each_option_its_default_and_the_exit_codes(
     assert p.description == (
         "Check the policy against the env, bring the arm up, run episodes at a fixed rate behind the safety "
         "layer, log every cycle. Exit codes: 0 done, 2 refused (nothing sent), 3 safety stop (arm disabled), "
-        "130/143 SIGINT/SIGTERM (arm disabled)."
+        "130/143/129 SIGINT/SIGTERM/SIGHUP (arm disabled)."
     )
     options = {a.option_strings[0]: (a.default, a.type, a.metavar, a.help) for a in p._actions[1:]}
     assert options == {

@@ -78,6 +78,7 @@ def test_the_stop_reasons_are_named_as_the_run_log_writes_them() -> None:
         "DEADMAN": "deadman",
         "INTERRUPTED": "interrupted",
         "TERMINATED": "terminated",
+        "HUNG_UP": "hung_up",
         "LOG_ERROR": "log_error",
         "ERROR": "error",
     }
@@ -139,11 +140,12 @@ def test_a_completed_run_is_exit_0_without_a_stop_report() -> None:
     [
         (Interrupted(signal.SIGINT), (StopReason.INTERRUPTED, "SIGINT received", None, 130)),
         (Interrupted(signal.SIGTERM), (StopReason.TERMINATED, "SIGTERM received", None, 143)),
+        (Interrupted(signal.SIGHUP), (StopReason.HUNG_UP, "SIGHUP received", None, 129)),
         (KeyboardInterrupt(), (StopReason.INTERRUPTED, "SIGINT received", None, 130)),
         (StalledError("stall flag", joint="j2"), (StopReason.STALL, "j2 stalled: j2: stall flag", "j2", 3)),
         (RuntimeError("boom"), (StopReason.ERROR, "RuntimeError: boom", None, 1)),
     ],
-    ids=["sigint", "sigterm", "keyboard", "safety-stop", "other"],
+    ids=["sigint", "sigterm", "sighup", "keyboard", "safety-stop", "other"],
 )
 def test_outcome_for_each_way_a_run_ends(error: BaseException, expected: tuple[Any, ...]) -> None:
     outcome = outcome_for(error)

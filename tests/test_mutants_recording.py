@@ -364,7 +364,7 @@ def test_a_transaction_cut_short_and_a_signal_line_are_read(tmp_path: Path) -> N
 BAD_SIGNAL = [
     ("i", 0, "a signal line's 'i' must be the index of the transaction after it (1), got 0"),
     ("i", True, "a signal line's 'i' must be the index of the transaction after it (1), got True"),
-    ("signal", "SIGKILL", "'signal' must be \"SIGINT\" or \"SIGTERM\", got 'SIGKILL'"),
+    ("signal", "SIGKILL", "'signal' must be \"SIGINT\", \"SIGTERM\" or \"SIGHUP\", got 'SIGKILL'"),
     ("at", "later", "'at' must be one of cycle, once, got 'later'"),
 ]
 

@@ -1,4 +1,4 @@
-"""A deploy stopped by SIGINT or SIGTERM replays byte for byte (issue #24).
+"""A deploy stopped by SIGINT, SIGTERM or SIGHUP replays byte for byte (issue #24).
 
 Seen: 8 of 8 deploys stopped with Ctrl-C under ``--record`` failed
 ``bioscara replay``: the trace did not say where the signal came, so the
@@ -52,9 +52,11 @@ def assert_replays_whole(trace: Path) -> None:
     assert isinstance(result.sessions[0].error, KeyboardInterrupt)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
+@pytest.mark.parametrize(
+    "signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["INT", "TERM", "HUP"]
+)
 def test_a_signal_during_a_cycle_is_raised_again_at_the_same_cycle_boundary(
-    tmp_path: Path, signum: int
+    tmp_path: Path, signum: int, sighup_default: None
 ) -> None:
     def interrupt(cycle: int, env: Any) -> None:
         if cycle == 30:

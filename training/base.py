@@ -21,7 +21,7 @@ step                  what it does
                                      signals held off
 ====================  =============================================================
 
-SIGINT and SIGTERM at any step save a checkpoint (:meth:`~TrainingMethod.checkpoint`)
+SIGINT, SIGTERM and SIGHUP at any step save a checkpoint (:meth:`~TrainingMethod.checkpoint`)
 and raise :class:`~bioscara_gym.training.run.TrainingInterrupted`; bad input
 is a :class:`~bioscara_gym.errors.TrainingError` before anything is written.
 """
@@ -165,7 +165,7 @@ class TrainingMethod(abc.ABC):
         """The final success rate (the stopping evaluation's, when it reached the target)."""
 
     def checkpoint(self) -> Path | None:
-        """Save a checkpoint now (SIGINT or SIGTERM); ``None`` if there is nothing to save."""
+        """Save a checkpoint now (a stop signal); ``None`` if there is nothing to save."""
         return None
 
     @property
@@ -184,7 +184,7 @@ class TrainingMethod(abc.ABC):
         Raises:
             TrainingError: Bad input (nothing trained, nothing written).
             HyperparamError: The config's env_kwargs has a keyword the env does not take.
-            TrainingInterrupted: SIGINT or SIGTERM (a checkpoint saved, if there was a model).
+            TrainingInterrupted: a stop signal (a checkpoint saved, if there was a model).
         """
         plan = self.plan()
         self.check_plan(plan)

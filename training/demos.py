@@ -265,7 +265,7 @@ def _adopt_namespaces(staging: Path, root: Path, full_id: str) -> None:
 def _move_into_place(new: Path, path: Path, replaced: Path, overwrite: bool) -> None:
     """Rename the complete dataset ``new`` to ``path``; with ``overwrite`` the old one goes to ``replaced``.
 
-    SIGINT and SIGTERM wait for the renames (between them no dataset is at ``path``).
+    The stop signals wait for the renames (between them no dataset is at ``path``).
     Without ``overwrite`` nothing is replaced: a rename onto a folder that is not empty fails.
 
     Raises:

@@ -28,9 +28,9 @@ model's spaces, the ONNX graph's input and output widths) must fit the env
 the metadata builds. A refusal is one line and nothing is sent to the arm.
 
 Any stop (NaN action, stall, bus error, deadman, a run log that cannot be
-written, Ctrl-C/SIGTERM) ends in :func:`~bioscara_gym.hardware.safety.safe_stop`.
+written, Ctrl-C/SIGTERM/SIGHUP) ends in :func:`~bioscara_gym.hardware.safety.safe_stop`.
 Exit codes: 0 done, 2 refused (nothing sent to the arm), 3 safety stop,
-130/143 SIGINT/SIGTERM (a ``--record`` trace says where), 1 unexpected error;
+130/143/129 SIGINT/SIGTERM/SIGHUP (a ``--record`` trace says where), 1 unexpected error;
 each joint is sent its disable (currents 0) whatever its flags say, and one
 not reached or whose disable was not acknowledged is named (``j2: no answer,
 still powered as far as we know: cut the power``): the firmware's deadman
@@ -120,6 +120,7 @@ from bioscara_gym.training.deploy_parser import EPILOG, add_options
 from bioscara_gym.training.deploy_safety import (
     EXIT_REFUSED,
     EXIT_SAFETY_STOP,
+    SIGNAL_REASONS,
     Outcome,
     SafetyStop,
     StopReason,
@@ -238,7 +239,7 @@ class Deployment:
         Raises:
             DeployError: Refused (code 2), or stopped by the safety layer
                 (code 3); the arm is safe and the summary is attached.
-            Interrupted: SIGINT/SIGTERM; the arm is safe, ``self.summary`` is set.
+            Interrupted: SIGINT/SIGTERM/SIGHUP; the arm is safe, ``self.summary`` is set.
         """
         loaded = self._load_policy()
         self._make_env(loaded, record=False)  # the trace starts only once the policy is checked
@@ -453,7 +454,7 @@ class Deployment:
         if outcome.reason is StopReason.COMPLETED:
             return self.summary
         self.console.print(disabled_line(self.summary))
-        if outcome.reason in (StopReason.INTERRUPTED, StopReason.TERMINATED):
+        if outcome.reason in SIGNAL_REASONS.values():
             raise Interrupted(outcome.exit_code - 128)
         raise DeployError(f"safe stop: {outcome.message}", outcome.exit_code, self.summary)
 
@@ -490,7 +491,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run a policy on the arm (or its emulation) behind the safety layer",
         description="Check the policy against the env, bring the arm up, run episodes at a fixed rate "
         "behind the safety layer, log every cycle. Exit codes: 0 done, 2 refused (nothing sent), "
-        "3 safety stop (arm disabled), 130/143 SIGINT/SIGTERM (arm disabled).",
+        "3 safety stop (arm disabled), 130/143/129 SIGINT/SIGTERM/SIGHUP (arm disabled).",
         epilog=EPILOG,
     )
     add_options(p)

@@ -109,7 +109,7 @@ class ControlLoop:
         log: The run log.
         bus: The bus statistics, per cycle.
         timing: The cycles' timing statistics.
-        signals: The run's signal guard (SIGINT/SIGTERM between cycles only).
+        signals: The run's signal guard (stop signals between cycles only).
         console: Where overruns and episode results are printed.
         tell: Where phases and bus records between cycles go.
         on_cycle: Test hook, called with ``(cycle, env)`` before each cycle's policy call.

@@ -19,7 +19,8 @@ Why a run stopped is a :class:`StopReason`; a :class:`SafetyStop` carries it,
 and :func:`stop_for` is the one place a driver's exception becomes one. The
 arm-facing half (the deadman guard, :func:`~bioscara_gym.hardware.safety.safe_stop`
 and the final-state report) is :mod:`bioscara_gym.hardware.safety`, reached
-through the :class:`~bioscara_gym.hardware.arm.Arm`; SIGINT and SIGTERM are
+through the :class:`~bioscara_gym.hardware.arm.Arm`; SIGINT, SIGTERM and
+SIGHUP (``interrupted``, ``terminated``, ``hung_up``) are
 :mod:`bioscara_gym.training.signals`.
 """
 
@@ -52,8 +53,17 @@ class StopReason(Enum):
     DEADMAN = "deadman"
     INTERRUPTED = "interrupted"
     TERMINATED = "terminated"
+    HUNG_UP = "hung_up"
     LOG_ERROR = "log_error"
     ERROR = "error"
+
+
+#: The stop reason of each stop signal: Ctrl-C, a kill or a supervisor, the terminal closed.
+SIGNAL_REASONS = {
+    signal.SIGINT: StopReason.INTERRUPTED,
+    signal.SIGTERM: StopReason.TERMINATED,
+    signal.SIGHUP: StopReason.HUNG_UP,
+}
 
 
 class SafetyStop(Exception):
@@ -139,7 +149,7 @@ class Outcome:
 def outcome_for(e: BaseException) -> Outcome:
     """How a run ends that ``e`` stopped: the signal's, :func:`stop_for`'s, else an error (exit code 1)."""
     if isinstance(e, Interrupted):
-        reason = StopReason.INTERRUPTED if e.signum == signal.SIGINT else StopReason.TERMINATED
+        reason = SIGNAL_REASONS[e.signum]
         return Outcome(reason, f"{e} received", None, e.exit_code)
     if isinstance(e, KeyboardInterrupt):
         return Outcome(StopReason.INTERRUPTED, "SIGINT received", None, 130)

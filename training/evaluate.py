@@ -223,7 +223,7 @@ def evaluate_model(
 def closed_at_the_end(env: gym.Env) -> Iterator[gym.Env]:
     """Close ``env`` (the arm shut down) however the block ends.
 
-    A Ctrl-C or SIGTERM is noted in the bus trace, if one is recorded, where
+    A Ctrl-C or other stop signal is noted in the bus trace, if one is recorded, where
     it lands (``signals_noted``), so the replay stops where this evaluation
     stopped (docs/traces.md). Noted only here, on its way out, it came too
     late when stopped in the start-up: the arm's failed configure or

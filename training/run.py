@@ -75,7 +75,7 @@ class TrainResult:
 
 
 class TrainingInterrupted(Interrupted):
-    """Training stopped by SIGINT or SIGTERM, after saving a checkpoint.
+    """Training stopped by SIGINT, SIGTERM or SIGHUP, after saving a checkpoint.
 
     Attributes:
         checkpoint: The checkpoint saved, ``None`` if training had not started.

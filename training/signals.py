@@ -1,10 +1,10 @@
-"""SIGINT and SIGTERM during a deployment or a training run: :class:`Interrupted` at a safe point.
+"""SIGINT, SIGTERM and SIGHUP during a deployment or a training run: :class:`Interrupted` at a safe point.
 
-:class:`SignalGuard` turns the signals into :class:`Interrupted` (exit code
-130 / 143). In a deployment: at once outside the control loop, at the next
-cycle boundary inside it, and never while the arm is being made safe. In
-training: at once, as Ctrl-C always did, and never while a checkpoint or
-the final model is being written.
+:class:`SignalGuard` turns the signals (:mod:`bioscara_gym.stop_signals`)
+into :class:`Interrupted` (exit code 130 / 143 / 129). In a deployment: at
+once outside the control loop, at the next cycle boundary inside it, and
+never while the arm is being made safe. In training: at once, as Ctrl-C
+always did, and never while a checkpoint or the final model is being written.
 """
 
 from __future__ import annotations
@@ -16,9 +16,11 @@ from collections.abc import Iterator
 from types import FrameType
 from typing import Any
 
+from bioscara_gym.stop_signals import after_signal, caught
+
 
 class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived; ``exit_code`` is 128 + the signal number.
+    """A stop signal arrived; ``exit_code`` is 128 + the signal number.
 
     ``deferred``: raised at a cycle boundary (:meth:`SignalGuard.check`) for a
     signal that arrived during the cycle, not where it landed (a bus trace
@@ -33,12 +35,12 @@ class Interrupted(KeyboardInterrupt):
 
     @property
     def exit_code(self) -> int:
-        """130 for SIGINT, 143 for SIGTERM."""
+        """130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP."""
         return 128 + self.signum
 
 
 class SignalGuard:
-    """SIGINT and SIGTERM become :class:`Interrupted` for the duration of a ``with`` block.
+    """The stop signals become :class:`Interrupted` for the duration of a ``with`` block.
 
     By default the exception is raised where the signal lands (bring-up,
     homing and resets can block for seconds). Inside :meth:`deferred` the
@@ -48,9 +50,9 @@ class SignalGuard:
     only recorded. Outside the main thread nothing is installed.
     """
 
-    def __init__(self, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
-        """Choose the signals to catch."""
-        self.signals = signals
+    def __init__(self, signals: tuple[int, ...] | None = None) -> None:
+        """Choose the signals to catch (default: :func:`~bioscara_gym.stop_signals.caught`)."""
+        self.signals = caught() if signals is None else signals
         self.pending: int | None = None
         self._mode = "raise"
         self._previous: dict[int, Any] = {}
@@ -69,6 +71,7 @@ class SignalGuard:
         self._previous.clear()
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
+        after_signal(signum)
         repeated = self.pending is not None
         if self.pending is None:
             self.pending = signum

@@ -128,12 +128,12 @@ def train(args: TrainArgs) -> TrainResult:
     Every input is checked before anything is written; the output directory
     appears once the model is built. A new run never goes into a folder that
     holds a run (:func:`~bioscara_gym.training.checkpoints.check_no_run`).
-    SIGINT and SIGTERM save a checkpoint (``--resume`` continues from it)
+    SIGINT, SIGTERM and SIGHUP save a checkpoint (``--resume`` continues from it)
     and raise :class:`TrainingInterrupted`.
 
     Raises:
         TrainingError: Bad input (nothing trained, nothing written).
-        TrainingInterrupted: SIGINT or SIGTERM.
+        TrainingInterrupted: a stop signal.
     """
     env_id = resolve_env_id(args.env)
     check_timesteps(args.timesteps)

@@ -497,10 +497,11 @@ class TerminalKeys:
         return keys
 
     def close(self) -> None:
-        """Restore the terminal's mode."""
+        """Restore the terminal's mode, if the terminal is still there (after a SIGHUP it is not)."""
         import termios
 
-        termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
+        with contextlib.suppress(termios.error):
+            termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
 
 
 @contextlib.contextmanager

@@ -5,7 +5,7 @@
     bioscara emulate dynamixel --ids 1-4 --link /tmp/dxl
     # elsewhere: PortHandler("/tmp/dxl") of the official SDK, 1 Mbps, protocol 2.0
 
-Serves until SIGINT or SIGTERM, then removes the symlink if it still points
+Serves until SIGINT, SIGTERM or SIGHUP, then removes the symlink if it still points
 at this emulator's pty. An existing ``--link`` is replaced only if it is a
 symlink into ``/dev/pts/`` to a pty that is gone (a stale link of an emulator
 that was killed); one to a pty still in use is refused. ``--faults``
@@ -21,9 +21,8 @@ import time
 from pathlib import Path
 
 from bioscara_gym.errors import CliError
+from bioscara_gym.stop_signals import after_signal, caught
 
-#: The signals that stop the emulator.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: How often the serving loop looks for one, s.
 STOP_POLL_S = 0.2
 #: Where the pseudo-terminals' slave devices are: a symlink into it may be replaced.
@@ -31,7 +30,7 @@ PTY_FOLDER = "/dev/pts/"
 
 
 def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
-    """Serve emulated servos on a pty until SIGINT/SIGTERM."""
+    """Serve emulated servos on a pty until SIGINT, SIGTERM or SIGHUP (its terminal closed)."""
     from bioscara_gym.hardware.dynamixel.pty_server import PtyServer, make_bus, parse_ids
     from bioscara_gym.hardware.emulated_bus import RS485_FAULTS, FaultPlan
 
@@ -47,7 +46,12 @@ def cmd_emulate_dynamixel(args: argparse.Namespace) -> int:
     # when the signal landed while this thread held the Event's lock inside wait()
     # (seen under load: SIGTERM ignored for 30 s; python/cpython#126434 is the same trap).
     received: list[int] = []
-    previous = {sig: signal.signal(sig, lambda signum, _: received.append(signum)) for sig in STOP_SIGNALS}
+
+    def stop(signum: int, frame: object) -> None:
+        received.append(signum)
+        after_signal(signum)  # a terminal gone: the last line goes nowhere, not into an error
+
+    previous = {sig: signal.signal(sig, stop) for sig in caught()}
     try:
         try:
             server = PtyServer(make_bus(ids, faults), link)

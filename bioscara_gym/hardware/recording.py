@@ -17,11 +17,11 @@ removed, is found and named when the trace is read::
     {"type": "signal", "i": 3, "t": 0.012, "signal": "SIGINT", "at": "cycle"}
     {"type": "end", "transactions": 3, "t": 0.015}
 
-A ``signal`` line says where a SIGINT or SIGTERM stopped the command, so a
-replay delivers it at the same place (``at``: ``"cycle"``, it arrived
-during the transactions before ``i`` and was raised at the next cycle
-boundary; ``"once"``, raised before transaction ``i``); a transaction that
-one cut short has ``interrupted`` in place of its reply. The ``end`` line
+A ``signal`` line says where a stop signal (SIGINT, SIGTERM, SIGHUP)
+stopped the command, so a replay delivers it at the same place (``at``:
+``"cycle"``, it arrived during the transactions before ``i`` and was raised
+at the next cycle boundary; ``"once"``, raised before transaction ``i``); a
+transaction that one cut short has ``interrupted`` in place of its reply. The ``end`` line
 counts the session's transactions: a session of version 4 or later without
 one was cut (the recorder killed, the disk full, the file truncated), and a
 replay that runs past its last line says so (:class:`TraceCut`) rather than
@@ -56,16 +56,18 @@ from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.config import ArmConfig, config_to_dict
 from bioscara_gym.hardware.registry import backend_names
+from bioscara_gym.stop_signals import STOP_SIGNALS
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
 #: Version 2 added the per-line ``digest``; version 1 traces have none.
 #: Version 3 added ``signal`` lines and a transaction's ``interrupted``.
 #: Version 4 added the ``end`` line that closes a session.
+#: Version 5 added ``SIGHUP`` to the signals a trace names (the terminal closed).
 TRACE_FORMAT = "bioscara-bus-trace"
 #: Largest trace :func:`read_trace` reads whole, bytes: some 200 bytes a transaction, so an
 #: hour's deploy at 25 Hz (1.1 million transactions) is about a fifth of it.
 MAX_TRACE_BYTES = 1024**3
-TRACE_VERSION = 4
+TRACE_VERSION = 5
 #: The first version whose sessions end with an ``end`` line: one without it was cut.
 CLOSING_LINE_VERSION = 4
 #: What a session cut short is told by (:class:`TraceCut`, a partial last line).
@@ -350,7 +352,7 @@ class RecordingBus:
     def transfer(self, address: int, data: bytes, read_len: int) -> bytes:
         """One transaction of the inner bus, recorded with its reply or its error.
 
-        SIGINT and SIGTERM are held back (:class:`_HeldSignals`) while the
+        The stop signals are held back (:class:`_HeldSignals`) while the
         transaction's line is made, counted and written, and let through only
         during the exchange itself: a Ctrl-C that landed in the bookkeeping
         left a transaction counted and never written, or written and left out
@@ -385,7 +387,7 @@ class RecordingBus:
                 record["error"] = {"errno": e.errno, "message": e.strerror or str(e)}
                 self._close_line(record, t)
                 raise
-            except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM) cut it short: no reply
+            except KeyboardInterrupt as e:  # Ctrl-C (or a deploy's SIGTERM, SIGHUP) cut it short: no reply
                 held.hold()  # (again: it may have landed as the hold began)
                 self._exchanging = False
                 record["interrupted"] = signal_name(e)
@@ -473,15 +475,12 @@ class RecordingBus:
         return getattr(self.inner, name)
 
 
-#: The signals a command stops on: held back while a trace line is being written.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
 #: A signal handler as :func:`signal.signal` takes it.
 SignalHandler = Callable[[int, FrameType | None], Any]
 
 
 class _HeldSignals:
-    """SIGINT's and SIGTERM's Python handlers held back from :meth:`hold` to the end of the ``with`` block.
+    """The stop signals' Python handlers held back from :meth:`hold` to the end of the ``with`` block.
 
     Python runs a signal's handler in the main thread, between two bytecodes,
     whichever thread of the process the kernel gave the signal to. Blocking
@@ -538,7 +537,7 @@ def _put_back(handlers: Sequence[tuple[int, SignalHandler]]) -> None:
 
 
 def signal_name(interrupted: KeyboardInterrupt) -> str:
-    """``SIGINT`` or ``SIGTERM``: the signal behind a ``KeyboardInterrupt`` (plain Ctrl-C: ``SIGINT``)."""
+    """The name of the signal behind a ``KeyboardInterrupt`` (``SIGINT`` for a plain Ctrl-C)."""
     signum = getattr(interrupted, "signum", signal.SIGINT)
     return signal.Signals(signum).name
 
@@ -562,7 +561,7 @@ def note_signal(backend: object, stopped_by: BaseException | None) -> None:
 
 @contextlib.contextmanager
 def signals_noted(backend: object) -> Iterator[None]:
-    """In the block, a SIGINT or SIGTERM stops the command where its bus trace says (``--record``).
+    """In the block, a stop signal stops the command where its bus trace says (``--record``).
 
     :func:`note_signal` where a command catches the interrupt is too late
     when something sends bytes on its way there. Seen: ``eval --record``
@@ -675,7 +674,7 @@ class SignalNote:
     Attributes:
         line: Its line in the trace file, from 1.
         before: The transaction it came before (its index in the session).
-        signal: ``SIGINT`` or ``SIGTERM``.
+        signal: ``SIGINT``, ``SIGTERM`` or ``SIGHUP``.
         at: ``"cycle"``: it arrived during the transactions before
             ``before`` and was raised at the next cycle boundary; ``"once"``:
             raised where it landed, before transaction ``before``.
@@ -795,9 +794,13 @@ def _transaction(doc: Mapping[str, Any], line: int, where: str) -> Transaction:
     return Transaction(**common, read=None, errno=errno_value, message=str(error.get("message", "")))
 
 
+#: The signals a trace may name.
+SIGNAL_NAMES = tuple(s.name for s in STOP_SIGNALS)
+
+
 def _signal(value: object, where: str, key: str) -> str:
-    if value not in ("SIGINT", "SIGTERM"):
-        raise TraceError(f'{where}: \'{key}\' must be "SIGINT" or "SIGTERM", got {value!r}')
+    if value not in SIGNAL_NAMES:
+        raise TraceError(f'{where}: \'{key}\' must be "SIGINT", "SIGTERM" or "SIGHUP", got {value!r}')
     return str(value)
 
 

@@ -543,9 +543,16 @@ _FORKED_FIT: Callable[[tuple[str, int]], DriveParams] | None = None
 
 
 def _worker_signals() -> None:
-    """In a fit's worker: Ctrl-C is the parent's to handle, SIGTERM (the parent's terminate) ends it."""
+    """In a fit's worker: Ctrl-C is the parent's; SIGTERM (the parent's terminate) and SIGHUP end it.
+
+    A forked worker starts with the parent's handlers, so its SIGHUP (the
+    terminal closed: the whole job gets one) would raise the parent's
+    interrupt inside the worker.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if signal.getsignal(signal.SIGHUP) != signal.SIG_IGN:  # nohup's stays
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 def _forked_fit(task: tuple[str, int]) -> DriveParams:

@@ -6,7 +6,7 @@ emulated servos on the master from a thread: whatever a program writes to
 ``link`` (the official SDK's ``PortHandler(link)``, at any baud rate) reaches
 the servos, and their status packets come back. The motors run on the wall
 clock. ``bioscara emulate dynamixel --ids 1-4 --link PATH`` runs one until
-SIGINT or SIGTERM, then removes the symlink if it still points at its pty.
+SIGINT, SIGTERM or SIGHUP, then removes the symlink if it still points at its pty.
 
 A packet left incomplete (a client that closed or was killed partway through
 one) is dropped once the line has been idle for :data:`RX_IDLE_S`, and at the

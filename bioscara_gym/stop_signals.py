@@ -1,0 +1,60 @@
+"""The signals that stop a command as Ctrl-C does: SIGINT, SIGTERM and SIGHUP.
+
+SIGHUP comes when the terminal a command runs in goes away: its window is
+closed, or the SSH session drops. Left to its default it ended the process
+at once (seen 2026-11-29: ``monitor`` left every joint enabled and its lock
+file behind; a ``deploy`` would have left the arm at its last command). Now
+it takes the way out Ctrl-C takes: the arm is made safe, temporary files go,
+a training saves a checkpoint, and the exit code is 129. A command started
+under ``nohup``, which ignores SIGHUP, goes on ignoring it and runs on, as
+``nohup`` promises (:func:`caught`).
+
+The clean-up after a SIGHUP cannot print to the terminal that went away:
+every write to it fails (EIO), and the first failed write would have cut
+the clean-up short. :func:`after_signal` points the standard streams that
+were that terminal at ``/dev/null``.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+
+#: The signals a command stops on, as Ctrl-C stops it.
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def caught() -> tuple[signal.Signals, ...]:
+    """The stop signals to catch now: SIGHUP is left out while it is ignored (``nohup``).
+
+    SIGINT and SIGTERM are caught even when ignored: a background job of a
+    shell script starts with SIGINT ignored, and its clean-up must still run
+    when it is interrupted.
+    """
+    return tuple(s for s in STOP_SIGNALS if s != signal.SIGHUP or signal.getsignal(s) != signal.SIG_IGN)
+
+
+def after_signal(signum: int, fds: tuple[int, ...] = (0, 1, 2)) -> None:
+    """After a SIGHUP, the ``fds`` (stdin, stdout, stderr) that were the hung-up terminal go nowhere.
+
+    A hung-up terminal answers every request with EIO (a terminal that is
+    still there, a file or a pipe is left alone), so a command's clean-up
+    and its last line go to ``/dev/null`` instead of failing.
+    """
+    if signum != signal.SIGHUP:
+        return
+    import termios
+
+    for fd in fds:
+        try:
+            termios.tcgetattr(fd)
+            continue  # a terminal still there
+        except termios.error as e:
+            if e.args[0] != errno.EIO:
+                continue  # not a terminal (a file, a pipe), or closed
+        null = os.open(os.devnull, os.O_RDWR)
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
