@@ -314,8 +314,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # One line per error whatever the width, and the text printed as is (no markup).
     err = Console(stderr=True, highlight=False, markup=False, soft_wrap=True)
     warnings.showwarning = _one_line_warnings(args.command, err, warnings.showwarning)
+    raised: list[KeyboardInterrupt] = []
     try:
-        with _signals_as_interrupt():
+        with _signals_as_interrupt(raised):
             return int(args.func(args) or 0)
     except CliError as e:
         _last_line(err, f"bioscara {args.command}: error: {e}")
@@ -336,10 +337,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         _last_line(err, f"bioscara {args.command}: error: an input file is nested too deeply to be read")
         return EXIT_ERROR
     except Exception as e:
-        interrupt = _interrupt_behind(e)
+        interrupt = _interrupt_behind(e) or next(iter(raised), None)
         if interrupt is None:
             raise
-        # Seen: a signal landing in MuJoCo's import became "ImportError: initialization failed".
+        # Seen: a signal landing in MuJoCo's import became "ImportError: initialization failed",
+        # or, in a ctypes call of its EGL set-up, "ctypes.ArgumentError: argument 1:
+        # KeyboardInterrupt" with the interrupt itself gone (no cause, no context).
         by = f" by {interrupt}" if interrupt.args else ""
         _last_line(err, f"bioscara {args.command}: interrupted{by}")
         return interrupt.exit_code if isinstance(interrupt, Interrupted) else EXIT_INTERRUPTED
@@ -364,7 +367,7 @@ def _interrupt_behind(e: BaseException) -> KeyboardInterrupt | None:
 
 
 @contextlib.contextmanager
-def _signals_as_interrupt() -> Iterator[None]:
+def _signals_as_interrupt(raised: list[KeyboardInterrupt] | None = None) -> Iterator[None]:
     """The first stop signal interrupts a command; later ones do not interrupt its clean-up.
 
     By default SIGTERM and SIGHUP (the terminal closed) ended the process at
@@ -376,7 +379,8 @@ def _signals_as_interrupt() -> Iterator[None]:
     and a second signal while the command makes the arm safe and removes its
     files is only noted (seen: a second SIGTERM 20 ms after the first left
     ``move``'s joints enabled). ``train`` and ``deploy`` install their own
-    guard inside this one.
+    guard inside this one. The interrupt raised is appended to ``raised``:
+    a library may turn it into an error of its own that keeps no trace of it.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -391,7 +395,10 @@ def _signals_as_interrupt() -> Iterator[None]:
         for s in signals:
             signal.signal(s, noted)
         after_signal(signum)
-        raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
+        error = KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
+        if raised is not None:
+            raised.append(error)
+        raise error
 
     before = {s: signal.signal(s, interrupt) for s in signals}
     try:

@@ -18,6 +18,7 @@ a ``metadata.json`` beside a placeholder ``model.zip`` is enough.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -407,6 +408,32 @@ def test_a_library_error_raised_while_an_interrupt_was_handled_is_the_interrupt(
             raise interrupt or Interrupted(signal.SIGTERM)
         except KeyboardInterrupt as e:
             raise ImportError("initialization failed") from e
+
+    monkeypatch.setattr(commands, "cmd_status", status)
+    assert main(["status"]) == code
+    assert capsys.readouterr().err.strip() == line
+
+
+@pytest.mark.parametrize(
+    ("signum", "code", "line"),
+    [
+        (signal.SIGINT, 130, "bioscara status: interrupted"),
+        (signal.SIGTERM, 143, "bioscara status: interrupted by SIGTERM"),
+    ],
+)
+def test_an_interrupt_a_library_turned_into_its_own_error_without_a_trace_is_the_interrupt(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], signum: int, code: int, line: str
+) -> None:
+    # Seen: Ctrl-C in MuJoCo's EGL set-up (a ctypes call) during eval: exit 1 and a 40-line traceback
+    # ending "ctypes.ArgumentError: argument 1: KeyboardInterrupt: ", the interrupt itself gone.
+    import ctypes
+
+    from bioscara_gym.console import commands
+
+    def status(args: object) -> int:
+        with contextlib.suppress(KeyboardInterrupt):  # what ctypes does: nothing of it stays but text
+            signal.raise_signal(signum)
+        raise ctypes.ArgumentError("argument 1: KeyboardInterrupt: ")
 
     monkeypatch.setattr(commands, "cmd_status", status)
     assert main(["status"]) == code
