@@ -17,7 +17,7 @@ import threading
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from rich.console import Console
 from rich.table import Table
@@ -391,21 +391,55 @@ def _signals_as_interrupt(raised: list[KeyboardInterrupt] | None = None) -> Iter
         """A signal after the first: the clean-up it interrupted runs to its end."""
         after_signal(signum)
 
+    hook = sys.unraisablehook
+    swallowed: list[KeyboardInterrupt] = []  # raised where Python ignored it, not yet raised again
+    timers: list[threading.Timer] = []
+
     def interrupt(signum: int, frame: object) -> None:
         for s in signals:
             signal.signal(s, noted)
         after_signal(signum)
+        swallowed.clear()
         error = KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
         if raised is not None:
             raised.append(error)
         raise error
 
+    def unraisable(info: Any) -> None:
+        """An interrupt raised where Python ignores exceptions is raised again (three times at most).
+
+        Seen: a SIGTERM to ``validate`` landed in a garbage-collector callback
+        (a ``WeakSet``'s); Python printed "Exception ignored in ..." and the
+        command ran on to its end, exit 1. The signal is sent again 10 ms
+        later (sent from here, it would land in this hook, which ignores
+        exceptions too), and if the command ends before it lands, the
+        interrupt is raised as the command returns.
+        """
+        error = info.exc_value
+        if not isinstance(error, KeyboardInterrupt) or len(timers) >= 3:
+            hook(info)
+            return
+        swallowed.append(error)
+        for s in signals:
+            if signal.getsignal(s) is noted:
+                signal.signal(s, interrupt)
+        timer = threading.Timer(0.01, os.kill, (os.getpid(), getattr(error, "signum", signal.SIGINT)))
+        timer.daemon = True
+        timers.append(timer)
+        timer.start()
+
     before = {s: signal.signal(s, interrupt) for s in signals}
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        sys.unraisablehook = hook
+        for timer in timers:
+            timer.cancel()
         for s, handler in before.items():
             signal.signal(s, handler)
+    if swallowed:
+        raise swallowed[0]
 
 
 def _os_error(e: OSError) -> str:

@@ -440,6 +440,53 @@ def test_an_interrupt_a_library_turned_into_its_own_error_without_a_trace_is_the
     assert capsys.readouterr().err.strip() == line
 
 
+@pytest.mark.parametrize("steps", [100, 0], ids=["runs-on", "ends-at-once"])
+@pytest.mark.parametrize(
+    ("signum", "code", "line"),
+    [
+        (signal.SIGINT, 130, "bioscara status: interrupted"),
+        (signal.SIGTERM, 143, "bioscara status: interrupted by SIGTERM"),
+    ],
+)
+def test_an_interrupt_raised_where_python_ignores_exceptions_is_raised_again(
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    signum: int,
+    code: int,
+    line: str,
+    steps: int,
+) -> None:
+    # Seen: SIGTERM to validate landed in a WeakSet's garbage-collector callback: "Exception
+    # ignored in ...", and the command ran on, wrote its JSON and 41 plots, and exited 1.
+    import weakref
+
+    from bioscara_gym.console import commands
+
+    ran_on: list[str] = []
+
+    def status(args: object) -> int:
+        class Thing:
+            pass
+
+        def collected(ref: object) -> None:
+            signal.raise_signal(signum)  # its handler runs in here, where Python ignores what it raises
+            sum(range(100))
+
+        thing = Thing()
+        ref = weakref.ref(thing, collected)
+        del thing
+        assert ref() is None
+        for _ in range(steps):  # the signal, raised again 10 ms later, lands in this loop
+            ran_on.append("step")
+            time.sleep(0.01)
+        return 0
+
+    monkeypatch.setattr(commands, "cmd_status", status)
+    assert main(["status"]) == code
+    assert capsys.readouterr().err.strip() == line
+    assert len(ran_on) < max(steps, 1)
+
+
 def test_status_read_by_a_reader_that_leaves_early_leaves_the_arm_enabled(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
