@@ -252,19 +252,43 @@ def atomic_open(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     """
     path = replaced_path(path)
     directory = path.parent
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temporary_beside(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with folders_made_for(directory):
+        fd, tmp = temporary_beside(path)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                yield f
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
     _fsync_directory(directory)
+
+
+@contextlib.contextmanager
+def folders_made_for(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Make ``folder`` and its missing parents; if the block fails, remove those it made again.
+
+    Only folders made here are removed, deepest first, and only while empty:
+    one that another process made meanwhile, or that holds something else's
+    file, stays (seen: ``eval --video nd1/a/b/v.mp4`` and ``export --onnx``
+    interrupted left ``nd1/a/b/``).
+    """
+    made: list[Path] = []
+    try:
+        missing = [p for p in (Path(folder), *Path(folder).parents) if not os.path.lexists(p)]
+        for p in reversed(missing):
+            with contextlib.suppress(FileExistsError):
+                p.mkdir()
+                made.append(p)
+        yield
+    except BaseException:
+        for p in reversed(made):
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
 
 
 def temporary_beside(

@@ -11,12 +11,14 @@ import errno
 import itertools
 import json
 import os
+import shutil
 import signal
 import stat
 import subprocess
 import sys
 import textwrap
 import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,6 +38,7 @@ from rigs import (
     train_tiny_sac,
 )
 
+from bioscara_gym.cli import main
 from bioscara_gym.hardware.arm import Arm
 from bioscara_gym.hardware.backends import make_backend
 from bioscara_gym.hardware.emulated_bus import FaultPlan
@@ -607,6 +610,78 @@ def test_an_exported_policy_gets_the_mode_open_would_and_keeps_a_replaced_ones(
         os.umask(mask)
     assert stat.S_IMODE(fresh.stat().st_mode) == 0o644
     assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() != b"old"
+
+
+def _policy_copy(sac_model: Path, tmp_path: Path) -> Path:
+    """A copy of the trained policy's folder under ``tmp_path``; returns its ``model.zip``."""
+    folder = tmp_path / "policy"
+    shutil.copytree(sac_model.parent, folder)
+    return folder / sac_model.name
+
+
+def test_export_refuses_a_hand_edited_metadata_the_model_was_not_saved_with(
+    sac_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen: final_eval.success_rate 0.99 -> 1.0 and net_arch edited by hand went into the ONNX file.
+    model = _policy_copy(sac_model, tmp_path)
+    metadata_path = model.parent / "metadata.json"
+    metadata = json.loads(metadata_path.read_text(encoding="utf-8"))
+    metadata["final_eval"] = {**metadata.get("final_eval", {}), "success_rate": 1.0}
+    metadata_path.write_text(json.dumps(metadata), encoding="utf-8")
+    assert main(["export", "--model", str(model), "--onnx", str(tmp_path / "p.onnx"), "--check", "0"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and error.startswith(f"bioscara export: error: {metadata_path} says final_eval")
+    assert "was metadata.json edited or swapped? Refused" in error
+    assert not (tmp_path / "p.onnx").exists()
+
+
+def test_export_refuses_a_model_without_its_own_copy_of_the_metadata(
+    sac_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = _policy_copy(sac_model, tmp_path)
+    with zipfile.ZipFile(sac_model) as src, zipfile.ZipFile(model, "w") as dst:
+        for item in src.infolist():
+            if item.filename != "bioscara_metadata.json":
+                dst.writestr(item, src.read(item.filename))
+    assert main(["export", "--model", str(model), "--onnx", str(tmp_path / "p.onnx"), "--check", "0"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"bioscara export: error: {model} carries no copy of its training metadata (saved by an older "
+        "bioscara-gym), so metadata.json beside it cannot be checked; retrain it to deploy it"
+    )
+
+
+def test_a_models_copy_of_the_metadata_is_read_to_1_mb_only(sac_model: Path, tmp_path: Path) -> None:
+    # Seen: a 2 MB model.zip whose copy unpacks to 2 GB was read whole: MemoryError, a traceback.
+    from bioscara_gym.errors import MetadataError
+    from bioscara_gym.training.metadata import read_embedded_metadata
+
+    model = _policy_copy(sac_model, tmp_path)
+    with zipfile.ZipFile(sac_model) as src, zipfile.ZipFile(model, "w", zipfile.ZIP_DEFLATED) as dst:
+        for item in src.infolist():
+            if item.filename != "bioscara_metadata.json":
+                dst.writestr(item, src.read(item.filename))
+        dst.writestr("bioscara_metadata.json", b" " * (1024 * 1024 + 1))
+    with pytest.raises(MetadataError) as refused:
+        read_embedded_metadata(model)
+    assert str(refused.value) == (
+        f"{model}: its copy of the training metadata is over 1048576 bytes (ours are a few kB); not read"
+    )
+
+
+def test_an_interrupted_export_leaves_no_folder_it_made(
+    sac_model: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Seen: SIGTERM during export --onnx nd3/a/b/x.onnx: exit 143 with nd3/a/b left, empty.
+    from bioscara_gym.training import export
+
+    def interrupted(*args: Any) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "_write_graph", interrupted)
+    (tmp_path / "nd3").mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        export.export_onnx(sac_model, tmp_path / "nd3" / "a" / "b" / "x.onnx", check_samples=0)
+    assert list((tmp_path / "nd3").iterdir()) == []
 
 
 def test_deploy_runs_an_onnx_policy_without_torch(tmp_path: Path, onnx_file: Path) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from bioscara_gym.errors import MetadataError, PolicyFileError
 from bioscara_gym.tasks import Policy
 from bioscara_gym.training.extras import needs_train
-from bioscara_gym.training.metadata import check_embedded_metadata, read_metadata
+from bioscara_gym.training.metadata import TRAINED_FOR_KEYS, check_embedded_metadata, read_metadata
 from bioscara_gym.training.methods import METHODS
 
 with needs_train():
@@ -47,11 +47,14 @@ ALGOS: dict[str, type[BaseAlgorithm]] = {n: sb3_class(s.model) for n, s in METHO
 MODEL_CLASSES: dict[str, type[BaseAlgorithm]] = {s.algo: sb3_class(s.model) for s in METHODS.values()}
 
 
-def load_model(path: Path, require_embedded: bool = False) -> tuple[BaseAlgorithm, dict[str, Any]]:
+def load_model(
+    path: Path, require_embedded: bool = False, keys: tuple[str, ...] | None = TRAINED_FOR_KEYS
+) -> tuple[BaseAlgorithm, dict[str, Any]]:
     """Load a trained ``model.zip`` to act, with its metadata (the algorithm is in the metadata).
 
     The ``metadata.json`` beside it must agree with the copy saved inside it
-    (:func:`~bioscara_gym.training.metadata.check_embedded_metadata`; with
+    in ``keys`` (every setting if ``None``;
+    :func:`~bioscara_gym.training.metadata.check_embedded_metadata`; with
     ``require_embedded``, a model without a copy is refused too), and every
     weight of its policy must be finite.
 
@@ -87,7 +90,7 @@ def load_model(path: Path, require_embedded: bool = False) -> tuple[BaseAlgorith
             f"cannot load {model_file} as the {name.upper()} model metadata.json says it is (truncated, "
             f"not a stable-baselines3 zip, or another algorithm's?): {type(e).__name__}: {_first_line(e)}"
         ) from e
-    check_embedded_metadata(metadata, model_file, required=require_embedded)
+    check_embedded_metadata(metadata, model_file, required=require_embedded, keys=keys)
     check_weights(model, model_file)
     return model, metadata
 

@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from bioscara_gym.errors import MetadataError
-from bioscara_gym.fsutil import atomic_write_text, replaced_path, temporary_beside
+from bioscara_gym.fsutil import atomic_write_text, folders_made_for, replaced_path, temporary_beside
 from bioscara_gym.tasks import Policy, task_of
 from bioscara_gym.training.extras import needed_by
 from bioscara_gym.training.metadata import (
@@ -312,9 +312,7 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
     import imageio.v2 as imageio
 
     path = replaced_path(path)
-    made: list[Path] = []
-    try:
-        _make_folders(path.parent, made)
+    with folders_made_for(path.parent):
         fd, tmp = temporary_beside(path, prefix=f".{path.stem}.", suffix=path.suffix)  # path's mode
         os.close(fd)
         try:
@@ -323,23 +321,6 @@ def video_writer(path: Path | None, fps: int) -> Iterator[Callable[[np.ndarray],
             os.replace(tmp, path)
         finally:
             Path(tmp).unlink(missing_ok=True)
-    except BaseException:
-        for folder in reversed(made):  # deepest first; one that holds another's file stays
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-        raise
-
-
-def _make_folders(folder: Path, made: list[Path]) -> None:
-    """Make ``folder`` and its missing parents, adding each to ``made`` (outermost first) once made.
-
-    A folder someone else makes meanwhile is not added, so it is never removed.
-    """
-    missing = [p for p in (folder, *folder.parents) if not os.path.lexists(p)]
-    for p in reversed(missing):
-        with contextlib.suppress(FileExistsError):
-            p.mkdir()
-            made.append(p)
 
 
 def write_json(path: Path, stats: EvalStats, **extra: Any) -> None:

@@ -36,6 +36,7 @@ from rich.console import Console
 
 from bioscara_gym.errors import CliError, ExportError, MetadataError
 from bioscara_gym.fsutil import (
+    folders_made_for,
     output_clash,
     output_problem,
     path_argument,
@@ -143,7 +144,9 @@ def export_onnx(
 
     Raises:
         ExportError: Unsupported observation space, or the check failed (nothing written).
-        MetadataError: No metadata next to the model.
+        MetadataError: No metadata next to the model, a model without its own
+            copy of it, or a ``metadata.json`` that differs from that copy in
+            any setting (it goes into the ONNX file, which has no other copy).
     """
     with needs_train("bioscara export"), needed_by("bioscara export"):
         import torch
@@ -152,26 +155,28 @@ def export_onnx(
     with needs_onnx("bioscara export"):
         import onnx
 
-    model, metadata = load_model(Path(model_path))
+    # The metadata goes into the ONNX file, which has no other copy to check it by: all of it
+    # must be the model's own (seen: a success rate and net_arch edited by hand were exported).
+    model, metadata = load_model(Path(model_path), require_embedded=True, keys=None)
     layout = obs_layout(model.observation_space)
     actor = _actor_module(model, layout)
     n_obs = sum(size for _, size in layout)
     onnx_path = replaced_path(onnx_path)
-    onnx_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = temporary_beside(onnx_path)  # the mode the file has, or a new file's
-    os.close(fd)
-    try:
-        _write_graph(torch, onnx, actor, n_obs, tmp, metadata, layout)
-        error = 0.0
-        if check_samples:
-            observations = _check_observations(metadata, check_samples, seed)
-            error = _max_error(model, OnnxPolicy(tmp), observations)
-            if not error <= atol:
-                raise ExportError(f"ONNX actions differ from model.predict by {error:.2e} (> {atol:g})")
-        os.replace(tmp, onnx_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with folders_made_for(onnx_path.parent):  # an interrupted export leaves none of them
+        fd, tmp = temporary_beside(onnx_path)  # the mode the file has, or a new file's
+        os.close(fd)
+        try:
+            _write_graph(torch, onnx, actor, n_obs, tmp, metadata, layout)
+            error = 0.0
+            if check_samples:
+                observations = _check_observations(metadata, check_samples, seed)
+                error = _max_error(model, OnnxPolicy(tmp), observations)
+                if not error <= atol:
+                    raise ExportError(f"ONNX actions differ from model.predict by {error:.2e} (> {atol:g})")
+            os.replace(tmp, onnx_path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
     return ExportResult(onnx_path, layout, error, check_samples)
 
 

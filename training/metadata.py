@@ -136,10 +136,17 @@ def read_embedded_metadata(model_file: Path) -> dict[str, Any] | None:
         with zipfile.ZipFile(model_file) as archive:
             if EMBEDDED_NAME not in archive.namelist():
                 return None
-            text = archive.read(EMBEDDED_NAME).decode("utf-8")
-        embedded = json.loads(text)
+            with archive.open(EMBEDDED_NAME) as member:  # read at most the limit: the size stated may lie
+                data = member.read(MAX_METADATA_BYTES + 1)
+        too_large = len(data) > MAX_METADATA_BYTES
+        embedded = None if too_large else json.loads(data.decode("utf-8"))
     except (OSError, zipfile.BadZipFile, UnicodeDecodeError, ValueError) as e:
         raise MetadataError(f"{model_file}: its copy of the training metadata cannot be read ({e})") from e
+    if too_large:
+        raise MetadataError(
+            f"{model_file}: its copy of the training metadata is over {MAX_METADATA_BYTES} bytes "
+            "(ours are a few kB); not read"
+        )
     if not isinstance(embedded, dict):
         raise MetadataError(f"{model_file}: its copy of the training metadata is not a JSON object")
     return embedded
@@ -155,7 +162,10 @@ def _difference(key: str, inside: Any, beside: Any) -> tuple[str, Any, Any]:
 
 
 def check_embedded_metadata(
-    sidecar: dict[str, Any], model_file: Path, required: bool = False
+    sidecar: dict[str, Any],
+    model_file: Path,
+    required: bool = False,
+    keys: tuple[str, ...] | None = TRAINED_FOR_KEYS,
 ) -> dict[str, Any] | None:
     """Refuse a ``metadata.json`` that disagrees with the copy saved inside the model.
 
@@ -164,6 +174,8 @@ def check_embedded_metadata(
         model_file: The ``model.zip``.
         required: Refuse a model with no copy inside too (``deploy``: what the
             policy was trained for must be proven, not read from an editable file).
+        keys: The settings compared; ``None``: every one (``export`` copies
+            the whole metadata into the ONNX file, the success rate included).
 
     Returns:
         The embedded copy (``None`` if there is none and it is not required).
@@ -179,7 +191,7 @@ def check_embedded_metadata(
                 f"so {METADATA_NAME} beside it cannot be checked; retrain it to deploy it"
             )
         return None
-    for key in TRAINED_FOR_KEYS:
+    for key in sorted(set(embedded) | set(sidecar)) if keys is None else keys:
         if embedded.get(key) != sidecar.get(key):
             where, inside, beside = _difference(key, embedded.get(key), sidecar.get(key))
             raise MetadataError(
