@@ -191,6 +191,14 @@ def test_a_loop_of_symlinks_is_named_and_never_replaced(tmp_path: Path) -> None:
             ["export", "--model", "run/model.zip", "--onnx", "p.onnx", "--check", "100001"],
             "--check 100001: at most 100000 observations (each is kept to compare)",
         ),
+        (  # seen: "no metadata.json next to nope.zip: cannot tell what the policy was trained for"
+            ["export", "--model", "nope.zip", "--onnx", "p.onnx"],
+            "no model at nope.zip",
+        ),
+        (  # seen: "no model at /dev/zero"
+            ["export", "--model", "/dev/zero", "--onnx", "p.onnx"],
+            "/dev/zero is not a regular file; give the model.zip",
+        ),
         (
             ["eval", "--model", "run/model.zip", "--json", "run/model.zip"],
             "--json run/model.zip is the --model file; writing it would destroy it",
@@ -230,6 +238,8 @@ def test_a_loop_of_symlinks_is_named_and_never_replaced(tmp_path: Path) -> None:
         "export-over-the-model-named-by-its-folder",
         "eval-json-over-the-metadata-of-a-model-folder",
         "export-check-beyond-the-cap",
+        "export-a-model-not-there",
+        "export-a-model-that-is-no-file",
         "eval-json-over-the-model",
         "eval-record-into-the-metadata",
         "eval-json-and-video-one-file",

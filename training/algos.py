@@ -9,6 +9,7 @@ Importing it without the ``[train]`` extra raises
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -73,9 +74,11 @@ def load_model(
     """
     path = Path(path)
     model_file = path / "model.zip" if path.is_dir() else path
-    metadata = read_metadata(model_file)
-    if not model_file.is_file():
+    if not os.path.lexists(model_file):  # seen: "no metadata.json next to nope.zip" for a typo
         raise PolicyFileError(f"no model at {model_file}")
+    if not model_file.is_file():  # seen: a FIFO or /dev/zero was "no model at ..."
+        raise PolicyFileError(f"{model_file} is not a regular file; give the model.zip")
+    metadata = read_metadata(model_file)
     name = metadata.get("algo")
     if name not in MODEL_CLASSES:
         said = "does not say which algorithm trained the policy" if name is None else f"has algo {name!r}"
