@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from rich.console import Console
 
 from bioscara_gym.errors import CliError
-from bioscara_gym.fsutil import output_clash, output_problem, path_argument
-from bioscara_gym.hardware.config import load_config
+from bioscara_gym.fsutil import output_clash, output_problem, path_argument, read_bytes, replace_problem
+from bioscara_gym.hardware.config import MAX_CONFIG_BYTES, load_config
+from bioscara_gym.validation.report import one_line
 
 #: The seeds scipy's optimizers take (``numpy.random.RandomState``): 0 to 2**32 - 1.
 SEED_MAX = 2**32 - 1
@@ -20,11 +22,77 @@ def _console() -> Console:
     return Console(highlight=False, soft_wrap=True)
 
 
+#: What ``calibrate --out`` replaces (:func:`~bioscara_gym.fsutil.replace_problem`).
+CONFIG_KIND = "an arm configuration (YAML)"
+
+
+def _one_line_errors(command: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """Run ``command``; its refusals (and a recording's) come out on one line, a name's newline escaped.
+
+    Seen: a recording named with a newline gave a two-line error.
+    """
+    try:
+        return command(args)
+    except CliError as e:
+        raise CliError(one_line(e), e.code) from e
+    except ValueError as e:  # RecordingError, ConfigError: the line cli.main prints for them
+        raise CliError(one_line(e)) from e
+
+
 def _check_output(path: Path | None, what: str, folder: bool = False) -> None:
     """Refuse, before any work, an output that cannot be written (``fsutil.output_problem``)."""
     problem = None if path is None else output_problem(path, folder)
     if problem is not None:
         raise CliError(f"{what} {path}: {problem}")
+
+
+def _check_replace(path: Path | None, what: str, kind: str, is_kind: Callable[[Path], bool]) -> None:
+    """Refuse, before any work, an output over a file the command did not write (``fsutil.replace_problem``).
+
+    Seen: ``validate --json notes.txt`` and ``calibrate --out notes.txt`` replaced the notes.
+    """
+    problem = None if path is None else replace_problem(path, kind, is_kind)
+    if problem is not None:
+        raise CliError(f"{what} {path}: {problem}")
+
+
+def is_arm_config(path: Path) -> bool:
+    """Whether ``path`` holds an arm configuration (what ``calibrate --out`` may replace): it loads as one.
+
+    Raises:
+        OSError: It cannot be read.
+    """
+    if os.stat(path).st_size > MAX_CONFIG_BYTES:
+        return False
+    read_bytes(path, MAX_CONFIG_BYTES)  # unreadable: OSError, not "not a configuration"
+    try:
+        load_config(path)
+    except ValueError:
+        return False
+    return True
+
+
+def _plot_paths(args: argparse.Namespace) -> list[Path]:
+    """The pictures ``--plots`` may write (one per drawn recording of the folder; none without it)."""
+    if args.plots is None:
+        return []
+    from bioscara_gym.validation.plots import plot_names
+
+    return [args.plots / name for name in plot_names(args.dir)]
+
+
+def _check_plots(out: Path | None, paths: list[Path]) -> None:
+    """Refuse, before any work, a picture's place that holds what is not a picture (a folder, a text file).
+
+    Seen: a folder named like a picture failed the command after the whole
+    validation, naming a hidden path; a text file was replaced with a PNG.
+    """
+    from bioscara_gym.validation.plots import plot_problem
+
+    for path in paths:
+        problem = plot_problem(path)
+        if problem is not None:
+            raise CliError(f"--plots {out}: {path} {problem}")
 
 
 def _packaged_config() -> Path:
@@ -34,11 +102,15 @@ def _packaged_config() -> Path:
     return Path(str(resources.files("bioscara_gym.hardware").joinpath("default_config.yaml")))
 
 
-def _check_clash(outputs: dict[str, Path | None], args: argparse.Namespace) -> None:
+def _check_clash(
+    outputs: dict[str, Path | None], args: argparse.Namespace, plots: list[Path] | None = None
+) -> None:
     """Refuse, before any work, an output that is one of the inputs or another output.
 
     The inputs: every recording file of the folder (default: the packaged
-    ones) and the configuration (``--config``, or the packaged one).
+    ones) and the configuration (``--config``, or the packaged one). Each
+    of ``plots`` (the pictures ``--plots`` writes) is an output too (seen:
+    ``--json`` naming one was lost under the picture).
     """
     from bioscara_gym.validation.recordings import DATA_DIR, recording_files
 
@@ -49,18 +121,29 @@ def _check_clash(outputs: dict[str, Path | None], args: argparse.Namespace) -> N
     else:
         inputs["packaged configuration"] = _packaged_config()
     clash = output_clash(outputs, inputs)
+    for plot in plots or []:
+        if clash is not None:
+            break
+        clash = output_clash({"--json": args.json, "--plots": plot}, inputs)
     if clash is not None:
         raise CliError(clash)
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
     """``bioscara validate``: exit 0 only if every comparison passes."""
+    return _one_line_errors(_validate, args)
+
+
+def _validate(args: argparse.Namespace) -> int:
     from bioscara_gym.validation import validate
-    from bioscara_gym.validation.report import print_table, rows_to_json, summary
+    from bioscara_gym.validation.report import ROWS_KIND, is_rows_json, print_table, rows_to_json, summary
 
     _check_output(args.json, "--json")
     _check_output(args.plots, "--plots", folder=True)
-    _check_clash({"--json": args.json, "--plots": args.plots}, args)
+    plots = _plot_paths(args)
+    _check_clash({"--json": args.json, "--plots": args.plots}, args, plots)
+    _check_replace(args.json, "--json", ROWS_KIND, is_rows_json)
+    _check_plots(args.plots, plots)
     if args.plots is not None:
         from bioscara_gym.hardware.errors import require_extra
 
@@ -72,16 +155,20 @@ def cmd_validate(args: argparse.Namespace) -> int:
     con = _console()
     con.print(
         f"{passed} of {total} comparisons pass "
-        f"({len(result.recordings)} recordings in {result.recordings.root})"
+        f"({len(result.recordings)} recordings in {one_line(result.recordings.root)})"
     )
     # All or none: the pictures are drawn first (a recording that cannot be
-    # drawn fails here, before the JSON), then the JSON is written, then the
-    # pictures are moved into place.
+    # drawn fails here, before the JSON), their places checked again, then
+    # the JSON is written, then the pictures are moved into place.
     staged = None
     if args.plots:
         from bioscara_gym.validation.plots import stage_plots
 
         staged = stage_plots(result, args.plots)
+        problem = staged.problem()  # made meanwhile (the checks before the work found none)
+        if problem is not None:
+            staged.discard()
+            raise CliError(f"--plots {args.plots}: {problem}")
     if args.json:
         try:
             rows_to_json(result.rows, args.json)
@@ -89,15 +176,19 @@ def cmd_validate(args: argparse.Namespace) -> int:
             if staged is not None:
                 staged.discard()
             raise
-        con.print(f"json      {args.json}")
+        con.print(f"json      {one_line(args.json)}")
     if staged is not None:
         paths = staged.commit()
-        con.print(f"plots     {args.plots} ({len(paths)} PNG)")
+        con.print(f"plots     {one_line(args.plots)} ({len(paths)} PNG)")
     return 0 if result.passed else 1
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``bioscara calibrate``: fit, print the error per experiment before and after, write the config."""
+    return _one_line_errors(_calibrate, args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     import dataclasses
 
     import yaml
@@ -113,6 +204,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     require_extra("scipy", "bioscara calibrate", "validate")
     _check_output(args.out, "--out")
     _check_clash({"--out": args.out}, args)
+    _check_replace(args.out, "--out", CONFIG_KIND, is_arm_config)
     if args.maxiter < 1:
         raise CliError(f"--maxiter must be >= 1, got {args.maxiter}")
     if not 0 <= args.seed <= SEED_MAX:
@@ -153,7 +245,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     )
     data = config_to_dict(dataclasses.replace(result.config))
     atomic_write_text(args.out, header + yaml.safe_dump(data, sort_keys=False))
-    con.print(f"config    {args.out}")
+    con.print(f"config    {one_line(args.out)}")
     return 0
 
 
@@ -167,9 +259,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
     )
     p.add_argument("--config", type=Path, help="arm configuration to judge (default: the packaged one)")
-    p.add_argument("--json", type=path_argument, metavar="FILE", help="write every row as JSON")
     p.add_argument(
-        "--plots", type=path_argument, metavar="DIR", help="write one PNG per recording, simulated over real"
+        "--json",
+        type=path_argument,
+        metavar="FILE",
+        help="write every row as JSON (it replaces only an earlier --json file or an empty file)",
+    )
+    p.add_argument(
+        "--plots",
+        type=path_argument,
+        metavar="DIR",
+        help="write one PNG per recording, simulated over real (replacing only PNG images or empty files)",
     )
     p.set_defaults(func=cmd_validate)
 
@@ -181,7 +281,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
     )
     p.add_argument(
-        "--out", type=path_argument, required=True, metavar="CONFIG", help="where to write the configuration"
+        "--out",
+        type=path_argument,
+        required=True,
+        metavar="CONFIG",
+        help="where to write the configuration (it replaces only an arm configuration or an empty file)",
     )
     p.add_argument("--config", type=Path, help="configuration to start from (default: the packaged one)")
     p.add_argument("--seed", type=int, default=0, help="seed of the optimizer")

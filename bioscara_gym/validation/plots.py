@@ -2,15 +2,101 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from bioscara_gym.fsutil import atomic_write_bytes, output_problem, replace_problem, replaced_path
 from bioscara_gym.validation import Validation
+from bioscara_gym.validation.recordings import (
+    DATA_DIR,
+    HANDLER_TIMES_PREFIX,
+    TRACKING_NOT_READ,
+    recording_files,
+    recording_name,
+)
 
-__all__ = ["StagedPlots", "stage_plots", "write_plots"]
+__all__ = ["PNG_KIND", "StagedPlots", "is_png", "plot_names", "plot_problem", "stage_plots", "write_plots"]
+
+#: Each drawn folder of recordings and the start of its pictures' names (``maxAccel_j1_3.png``).
+_PREFIX = {
+    "maxAccel": "maxAccel",
+    "settingMaxVal": "settingMaxVal",
+    "high_speed_stall_test": "stall",
+    "tracking_error": "tracking",
+    "RW_test": "RW",
+}
+#: What a picture replaces (:func:`~bioscara_gym.fsutil.replace_problem`).
+PNG_KIND = "a PNG image"
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _name(folder: str, recording: str) -> str:
+    return f"{_PREFIX[folder]}_{recording}.png"
+
+
+def plot_names(root: Path | str | None = None) -> list[str]:
+    """The names of the pictures the recordings under ``root`` may get (default: the packaged ones).
+
+    One per recording of a kind that is drawn, whether or not it is replayed
+    (known from the file names alone, before any work).
+    """
+    names = set()
+    for path in recording_files(root if root is not None else DATA_DIR):
+        folder, recording = path.parent.name, recording_name(path)
+        if folder not in _PREFIX:
+            continue
+        if folder == "tracking_error" and recording.endswith(TRACKING_NOT_READ):
+            continue
+        if folder == "RW_test" and recording.startswith(HANDLER_TIMES_PREFIX):
+            continue
+        names.add(_name(folder, recording))
+    return sorted(names)
+
+
+def is_png(path: Path) -> bool:
+    """Whether ``path`` starts as a PNG image does (what ``--plots`` may replace).
+
+    Raises:
+        OSError: It cannot be read.
+    """
+    with open(path, "rb") as f:
+        return f.read(len(_PNG_SIGNATURE)) == _PNG_SIGNATURE
+
+
+def plot_problem(path: Path) -> str | None:
+    """Why the picture ``path`` cannot be written (replaced, or written through its symlink), or ``None``.
+
+    A picture replaces only nothing, an empty file or a PNG image; a symlink
+    is written through to its target (as every output of the package), so
+    the target is judged.
+    """
+    there = "a picture is written there: move it, or give another folder"
+    through = f"is a symlink to {os.path.realpath(path)}, which " if path.is_symlink() else ""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "is a loop of symlinks"
+        st = None
+    if st is not None and stat.S_ISDIR(st.st_mode):
+        return f"{through}is a folder; {there}"
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        return f"{through}is not a regular file; {there}"
+    if through:
+        problem = output_problem(replaced_path(path), parents=True)
+        if problem is not None:
+            return f"{through}{problem}"
+    problem = replace_problem(path, PNG_KIND, is_png)
+    if problem is not None and problem.startswith("exists and is not"):
+        return f"{through}exists and is not {PNG_KIND}; {there}"
+    return None if problem is None else f"{through}{problem}"
+
 
 _REAL = {"color": "black", "lw": 1.2, "label": "real arm"}
 _SIM = {"color": "tab:orange", "lw": 1.2, "label": "simulated"}
@@ -63,7 +149,7 @@ def _max_accel(v: Validation, out: Path) -> list[Path]:
         ax2.set_ylabel("speed (encoder estimate)")
         ax2.set_xlabel("time, s (the program's sleeps and transactions)")
         ax1.legend(loc="upper left", fontsize=8)
-        paths.append(_save(plt, fig, out / f"maxAccel_{run.name}.png"))
+        paths.append(_save(plt, fig, out / _name("maxAccel", run.name)))
     return paths
 
 
@@ -79,7 +165,7 @@ def _setting_max_val(v: Validation, out: Path) -> list[Path]:
         ax2.set_ylabel("deg/s")
         ax2.set_xlabel("time, s")
         ax1.legend(loc="upper left", fontsize=8)
-        paths.append(_save(plt, fig, out / f"settingMaxVal_{run.name}.png"))
+        paths.append(_save(plt, fig, out / _name("settingMaxVal", run.name)))
     return paths
 
 
@@ -106,7 +192,7 @@ def _stall(v: Validation, out: Path) -> list[Path]:
         ax3.set_ylabel("motor rad/s")
         ax3.set_xlabel("time, s")
         ax3.legend(loc="upper left", fontsize=8)
-        paths.append(_save(plt, fig, out / f"stall_{sig.name}.png"))
+        paths.append(_save(plt, fig, out / _name("high_speed_stall_test", sig.name)))
     return paths
 
 
@@ -123,7 +209,7 @@ def _tracking(v: Validation, out: Path) -> list[Path]:
         ax2.plot(sim.t, (sim.reference - sim.feedback) / run.ramp_speed, **_SIM)
         ax2.set_ylabel("(r - q) / ramp, s")
         ax2.set_xlabel("time, s")
-        paths.append(_save(plt, fig, out / f"tracking_{run.name}.png"))
+        paths.append(_save(plt, fig, out / _name("tracking_error", run.name)))
     return paths
 
 
@@ -137,7 +223,7 @@ def _transactions(v: Validation, out: Path) -> list[Path]:
             ax.axvline(sim[kind], color="tab:orange", lw=1.5, label="simulated")
             ax.legend(loc="upper right", fontsize=8)
         ax2.set_xlabel("µs")
-        paths.append(_save(plt, fig, out / f"RW_{tr.name}.png"))
+        paths.append(_save(plt, fig, out / _name("RW_test", tr.name)))
     return paths
 
 
@@ -152,10 +238,42 @@ class StagedPlots:
         """Hold what :func:`stage_plots` drew."""
         self.out, self._drawing, self._drawn, self._made = out, drawing, drawn, made
 
+    def problem(self) -> str | None:
+        """Why a picture cannot go into place (its path, then :func:`plot_problem`), or ``None``."""
+        for p in self._drawn:
+            dest = self.out / p.name
+            problem = plot_problem(dest)
+            if problem is not None:
+                return f"{dest} {problem}"
+        return None
+
     def commit(self) -> list[Path]:
-        """Move every picture into ``out``; returns their paths."""
+        """Move every picture into ``out`` (through a symlink there, to its target); returns their paths.
+
+        Every place is checked first (:meth:`problem`): a picture that cannot go
+        into place leaves none moved. An error names the picture's path in
+        ``out``, not the hidden one.
+
+        Raises:
+            OSError: A picture could not be moved into place (the drawn ones
+                are removed, and ``out`` too if it was made for them).
+        """
         try:
-            paths = [p.replace(self.out / p.name) for p in self._drawn]
+            problem = self.problem()
+            if problem is not None:
+                raise OSError(errno.EEXIST, problem)
+            paths = []
+            for p in self._drawn:
+                dest = self.out / p.name
+                try:
+                    if dest.is_symlink():  # written through, as every output (fsutil.replaced_path)
+                        atomic_write_bytes(dest, p.read_bytes())
+                        p.unlink()
+                    else:
+                        p.replace(dest)
+                except OSError as e:
+                    raise OSError(e.errno, e.strerror, os.fspath(dest)) from e
+                paths.append(dest)
         except BaseException:
             self.discard()
             raise

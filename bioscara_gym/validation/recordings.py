@@ -14,9 +14,11 @@ firmware can report (:func:`_check_position`, :func:`_check_speed`).
 from __future__ import annotations
 
 import csv
+import errno
 import gzip
 import io
 import math
+import os
 import re
 import zlib
 from collections.abc import Iterator, Sequence
@@ -100,6 +102,11 @@ def _open_text(path: Path) -> str:
         raise RecordingError(path, f"cannot be read ({e.strerror or e})") from e
     except (EOFError, zlib.error) as e:  # a damaged gzip stream (gzip.BadGzipFile is an OSError)
         raise RecordingError(path, f"cannot be read ({e})") from e
+
+
+def recording_name(path: Path) -> str:
+    """A recording's name: its file's without ``.csv`` or ``.csv.gz`` (``j1_3``)."""
+    return _stem(path)
 
 
 def _stem(path: Path) -> str:
@@ -919,6 +926,12 @@ FOLDERS = (
 )
 
 
+#: Endings of ``tracking_error/`` files that are not read (the controller's raw echo, its JTC twin).
+TRACKING_NOT_READ = ("_JTC", "_CM")
+#: Start of the ``RW_test/`` files that are handler times (the others are transactions).
+HANDLER_TIMES_PREFIX = "baseline_joint"
+
+
 def _csvs(folder: Path) -> list[Path]:
     """Everything in ``folder`` named as a recording: one that is no regular file is refused when read.
 
@@ -967,6 +980,11 @@ def find_recordings(root: Path | str | None = None) -> Recordings:
         RecordingError: ``root`` holds no recordings, or one cannot be read.
     """
     root = Path(root) if root is not None else DATA_DIR
+    try:
+        os.stat(root)
+    except OSError as e:
+        if e.errno == errno.ELOOP:  # seen: "is not a folder"
+            raise RecordingError(root, "is a loop of symlinks") from e
     if not root.is_dir():
         raise RecordingError(root, "is not a folder")
     rec = Recordings(root)
@@ -974,10 +992,10 @@ def find_recordings(root: Path | str | None = None) -> Recordings:
     rec.setting_max_val = [read_setting_max_val(p) for p in _csvs(root / "settingMaxVal")]
     rec.stall_signal = [read_stall_signal(p) for p in _csvs(root / "high_speed_stall_test")]
     rec.pid_error_test = [read_pid_error_test(p) for p in _csvs(root / "stall_detection_test")]
-    tracking = [p for p in _csvs(root / "tracking_error") if not _stem(p).endswith(("_JTC", "_CM"))]
+    tracking = [p for p in _csvs(root / "tracking_error") if not _stem(p).endswith(TRACKING_NOT_READ)]
     rec.tracking = [read_tracking(p) for p in tracking]
     for p in _csvs(root / "RW_test"):
-        if _stem(p).startswith("baseline_joint"):
+        if _stem(p).startswith(HANDLER_TIMES_PREFIX):
             rec.handler_times.append(read_handler_times(p))
         else:
             rec.transactions.append(read_transactions(p))

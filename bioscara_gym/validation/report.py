@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-__all__ = ["Row", "print_table", "rows_to_json", "summary"]
+__all__ = ["ROWS_KIND", "Row", "is_rows_json", "one_line", "print_table", "rows_to_json", "summary"]
+
+#: What ``validate --json`` replaces (:func:`~bioscara_gym.fsutil.replace_problem`).
+ROWS_KIND = "a validate --json rows file"
 
 
 @dataclass(frozen=True)
@@ -74,6 +78,14 @@ class Row:
         return cls(experiment, quantity, real, sim, 0.0 if passed else 1.0, 0.0, "", "", passed, note)
 
 
+def one_line(text: object) -> str:
+    r"""``text`` with its control characters escaped (``\n``), so that a name prints on one line.
+
+    Seen: a recording named with a newline split an error message (and a table row) in two.
+    """
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(text))
+
+
 def summary(rows: Sequence[Row]) -> tuple[int, int]:
     """(passed, total)."""
     return sum(r.passed for r in rows), len(rows)
@@ -112,7 +124,13 @@ def print_table(rows: Iterable[Row], title: str = "Simulated arm against the rea
         bound = "" if r.error_unit == "" else f"{_fmt(r.bound)}{eu}"
         verdict = "[green]pass[/]" if r.passed else "[red]FAIL[/]"
         table.add_row(
-            r.experiment, r.quantity, f"{_fmt(r.real)}{unit}", f"{_fmt(r.sim)}{unit}", error, bound, verdict
+            one_line(r.experiment),
+            r.quantity,
+            f"{_fmt(r.real)}{unit}",
+            f"{_fmt(r.sim)}{unit}",
+            error,
+            bound,
+            verdict,
         )
     Console(width=160).print(table)
 
@@ -126,3 +144,23 @@ def rows_to_json(rows: Sequence[Row], path: Path | str) -> None:
 
     data = [{k: clean(v) for k, v in asdict(r).items()} for r in rows]
     atomic_write_text(Path(path), json.dumps(data, indent=1) + "\n")
+
+
+def is_rows_json(path: Path | str) -> bool:
+    """Whether ``path`` holds rows as :func:`rows_to_json` writes them: a list of objects with a row's keys.
+
+    What ``validate --json`` may replace (besides nothing or an empty file).
+
+    Raises:
+        OSError: It cannot be read.
+    """
+    from bioscara_gym.fsutil import MAX_JSON_BYTES, read_json
+
+    if os.stat(path).st_size > MAX_JSON_BYTES:
+        return False
+    try:
+        data = read_json(path)
+    except ValueError:  # not UTF-8, not JSON
+        return False
+    keys = {f.name for f in fields(Row)}
+    return isinstance(data, list) and all(isinstance(d, dict) and set(d) == keys for d in data)
