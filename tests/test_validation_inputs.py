@@ -436,6 +436,26 @@ def test_a_pause_of_up_to_a_minute_is_read_a_longer_one_refused(
         assert _refusal(tmp_path).startswith("maxAccel/j1_1.csv: line 208: time jumps by 60.1 s; ")
 
 
+@pytest.mark.parametrize(("steps", "read"), [(60, True), (61, False)])
+def test_a_recording_of_up_to_an_hour_is_read_a_longer_one_refused(
+    tmp_path: Path, steps: int, read: bool
+) -> None:
+    # Seen: 300 rows 59 s apart (8 kB) kept validate busy for 40 s; a megabyte would run for hours.
+    def stretch(lines: list[str]) -> None:  # the header, the first sample, then one every 59.99 s
+        del lines[11:]
+        row = lines[10].split(",")
+        for k in range(1, steps + 1):
+            lines.append(",".join([f"{float(row[0]) + 59.99 * k:.6f}", *row[1:]]))
+
+    _copy(tmp_path, "maxAccel", "j1_1.csv", stretch)
+    if read:
+        assert len(find_recordings(tmp_path)) == 1
+    else:
+        assert _refusal(tmp_path) == (  # 0.0101051 s + 61 x 59.99 s from the program's start
+            "maxAccel/j1_1.csv: line 72: t spans 3659.4 s; a replay runs at most 3600 s"
+        )
+
+
 def test_a_recording_and_its_gzipped_twin_are_refused_as_two_of_one_name(tmp_path: Path) -> None:
     # Seen: j1_1.csv beside j1_1.csv.gz gave two rows named maxAccel/j1_1.
     _copy(tmp_path, "maxAccel", "j3_6.csv")

@@ -75,6 +75,11 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: 0.22 s (the controller's log in ``tracking_error/record_0p314_0p157_j1``):
 #: a recording of one's own arm may pause longer than those and still be read.
 MAX_STEP_S = 60.0
+#: The longest replayed recording, s: an hour replays in some 4 s. The arm's
+#: longest replayed recording spans 79 s (``high_speed_stall_test``); seen: an
+#: 8 kB file of 300 steps of 59 s kept ``validate`` busy for 40 s, and a
+#: megabyte of them would have run for hours.
+MAX_DURATION_S = 3600.0
 
 
 def _data_dir() -> Path:
@@ -176,9 +181,9 @@ def _check_time(
 
     It must increase (``strict``) or at least never go back; if ``bounded``
     (a recording the simulated arm is run through), no step may exceed
-    :data:`MAX_STEP_S`. With ``from_zero`` the clock starts at the program's
-    command: the first sample is that long after it (at least 0, and within
-    the same bound).
+    :data:`MAX_STEP_S`, nor the whole :data:`MAX_DURATION_S`. With
+    ``from_zero`` the clock starts at the program's command: the first
+    sample is that long after it (at least 0, and within the same bound).
     """
     longest = MAX_STEP_S if bounded else math.inf
     sampled = f"; a replay takes steps of up to {longest:g} s"
@@ -203,6 +208,11 @@ def _check_time(
     if jump.size:
         i = int(jump[0])
         raise RecordingError(path, f"line {lines[i + 1]}: time jumps by {steps[i]:g} s{sampled}")
+    span = t[-1] - (0.0 if from_zero else t[0])
+    if bounded and span > MAX_DURATION_S:
+        raise RecordingError(
+            path, f"line {lines[-1]}: {what} spans {span:g} s; a replay runs at most {MAX_DURATION_S:g} s"
+        )
 
 
 def _check_position(path: Path, line: int, value: float, what: str, reduction: float, unit: str) -> None:
