@@ -1049,6 +1049,22 @@ class ScriptedRng:
         return len(self._fractions)
 
 
+# ---------------------------------------------------------- command outputs
+def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    """The single line on stderr after ``bioscara COMMAND: error: ``."""
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    prefix = f"bioscara {command}: error: "
+    assert lines[0].startswith(prefix), lines[0]
+    return lines[0].removeprefix(prefix)
+
+
+def drive_currents(state_file: Path) -> dict[str, int]:
+    """Each joint's drive current in a console ``--state`` file, as its firmware emulator holds it."""
+    firmware = json.loads(state_file.read_text(encoding="utf-8"))["firmware"]
+    return {joint: state["drive_current"] for joint, state in firmware.items()}
+
+
 # ---------------------------------------------------- in-process deployments
 def read_log(path: Path) -> list[dict[str, Any]]:
     """Every line of a run log, parsed (fails on a torn line)."""

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rigs import drive_currents, one_line_error
 
 from bioscara_gym.cli import main
 from bioscara_gym.fsutil import atomic_write_text, output_clash, output_problem, read_json, replaced_path
@@ -38,14 +39,6 @@ from bioscara_gym.hardware.recording import TRACE_FORMAT, Recording
 
 REACH = "Bioscara-Reach-v0"
 
-
-def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
-    """The single line on stderr after ``bioscara COMMAND: error: ``."""
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    prefix = f"bioscara {command}: error: "
-    assert lines[0].startswith(prefix), lines[0]
-    return lines[0].removeprefix(prefix)
 
 
 @pytest.fixture
@@ -368,13 +361,7 @@ def test_sigterm_stops_monitor_as_ctrl_c_does_disabling_the_joints(tmp_path: Pat
     assert all(state["drive_current"] > 0 for state in enabled.values())
     done = _terminated(["monitor", "--duration", "60", "--state", "st.json"], tmp_path, ready=8.0)
     assert (done.returncode, done.stderr.strip()) == (143, "bioscara monitor: interrupted by SIGTERM")
-    firmware = json.loads((tmp_path / "st.json").read_text(encoding="utf-8"))["firmware"]
-    assert {joint: state["drive_current"] for joint, state in firmware.items()} == {
-        "j1": 0,
-        "j2": 0,
-        "j3": 0,
-        "j4": 0,
-    }
+    assert drive_currents(tmp_path / "st.json") == {"j1": 0, "j2": 0, "j3": 0, "j4": 0}
 
 
 def test_the_first_signal_interrupts_and_later_ones_let_the_clean_up_finish() -> None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
 import pty
 import select
@@ -34,7 +33,7 @@ import time
 from pathlib import Path
 
 import pytest
-from rigs import read_log
+from rigs import drive_currents, read_log
 from test_deploy import REACH, assert_every_joint_disabled
 
 from bioscara_gym.cli import main
@@ -152,31 +151,20 @@ def test_monitor_whose_terminal_closes_disables_the_joints_and_removes_its_lock(
     proc, master = _under_a_terminal(["monitor", "--duration", "120", "--state", "st.json"], tmp_path)
     code = _hang_up_when(proc, master, lambda seen: b"quit" in seen, "drew the dashboard")
     assert code == 129
-    firmware = json.loads((tmp_path / "st.json").read_text(encoding="utf-8"))["firmware"]
-    assert {joint: state["drive_current"] for joint, state in firmware.items()} == {
-        "j1": 0,
-        "j2": 0,
-        "j3": 0,
-        "j4": 0,
-    }
+    assert drive_currents(tmp_path / "st.json") == {"j1": 0, "j2": 0, "j3": 0, "j4": 0}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["st.json"]
+
+
+def deploy_argv(episodes: int) -> list[str]:
+    """The scripted expert's Reach deployment on the emulated arm, logged to ``run.jsonl``."""
+    return ["deploy", "--expert", "--env", REACH, "--backend", "emulated",
+            "--episodes", str(episodes), "--log", "run.jsonl"]  # fmt: skip
 
 
 def test_deploy_whose_terminal_closes_makes_the_arm_safe_and_says_hung_up(tmp_path: Path) -> None:
     # Seen: killed by SIGHUP at once, no safe stop, the run log without its summary.
     log = tmp_path / "run.jsonl"
-    argv = [
-        "deploy",
-        "--expert",
-        "--env",
-        REACH,
-        "--backend",
-        "emulated",
-        "--episodes",
-        "1000",
-        "--log",
-        "run.jsonl",
-    ]
+    argv = deploy_argv(episodes=1000)
 
     def twenty_cycles(seen: bytes) -> bool:
         return log.exists() and log.read_text(encoding="utf-8").count('"type":"cycle"') >= 20
@@ -191,18 +179,7 @@ def test_deploy_whose_terminal_closes_makes_the_arm_safe_and_says_hung_up(tmp_pa
 def test_under_nohup_a_deploy_runs_on_after_a_sighup(tmp_path: Path) -> None:
     # nohup: SIGHUP ignored, the output in a file (nohup.out), no input.
     log = tmp_path / "run.jsonl"
-    argv = [
-        "deploy",
-        "--expert",
-        "--env",
-        REACH,
-        "--backend",
-        "emulated",
-        "--episodes",
-        "2",
-        "--log",
-        "run.jsonl",
-    ]
+    argv = deploy_argv(episodes=2)
     with (tmp_path / "nohup.out").open("wb") as out:
         proc = subprocess.Popen(
             [sys.executable, "-m", "bioscara_gym", *argv],

@@ -18,6 +18,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from rigs import one_line_error
 
 from bioscara_gym.cli import main
 from bioscara_gym.hardware import load_config
@@ -25,14 +26,6 @@ from bioscara_gym.validation.recordings import DATA_DIR
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
-
-def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
-    """The single line on stderr after ``bioscara COMMAND: error: ``."""
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    prefix = f"bioscara {command}: error: "
-    assert lines[0].startswith(prefix), lines[0]
-    return lines[0].removeprefix(prefix)
 
 
 def _recordings(root: Path, *names: str) -> Path:
