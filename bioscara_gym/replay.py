@@ -352,11 +352,16 @@ def _own_stop_handlers() -> Iterator[None]:
 
     A recorded signal calls the installed handler; the CLI's turns every later
     signal into a note (seen: a real Ctrl-C ignored for the rest of the replay).
+    During the session SIGHUP is at its default, not ignored: a replay run
+    under ``nohup`` left the recorded SIGHUP to no handler, and the replayed
+    deploy ran on past where the recorded one stopped (a reviewer's find).
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    if before[signal.SIGHUP] == signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
     try:
         yield
     finally:

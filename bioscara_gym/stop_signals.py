@@ -5,7 +5,8 @@ closed, or the SSH session drops. Left to its default it ended the process
 at once (seen 2026-11-29: ``monitor`` left every joint enabled and its lock
 file behind; a ``deploy`` would have left the arm at its last command). Now
 it takes the way out Ctrl-C takes: the arm is made safe, temporary files go,
-a training saves a checkpoint, and the exit code is 129. A command started
+a training saves a checkpoint, and the exit code is 129 (``emulate``,
+which serves until a signal stops it, exits 0). A command started
 under ``nohup``, which ignores SIGHUP, goes on ignoring it and runs on, as
 ``nohup`` promises (:func:`caught`).
 
@@ -40,7 +41,9 @@ def after_signal(signum: int, fds: tuple[int, ...] = (0, 1, 2)) -> None:
 
     A hung-up terminal answers every request with EIO (a terminal that is
     still there, a file or a pipe is left alone), so a command's clean-up
-    and its last line go to ``/dev/null`` instead of failing.
+    and its last line go to ``/dev/null`` instead of failing. It raises
+    nothing: called from signal handlers, its own failure (no ``/dev/null``,
+    no descriptor left) must not take the place of the interrupt.
     """
     if signum != signal.SIGHUP:
         return
@@ -53,8 +56,13 @@ def after_signal(signum: int, fds: tuple[int, ...] = (0, 1, 2)) -> None:
         except termios.error as e:
             if e.args[0] != errno.EIO:
                 continue  # not a terminal (a file, a pipe), or closed
-        null = os.open(os.devnull, os.O_RDWR)
+        try:  # from a signal handler: no error of its own may take the interrupt's place
+            null = os.open(os.devnull, os.O_RDWR)
+        except OSError:
+            return
         try:
             os.dup2(null, fd)
+        except OSError:
+            pass
         finally:
             os.close(null)

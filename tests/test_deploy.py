@@ -650,7 +650,9 @@ def test_export_refuses_a_model_without_its_own_copy_of_the_metadata(
     )
 
 
-def test_a_models_copy_of_the_metadata_is_read_to_1_mb_only(sac_model: Path, tmp_path: Path) -> None:
+def test_a_models_copy_of_the_metadata_is_read_to_1_mb_only(
+    sac_model: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Seen: a 2 MB model.zip whose copy unpacks to 2 GB was read whole: MemoryError, a traceback.
     from bioscara_gym.errors import MetadataError
     from bioscara_gym.training.metadata import read_embedded_metadata
@@ -660,12 +662,22 @@ def test_a_models_copy_of_the_metadata_is_read_to_1_mb_only(sac_model: Path, tmp
         for item in src.infolist():
             if item.filename != "bioscara_metadata.json":
                 dst.writestr(item, src.read(item.filename))
-        dst.writestr("bioscara_metadata.json", b" " * (1024 * 1024 + 1))
+        dst.writestr("bioscara_metadata.json", b" " * (8 * 1024 * 1024))
+    read_sizes: list[int] = []
+    read = zipfile.ZipExtFile.read
+
+    def counted(self: zipfile.ZipExtFile, n: int = -1) -> bytes:
+        data = read(self, n)
+        read_sizes.append(len(data))
+        return data
+
+    monkeypatch.setattr(zipfile.ZipExtFile, "read", counted)
     with pytest.raises(MetadataError) as refused:
         read_embedded_metadata(model)
     assert str(refused.value) == (
         f"{model}: its copy of the training metadata is over 1048576 bytes (ours are a few kB); not read"
     )
+    assert sum(read_sizes) == 1048577  # the limit and one byte more, not the whole member
 
 
 def test_an_interrupted_export_leaves_no_folder_it_made(

@@ -89,6 +89,24 @@ def test_after_sighup_only_the_hung_up_terminal_goes_to_dev_null() -> None:
             os.close(fd)
 
 
+def test_after_sighup_a_failure_to_open_dev_null_raises_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Called from signal handlers: its own error would take the interrupt's place (a reviewer's find).
+    hung_master, hung = pty.openpty()
+    os.close(hung_master)
+
+    def no_descriptor_left(*args: object) -> int:
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    try:
+        monkeypatch.setattr(os, "open", no_descriptor_left)
+        after_signal(signal.SIGHUP, fds=(hung,))
+        monkeypatch.undo()
+        with pytest.raises(OSError):  # left as it was
+            os.write(hung, b"x")
+    finally:
+        os.close(hung)
+
+
 # ------------------------------------------------------------ a real terminal
 def _under_a_terminal(
     argv: list[str], cwd: Path, ignore_hup: bool = False

@@ -70,6 +70,20 @@ def test_a_signal_during_a_cycle_is_raised_again_at_the_same_cycle_boundary(
     assert_replays_whole(trace)
 
 
+def test_a_deploy_stopped_by_sighup_replays_under_nohup_too(tmp_path: Path, sighup_default: None) -> None:
+    # A reviewer's find: replayed with SIGHUP ignored, the recorded SIGHUP reached no handler and the
+    # replayed deploy ran on past where the recorded one stopped (a mismatch at transaction 1740).
+    def hang_up(cycle: int, env: Any) -> None:
+        if cycle == 30:
+            signal.raise_signal(signal.SIGHUP)
+
+    trace, error = deploy_recorded(tmp_path, hang_up)
+    assert isinstance(error, Interrupted) and error.signum == signal.SIGHUP
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # the fixture puts the default back
+    assert_replays_whole(trace)
+    assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+
+
 def test_without_its_signal_line_the_interrupted_deploy_does_not_replay(tmp_path: Path) -> None:
     def interrupt(cycle: int, env: Any) -> None:
         if cycle == 30:

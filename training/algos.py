@@ -74,8 +74,9 @@ def load_model(
     """
     path = Path(path)
     model_file = path / "model.zip" if path.is_dir() else path
-    if not os.path.lexists(model_file):  # seen: "no metadata.json next to nope.zip" for a typo
-        raise PolicyFileError(f"no model at {model_file}")
+    if not model_file.exists():  # seen: "no metadata.json next to nope.zip" for a typo
+        dangling = f" (a symlink to {os.readlink(model_file)}, not there)" if model_file.is_symlink() else ""
+        raise PolicyFileError(f"no model at {model_file}{dangling}")
     if not model_file.is_file():  # seen: a FIFO or /dev/zero was "no model at ..."
         raise PolicyFileError(f"{model_file} is not a regular file; give the model.zip")
     metadata = read_metadata(model_file)

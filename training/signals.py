@@ -71,10 +71,10 @@ class SignalGuard:
         self._previous.clear()
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
-        after_signal(signum)
         repeated = self.pending is not None
         if self.pending is None:
             self.pending = signum
+        after_signal(signum)
         if self._mode == "raise" or (self._mode == "defer" and repeated):
             raise Interrupted(self.pending)
 
