@@ -49,6 +49,7 @@ from bioscara_gym.hardware.errors import (
 from bioscara_gym.hardware.gripper import Gripper, read_saved_width
 from bioscara_gym.hardware.recording import note_signal
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S
+from bioscara_gym.stop_signals import held
 
 #: Period of the arm's read/write cycle while a command waits, s (25 Hz).
 CYCLE_S = 0.04
@@ -207,20 +208,23 @@ class Session:
             return
         refused = exc is not None and (isinstance(exc, InvalidArgumentError) or _refused(exc))
         failed = exc is not None and not refused
-        try:
-            if failed:
-                note_signal(self.backend, exc)  # a Ctrl-C: where, in the bus trace, for its replay
-                self._on_error()
-            else:
-                self._let_blocking_commands_start()
-        finally:
+        # A stop signal now does not cut the safe stop or the state's write short: the command ends as
+        # it would have (seen: exit 143 after enable's result line, the state file not written).
+        with held():
             try:
-                self._save_state(failed=failed, refused=refused)
+                if failed:
+                    note_signal(self.backend, exc)  # a Ctrl-C: where, in the bus trace, for its replay
+                    self._on_error()
+                else:
+                    self._let_blocking_commands_start()
             finally:
                 try:
-                    self._release()
+                    self._save_state(failed=failed, refused=refused)
                 finally:
-                    self._unlock()
+                    try:
+                        self._release()
+                    finally:
+                        self._unlock()
 
     def _on_error(self) -> None:
         """The arm layer's on-error transition: every joint and the gripper disabled."""

@@ -56,7 +56,7 @@ from bioscara_gym.hardware.bus import I2CBus
 from bioscara_gym.hardware.clock import Clock, ManualClock
 from bioscara_gym.hardware.config import ArmConfig, config_to_dict
 from bioscara_gym.hardware.registry import backend_names
-from bioscara_gym.stop_signals import STOP_SIGNALS
+from bioscara_gym.stop_signals import STOP_SIGNALS, SignalHandler, put_back
 
 #: ``format`` and ``version`` of a trace header; a reader refuses newer versions.
 #: Version 2 added the per-line ``digest``; version 1 traces have none.
@@ -475,8 +475,6 @@ class RecordingBus:
         return getattr(self.inner, name)
 
 
-#: A signal handler as :func:`signal.signal` takes it.
-SignalHandler = Callable[[int, FrameType | None], Any]
 
 
 class _HeldSignals:
@@ -520,20 +518,10 @@ class _HeldSignals:
     def __exit__(self, *exc: object) -> None:
         """Put the handlers back, then hand them the signals noted meanwhile."""
         handlers, self._handlers = self._handlers, {}
-        _put_back(list(handlers.items()))
+        put_back(list(handlers.items()))
         arrived, self._arrived = self._arrived, []
         for signum in arrived:
             handlers[signum](signum, None)
-
-
-def _put_back(handlers: Sequence[tuple[int, SignalHandler]]) -> None:
-    """Install each signal's handler; one that raises as soon as it is back leaves none of the rest out."""
-    if not handlers:
-        return
-    try:
-        signal.signal(*handlers[0])
-    finally:
-        _put_back(handlers[1:])
 
 
 def signal_name(interrupted: KeyboardInterrupt) -> str:
@@ -596,7 +584,7 @@ def signals_noted(backend: object) -> Iterator[None]:
                 signal.signal(signum, waiting)
         yield
     finally:
-        _put_back(
+        put_back(
             [
                 (signum, handler)
                 for signum, handler, waiting in installed
