@@ -10,6 +10,7 @@ byte reaches the arm, and no file is touched.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -96,6 +97,23 @@ def graph(onnx_path: Path, out: Path, width: int, rank3: bool = False, rank1: bo
         model.metadata_props.add(key=p.key, value=p.value)
     onnx.save(model, str(out))
     return out
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_an_onnx_path_that_is_no_regular_file_is_refused_in_one_line(
+    kind: str, tmp_path: Path, bus_traffic: list[tuple[int, bytes]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen: a FIFO hung deploy --onnx until killed; a folder was "Protobuf parsing failed".
+    path = tmp_path / "policy.onnx"
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.mkdir()
+    assert main(deploy(tmp_path, "--onnx", str(path))) == 2
+    assert refused(capsys.readouterr().err) == (
+        f"{path} is not a regular file; give the .onnx file of `bioscara export`"
+    )
+    assert bus_traffic == []
 
 
 # ------------------------------------------- 1: an action of the wrong shape

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -295,6 +296,12 @@ class OnnxPolicy:
             import onnxruntime as ort
 
         self.path = Path(path)
+        try:  # seen: a FIFO hung deploy --onnx; a folder was "Protobuf parsing failed"
+            regular = stat.S_ISREG(os.stat(self.path).st_mode)
+        except OSError as e:
+            raise ExportError(f"cannot load {self.path}: {e.strerror}") from e
+        if not regular:
+            raise ExportError(f"{self.path} is not a regular file; give the .onnx file of `bioscara export`")
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
