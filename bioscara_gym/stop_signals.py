@@ -3,7 +3,9 @@
 SIGHUP comes when the terminal a command runs in goes away: its window is
 closed, or the SSH session drops. Left to its default it ended the process
 at once (seen 2026-11-29: ``monitor`` left every joint enabled and its lock
-file behind; a ``deploy`` would have left the arm at its last command). Now
+file behind; a ``deploy`` died with no safe stop and no summary, where on
+the arm the firmware's deadman stops a joint in velocity mode 50 ms later,
+its currents left on, and a position move runs on). Now
 it takes the way out Ctrl-C takes: the arm is made safe, temporary files go,
 a training saves a checkpoint, and the exit code is 129 (``emulate``,
 which serves until a signal stops it, exits 0). A command started
