@@ -46,6 +46,14 @@ REFUSED = [
         "bioscara move: error: j1: 9 rad is outside the joint limits [-3.04647, 3.04647] rad",
     ),
     (["move", "j2", "nan"], "bioscara move: error: j2: nan m is outside the joint limits [-0.0016, 0.338] m"),
+    (  # seen: "the following arguments are required: VALUE" (Python 3.11 took -5e1 for an option)
+        ["move", "j1", "-5e1"],
+        "bioscara move: error: j1: -50 rad is outside the joint limits [-3.04647, 3.04647] rad",
+    ),
+    (
+        ["gripper", "-1e-2"],
+        "bioscara gripper: error: gripper: width -0.01 m is outside the limits [0.04, 0.12] m",
+    ),
     (["move", "j9", "0"], "bioscara move: error: unknown joint 'j9'; known joints: j1, j2, j3, j4"),
     (["gripper", "5"], "bioscara gripper: error: gripper: width 5 m is outside the limits [0.04, 0.12] m"),
     (["enable", "j9"], f"bioscara enable: error: {UNKNOWN_GROUP}"),

@@ -72,6 +72,7 @@ import contextlib
 import dataclasses
 import functools
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -590,6 +591,17 @@ def _common(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _signed_numbers(parser: argparse.ArgumentParser) -> None:
+    """Read ``-5e-1`` as a number, as Python 3.13's argparse does, not as an unknown option.
+
+    Seen: ``move j1 -5e-1`` said "the following arguments are required:
+    VALUE" where ``-.5`` worked: Python 3.11's argparse takes for a negative
+    number only ``-5`` and ``-.5``. 3.13 takes anything starting with ``-``
+    and a digit (its ``_negative_number_matcher``, set here the same way).
+    """
+    parser._negative_number_matcher = re.compile(r"-\.?\d")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the operator subcommands: status, ping, enable, disable, home, move, gripper, reboot, monitor."""
     p = sub.add_parser("status", help="lifecycle, joint states, gripper and bus statistics")
@@ -620,6 +632,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_home)
 
     p = sub.add_parser("move", help="move a homed, enabled joint to a position and wait")
+    _signed_numbers(p)
     p.add_argument("joint", metavar="JOINT")
     p.add_argument("value", type=float, metavar="VALUE", help="rad (m for the prismatic j2)")
     p.add_argument("--timeout", type=_seconds, metavar="S", help="seconds (default: from the joint's limits)")
@@ -627,6 +640,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_move)
 
     p = sub.add_parser("gripper", help="set the gripper width (enables the servo)")
+    _signed_numbers(p)
     p.add_argument("width", type=float, metavar="WIDTH", help="m")
     _common(p)
     p.set_defaults(func=cmd_gripper)
