@@ -80,7 +80,7 @@ def test_after_sighup_only_the_hung_up_terminal_goes_to_dev_null() -> None:
         after_signal(signal.SIGTERM, fds=(hung,))  # not a hang-up: nothing changes
         with pytest.raises(OSError):
             os.write(hung, b"x")
-        after_signal(signal.SIGHUP, fds=(hung, live, writer))
+        after_signal(signal.SIGHUP, fds=(live, writer, hung))  # the hung-up one last: each is looked at
         assert os.write(hung, b"the last line") == 13 and _is_dev_null(hung)
         assert os.isatty(live) and not _is_dev_null(live)
         assert stat.S_ISFIFO(os.fstat(writer).st_mode)
