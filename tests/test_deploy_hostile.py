@@ -93,6 +93,7 @@ def graph(onnx_path: Path, out: Path, width: int, rank3: bool = False, rank1: bo
     )
     model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = base.ir_version
+    model.graph.doc_string = base.graph.doc_string  # its seal of the metadata
     for p in base.metadata_props:
         model.metadata_props.add(key=p.key, value=p.value)
     onnx.save(model, str(out))

@@ -159,6 +159,24 @@ def obs_keys_of_pick_place(props: dict[str, str]) -> None:
     props["obs_keys"] = json.dumps(keys)
 
 
+def unsealed(run: Path) -> list[str]:
+    """The exported ONNX file without the graph's seal of its metadata, as exported before it had one."""
+    import onnx
+
+    proto = onnx.load(str(run / "policy.onnx"))
+    proto.graph.doc_string = ""
+    onnx.save(proto, str(run / "unsealed.onnx"))
+    return ["--onnx", str(run / "unsealed.onnx")]
+
+
+def control_freq_50(props: dict[str, str]) -> None:
+    """Claim a 50 Hz training rate in the metadata of a policy trained at 25 Hz."""
+    metadata = json.loads(props["bioscara_metadata"])
+    assert metadata["env_kwargs"]["control_freq"] == 25
+    metadata["env_kwargs"]["control_freq"] = 50
+    props["bioscara_metadata"] = json.dumps(metadata, sort_keys=True)
+
+
 def metadata_of_pick_place(props: dict[str, str]) -> None:
     """Embed PickPlace metadata in the Reach graph (its obs_keys stay Reach's)."""
     env = gym.make(PICK_PLACE, control_mode="cartesian", backend="mock")
@@ -248,11 +266,24 @@ ROWS: list[tuple[str, Callable[[Path], list[str]], list[str], str]] = [
         [],
         "the graph's input 'obs' takes 18 values, but its obs_keys add up to 28",
     ),
+    (  # a hostile test's: an edited control_freq ran a 25 Hz policy at 50 Hz
+        "onnx-metadata-edited-after-export",
+        onnx_props(control_freq_50),
+        [],
+        "its bioscara_metadata was changed after export (the graph's seal of it differs); export it again "
+        "from its model.zip",
+    ),
     (
-        "onnx-graph-disagrees-with-its-metadata",
+        "onnx-without-a-seal",
+        unsealed,
+        [],
+        "has no seal of its metadata (exported by an older bioscara-gym); export it again from its model.zip",
+    ),
+    (
+        "onnx-metadata-swapped-for-another-tasks",
         onnx_props(metadata_of_pick_place),
         [],
-        "takes 12 values of observation 'observation', the env gives 22",
+        "its bioscara_metadata was changed after export (the graph's seal of it differs)",
     ),
     ("rate-inf", model, ["--rate", "inf"], "--rate inf Hz must be within 20-100 Hz"),
     ("rate-1e9", model, ["--rate", "1e9"], "--rate 1e+09 Hz must be within 20-100 Hz"),

@@ -24,6 +24,7 @@ onnx; :class:`OnnxPolicy` needs numpy and onnxruntime (the ``[onnx]`` extra).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import stat
@@ -200,17 +201,26 @@ def _write_graph(
             opset_version=OPSET,
         )
     proto = onnx.load(path)
-    for key, value in (
-        (METADATA_KEY, json.dumps(metadata, sort_keys=True, default=str)),
-        (OBS_KEYS_KEY, json.dumps(layout)),
-    ):
+    text = json.dumps(metadata, sort_keys=True, default=str)
+    for key, value in ((METADATA_KEY, text), (OBS_KEYS_KEY, json.dumps(layout))):
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
+    proto.graph.doc_string = metadata_seal(text)
     onnx.checker.check_model(proto)
     with open(path, "wb") as f:
         f.write(proto.SerializeToString())
         f.flush()
         os.fsync(f.fileno())
+
+
+def metadata_seal(text: str) -> str:
+    """The graph's own word on its metadata (its ``doc_string``): the metadata prop's SHA-256.
+
+    The ONNX file has no second copy of its metadata, as ``model.zip`` has:
+    an edited ``control_freq`` prop ran a 25 Hz policy at 50 Hz (a hostile
+    test). A prop edited after export no longer matches the seal.
+    """
+    return f"{METADATA_KEY} sha256:{hashlib.sha256(text.encode('utf-8')).hexdigest()}"
 
 
 def _check_observations(metadata: dict[str, Any], n: int, seed: int) -> list[dict[str, np.ndarray]]:
@@ -318,6 +328,14 @@ class OnnxPolicy:
             raise ExportError(
                 f"{self.path} has no {'/'.join(missing)} metadata; export it with `bioscara export`"
             )
+        seal = self.session.get_modelmeta().graph_description
+        if seal != metadata_seal(props[METADATA_KEY]):
+            said = (
+                f"its {METADATA_KEY} was changed after export (the graph's seal of it differs)"
+                if seal.startswith(f"{METADATA_KEY} sha256:")
+                else "has no seal of its metadata (exported by an older bioscara-gym)"
+            )
+            raise ExportError(f"{self.path}: {said}; export it again from its model.zip")
         try:
             metadata = json.loads(props[METADATA_KEY])
             self.obs_keys: list[tuple[str, int]] = parse_obs_keys(props[OBS_KEYS_KEY])
