@@ -631,15 +631,17 @@ def test_failed_replace_keeps_previous_file(
     assert leftover_files(state_file.parent) == []
 
 
+def _disk_full(src: object, dst: object) -> None:
+    """``os.replace`` on a full disk."""
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
 def test_failed_save_still_switches_output_off(
     enabled: BaseGripper, kernel: FakePwmKernel, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A failed save warns but the servo is still switched off."""
 
-    def fail_replace(src: object, dst: object) -> None:
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(os, "replace", fail_replace)
+    monkeypatch.setattr(os, "replace", _disk_full)
     with pytest.warns(GripperStateWarning, match="cannot save width"):
         enabled.disable()
     assert not enabled.is_enabled
@@ -651,10 +653,7 @@ def test_a_failed_save_is_reported_in_words_with_its_reason(
 ) -> None:
     """save_status() says the width was NOT saved, and why."""
 
-    def fail_replace(src: object, dst: object) -> None:
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(os, "replace", fail_replace)
+    monkeypatch.setattr(os, "replace", _disk_full)
     with pytest.warns(GripperStateWarning):
         enabled.disable()
     assert enabled.save_status() == f"NOT saved to {state_file}: No space left on device"

@@ -82,18 +82,23 @@ def test_a_failed_rename_puts_the_old_dataset_back(tmp_path: Path) -> None:
     assert not (tmp_path / "replaced").exists()
 
 
+def _once_set_aside(monkeypatch: pytest.MonkeyPatch, path: Path, then: Any) -> None:
+    """``then()`` right after the rename that sets the old dataset at ``path`` aside."""
+    rename = os.rename
+
+    def renamed(src: Any, dst: Any) -> None:
+        rename(src, dst)
+        if src == path:
+            then()
+
+    monkeypatch.setattr(os, "rename", renamed)
+
+
 def test_a_dataset_written_between_the_renames_is_kept_and_the_error_is_the_renames(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     new, path = _folder(tmp_path / "new", "n"), _folder(tmp_path / "ds", "o")
-    rename = os.rename
-
-    def another_writer(src: Any, dst: Any) -> None:
-        rename(src, dst)
-        if src == path:  # another command's dataset lands as soon as the old one is aside
-            _folder(path, "theirs")
-
-    monkeypatch.setattr(os, "rename", another_writer)
+    _once_set_aside(monkeypatch, path, lambda: _folder(path, "theirs"))  # another command's lands
     with pytest.raises(OSError) as info:
         demos._move_into_place(new, path, tmp_path / "replaced", overwrite=True)
     assert info.value.errno in (errno.EEXIST, errno.ENOTEMPTY)
@@ -104,14 +109,7 @@ def test_a_signal_during_the_renames_is_raised_after_both(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     new, path = _folder(tmp_path / "new", "n"), _folder(tmp_path / "ds", "o")
-    rename = os.rename
-
-    def first_rename_signalled(src: Any, dst: Any) -> None:
-        rename(src, dst)
-        if src == path:  # the old one set aside: no dataset at the path now
-            signal.raise_signal(signal.SIGTERM)
-
-    monkeypatch.setattr(os, "rename", first_rename_signalled)
+    _once_set_aside(monkeypatch, path, lambda: signal.raise_signal(signal.SIGTERM))  # none at the path
     with pytest.raises(Interrupted) as info:
         demos._move_into_place(new, path, tmp_path / "replaced", overwrite=True)
     assert info.value.exit_code == 143
