@@ -2,7 +2,12 @@
 
 Every subcommand prints a one-line error and exits non-zero on bad input
 (unknown env, algorithm or joint, unreadable file, mismatched policy); it
-never leaves the arm enabled behind it.
+never leaves the arm enabled behind it. Exit codes: 0 done; 2 refused
+(nothing that changes the arm was sent); 3 a failure on the arm (a stall, a
+bus error, a timeout, deploy's safety stop; the console and deploy then
+disable every joint); 130, 143, 129 Ctrl-C, SIGTERM, SIGHUP; 1 an unexpected error
+(``ping``, ``validate`` and ``replay`` give 1 a meaning of their own: a
+device that did not answer, a row or a transaction that does not match).
 """
 
 from __future__ import annotations
@@ -22,7 +27,15 @@ from typing import Any, NoReturn
 from rich.console import Console
 from rich.table import Table
 
-from bioscara_gym.errors import EXIT_ERROR, EXIT_INTERRUPTED, CheckpointWarning, CliError, MissingExtraError
+from bioscara_gym.errors import (
+    EXIT_ERROR,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    CheckpointWarning,
+    CliError,
+    MissingExtraError,
+    is_refusal,
+)
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
 from bioscara_gym.hardware.sitl.build import add_firmware_option
@@ -330,7 +343,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as e:
         _last_line(err, f"bioscara {args.command}: error: {_os_error(e)}")
         return EXIT_ERROR
-    except (ValueError, MissingExtraError, JointError, SitlError) as e:
+    except JointError as e:  # refused before anything was sent (2), or went wrong on the arm (3)
+        _last_line(err, f"bioscara {args.command}: error: {e}")
+        return EXIT_ERROR if is_refusal(e) else EXIT_FAULT
+    except (ValueError, MissingExtraError, SitlError) as e:
         _last_line(err, f"bioscara {args.command}: error: {e}")
         return EXIT_ERROR
     except RecursionError:  # a file nested deeper than any of ours; the loaders name the file

@@ -12,10 +12,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from bioscara_gym.hardware.errors import MissingExtraError
+from bioscara_gym.hardware.errors import InvalidArgumentError, MissingExtraError
 
 __all__ = [
     "EXIT_ERROR",
+    "EXIT_FAULT",
     "EXIT_INTERRUPTED",
     "CheckpointWarning",
     "CliError",
@@ -30,12 +31,38 @@ __all__ = [
     "StateFileError",
     "StateFileInUseError",
     "TrainingError",
+    "is_refusal",
+    "refusal",
 ]
 
 #: Exit code of a refused request (bad input; nothing was sent to the arm).
 EXIT_ERROR = 2
+#: Exit code after a failure on the arm (a stall, a bus error, a timeout, a safety stop):
+#: the command had sent it requests; the console then disabled every joint, deploy stopped it safely.
+EXIT_FAULT = 3
 #: Exit code after Ctrl-C (128 + SIGINT); SIGTERM and SIGHUP exit 143 and 129.
 EXIT_INTERRUPTED = 130
+
+
+#: Attribute marking an error raised before any byte that changes the arm was sent.
+_REFUSED = "refused_before_traffic"
+
+
+def refusal(error: Exception) -> Exception:
+    """Mark ``error`` as a refusal made before anything was sent to the arm (exit :data:`EXIT_ERROR`)."""
+    setattr(error, _REFUSED, True)
+    return error
+
+
+def is_refusal(error: BaseException) -> bool:
+    """Whether ``error`` refused a request before anything was sent to the arm.
+
+    An argument the driver refused (:class:`InvalidArgumentError`, checked
+    before its transaction) or an error marked by :func:`refusal` (the
+    console's checks of the state the arm is in). Any other driver error
+    happened on the arm: exit :data:`EXIT_FAULT`.
+    """
+    return isinstance(error, InvalidArgumentError) or bool(getattr(error, _REFUSED, False))
 
 
 class CliError(Exception):

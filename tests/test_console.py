@@ -36,9 +36,18 @@ from bioscara_gym.console.format import flags_text
 from bioscara_gym.console.session import Session
 from bioscara_gym.console.state import STATE_FORMAT, lock_path
 from bioscara_gym.console.targets import ConsoleOptions, resolve_target
+from bioscara_gym.errors import refusal
 from bioscara_gym.fsutil import LockFile
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.errors import MissingExtraError
+from bioscara_gym.hardware.errors import (
+    ArmStateError,
+    CommError,
+    InvalidArgumentError,
+    JointError,
+    MissingExtraError,
+    NotHomedError,
+    StalledError,
+)
 from bioscara_gym.hardware.registers import Flag
 
 CONFIG = load_config()
@@ -312,6 +321,50 @@ def test_an_os_error_is_one_line_with_its_file_and_without_its_errno(
     monkeypatch.setattr(commands, "cmd_status", fails)
     assert cli.main(["status"]) == 2
     assert capsys.readouterr().err == f"bioscara status: error: {line}\n"
+
+
+@pytest.mark.parametrize(
+    ("error", "code"),
+    [
+        (CommError("j1: no acknowledge after 3 retries"), 3),
+        (StalledError("j2: stall detected"), 3),
+        (ArmStateError("j3: not at 1 rad within 2 s (at 0.5000 rad)"), 3),
+        (InvalidArgumentError("j1: 9 rad is outside [-3.05, 3.05]"), 2),
+        (refusal(NotHomedError("j4: not homed; run `bioscara home j4` first")), 2),
+    ],
+    ids=["bus", "stall", "timeout", "argument", "state"],
+)
+def test_a_failure_on_the_arm_exits_3_and_a_refusal_2(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], error: JointError, code: int
+) -> None:
+    # Both used to exit 2, which the README gives refusals (nothing sent): a script
+    # could not tell "nothing happened" from "the arm failed and was disabled".
+    import bioscara_gym.cli as cli
+
+    def fails(args: argparse.Namespace) -> int:
+        raise error
+
+    monkeypatch.setattr(commands, "cmd_move", fails)
+    assert cli.main(["move", "j1", "0.1"]) == code
+    assert capsys.readouterr().err == f"bioscara move: error: {error}\n"
+
+
+def test_a_homing_that_times_out_exits_3_with_the_arm_disabled(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    code, _, err = bioscara("home", "j2", "--timeout", "0.5", "--state", str(state))
+    assert (code, err) == (3, "bioscara home: error: homing j2 did not finish within 0.5 s; aborted")
+    table = status(bioscara, state)
+    assert [enabled(table, name) for name in ("j1", "j2", "j3", "j4", "gripper")] == ["no"] * 5
+
+
+def test_a_move_that_times_out_exits_3_with_the_arm_disabled(bioscara: Run, state: Path) -> None:
+    bioscara("enable", "--state", str(state))
+    assert bioscara("home", "j4", "--state", str(state))[0] == 0
+    code, _, err = bioscara("move", "j4", "-2", "--timeout", "0.1", "--state", str(state))
+    assert code == 3
+    assert err.startswith("bioscara move: error: j4: not at -2 rad within 0.1 s (at ")
+    table = status(bioscara, state)
+    assert [enabled(table, name) for name in ("j1", "j2", "j3", "j4", "gripper")] == ["no"] * 5
 
 
 def test_enabling_a_joint_busy_homing_is_refused_and_changes_nothing(bioscara: Run, state: Path) -> None:

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from bioscara_gym.errors import EXIT_ERROR, EXIT_FAULT
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.errors import CommError, DeadmanError, JointError, StalledError
 from bioscara_gym.hardware.registers import Flag
@@ -122,9 +123,9 @@ class CycleCheck:
     silence_s: float
 
 
-#: Exit codes: refused before touching the arm, stopped by the safety layer.
-EXIT_REFUSED = 2
-EXIT_SAFETY_STOP = 3
+#: Exit codes: refused before touching the arm, stopped by the safety layer (the CLI's).
+EXIT_REFUSED = EXIT_ERROR
+EXIT_SAFETY_STOP = EXIT_FAULT
 
 
 @dataclass

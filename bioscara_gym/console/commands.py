@@ -49,12 +49,13 @@ joints' bus counters.
   the configuration before the state file is locked or the bus opened: it
   sends nothing and writes nothing (no state file, no bus trace), and exits 2
   with one line naming the problem. One refused for the state the arm is in
-  (a joint not enabled, not homed, busy) sends nothing that changes the arm
-  and leaves it as it was.
-- Any other error (a stall, a bus failure) and Ctrl-C run the arm
-  layer's on-error transition: every joint and the gripper are disabled
-  (a running homing is stopped), then the command exits non-zero with one
-  line naming the problem.
+  (a joint not enabled, not homed, busy) sends nothing that changes the arm,
+  leaves it as it was and exits 2 as well.
+- Any other error (a stall, a bus failure, a ``home`` or ``move`` that
+  timed out) and Ctrl-C run the arm layer's on-error transition: every
+  joint and the gripper are disabled (a running homing is stopped), then
+  the command exits with one line naming the problem: 3 (130, 143 or 129
+  after a signal), where a refusal exits 2.
 
 State between invocations (``--state FILE``, ``emulated`` and ``sim`` only):
 without it every command starts from a powered-up arm (not homed, not

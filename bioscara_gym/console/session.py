@@ -35,13 +35,13 @@ from types import TracebackType
 
 from bioscara_gym.console.state import HostFacts, load_state, lock_state, save_state
 from bioscara_gym.console.targets import ConsoleOptions, Target, check_gripper_width
+from bioscara_gym.errors import is_refusal, refusal
 from bioscara_gym.fsutil import LockFile, read_json
 from bioscara_gym.hardware.arm import Arm, Lifecycle
 from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import (
     IncorrectStateError,
-    InvalidArgumentError,
     JointError,
     NotEnabledError,
     NotHomedError,
@@ -55,21 +55,6 @@ from bioscara_gym.stop_signals import held
 CYCLE_S = 0.04
 #: How long ``gripper WIDTH`` lets the servo travel, s.
 GRIPPER_SETTLE_S = 0.3
-
-
-#: Attribute marking an error :meth:`Session.require` raised before any byte was sent.
-_REFUSED = "refused_before_traffic"
-
-
-def _refusal(error: JointError) -> JointError:
-    """Mark ``error`` as a refusal made before any traffic (see :meth:`Session._close`)."""
-    setattr(error, _REFUSED, True)
-    return error
-
-
-def _refused(error: BaseException) -> bool:
-    """Whether ``error`` is a refusal made before any traffic."""
-    return bool(getattr(error, _REFUSED, False))
 
 
 class Session:
@@ -206,7 +191,7 @@ class Session:
         if not self._opened:
             self._unlock()
             return
-        refused = exc is not None and (isinstance(exc, InvalidArgumentError) or _refused(exc))
+        refused = exc is not None and is_refusal(exc)
         failed = exc is not None and not refused
         # A stop signal now does not cut the safe stop or the state's write short: the command ends as
         # it would have (seen: exit 143 after enable's result line, the state file not written).
@@ -326,16 +311,16 @@ class Session:
         """
         joint = self.arm.joints[name]
         if self.arm.state is not Lifecycle.ACTIVE:
-            raise _refusal(NotEnabledError(f"{name}: not enabled; run `bioscara enable {name}` first"))
+            raise refusal(NotEnabledError(f"{name}: not enabled; run `bioscara enable {name}` first"))
         if joint.is_busy():
-            raise _refusal(
+            raise refusal(
                 IncorrectStateError(
                     f"{name}: busy (a homing is running); wait for it in `bioscara monitor` or abort it "
                     f"with `bioscara home {name} --abort`"
                 )
             )
         if homed and not joint.is_homed():
-            raise _refusal(NotHomedError(f"{name}: not homed; run `bioscara home {name}` first"))
+            raise refusal(NotHomedError(f"{name}: not homed; run `bioscara home {name}` first"))
 
     # ---------------------------------------------------------- operations
     def cycle(self, dt: float) -> dict[str, bool]:
@@ -369,7 +354,7 @@ class Session:
         joints = [n for n in target.joints if not (skip_busy and self.arm.joints[n].is_busy())]
         for name in joints:
             if self.arm.joints[name].is_busy():  # refused before any byte: the homings go on
-                raise _refusal(
+                raise refusal(
                     IncorrectStateError(
                         f"{name}: busy (a homing is running); enabling it again would stop it; abort it "
                         f"first with `bioscara home {name} --abort`"
