@@ -35,6 +35,7 @@ from bioscara_gym.errors import (
     CliError,
     MissingExtraError,
     is_refusal,
+    one_line,
 )
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
@@ -79,8 +80,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     except Interrupted as e:
         if isinstance(e, TrainingInterrupted) and e.checkpoint is not None:
             err.print(
-                f"bioscara train: interrupted by {e}; checkpoint {e.checkpoint} "
-                f"(continue with `{_resume_command(args)}`)"
+                one_line(
+                    f"bioscara train: interrupted by {e}; checkpoint {e.checkpoint} "
+                    f"(continue with `{_resume_command(args)}`)"
+                )
             )
         else:
             err.print(f"bioscara train: interrupted by {e} before training started; nothing saved")
@@ -118,7 +121,7 @@ def _one_line_warnings(command: str, err: Console, fallback: Callable[..., None]
 
     def show(message: Warning | str, category: type[Warning], *rest: object, **kwargs: object) -> None:
         if issubclass(category, ONE_LINE_WARNINGS):
-            err.print(f"bioscara {command}: warning: {message}")
+            err.print(one_line(f"bioscara {command}: warning: {message}"))
         else:
             fallback(message, category, *rest, **kwargs)
 
@@ -244,7 +247,7 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         """Print ``PROG: error: MESSAGE`` and exit 2."""
-        self.exit(EXIT_ERROR, f"{self.prog}: error: {message}\n")
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {one_line(message)}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -365,9 +368,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _last_line(err: Console, line: str) -> None:
-    """Print a command's last line; a terminal gone (EIO) or a reader gone takes nothing, and no traceback."""
+    """Print a command's last line, one line; a terminal gone (EIO) or a reader gone takes nothing."""
     with contextlib.suppress(OSError):
-        err.print(line)
+        err.print(one_line(line))
 
 
 def _named_in(e: BaseException, raised: list[KeyboardInterrupt]) -> KeyboardInterrupt | None:

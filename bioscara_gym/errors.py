@@ -32,6 +32,7 @@ __all__ = [
     "StateFileInUseError",
     "TrainingError",
     "is_refusal",
+    "one_line",
     "refusal",
 ]
 
@@ -42,6 +43,17 @@ EXIT_ERROR = 2
 EXIT_FAULT = 3
 #: Exit code after Ctrl-C (128 + SIGINT); SIGTERM and SIGHUP exit 143 and 129.
 EXIT_INTERRUPTED = 130
+
+
+def one_line(text: object) -> str:
+    r"""``text`` with its control characters escaped (``\n``, ``\x1b``), so that it prints as one line.
+
+    Seen: a recording named with a newline split an error message (and a
+    table row) in two; a ``--state`` path holding an escape sequence reached
+    the terminal. Every error line the ``bioscara`` command prints goes
+    through here.
+    """
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(text))
 
 
 #: Attribute marking an error raised before any byte that changes the arm was sent.

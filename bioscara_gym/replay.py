@@ -44,7 +44,7 @@ from typing import Any
 
 import yaml
 
-from bioscara_gym.errors import EXIT_ERROR
+from bioscara_gym.errors import EXIT_ERROR, one_line
 from bioscara_gym.hardware.backends import mock_gripper
 from bioscara_gym.hardware.config import config_from_dict
 from bioscara_gym.hardware.recording import (
@@ -322,10 +322,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
             sessions = read_trace(args.file, check)
             result = replay(args.file, check_digests=check)
         except TraceError as e:
-            err.print(f"bioscara replay: error: {e}")
+            err.print(one_line(f"bioscara replay: error: {e}"))
             return EXIT_ERROR
         except (ReplayError, ValueError) as e:
-            err.print(f"bioscara replay: error: {args.file}: {e}")
+            err.print(one_line(f"bioscara replay: error: {args.file}: {e}"))
             return EXIT_MISMATCH
         signum = received()
     if signum is not None and not result.ok:
@@ -339,10 +339,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     failed = result.sessions[-1]
     if failed.cut_off is not None:  # the trace's damage, not the driver's: no count of matches
         where = f"session {len(result.sessions)} ({failed.command})"
-        err.print(f"bioscara replay: error: {args.file}: {where} {failed.cut_off}")
+        err.print(one_line(f"bioscara replay: error: {args.file}: {where} {failed.cut_off}"))
         return EXIT_ERROR
     out.print(f"{result.matched} transactions matched before the first difference")
-    err.print(f"bioscara replay: {args.file}: {_explain(failed, len(result.sessions), sessions)}")
+    err.print(one_line(f"bioscara replay: {args.file}: {_explain(failed, len(result.sessions), sessions)}"))
     return EXIT_MISMATCH
 
 

@@ -260,6 +260,47 @@ def test_bad_outputs_and_ignored_options_are_refused_before_the_work(
     assert not Path("p.onnx").exists() and not Path("same.mp4").exists()
 
 
+#: A file name holding a newline and a terminal's "clear the screen".
+HOSTILE_NAME = "/nope/a\nb\x1b[2J"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["status", "--state", HOSTILE_NAME], "state file /nope/a\\nb\\x1b[2J: folder /nope does not exist"),
+        (
+            ["eval", "--model", HOSTILE_NAME],
+            "no metadata.json next to /nope/a\\nb\\x1b[2J: cannot tell what the policy was trained for",
+        ),
+        (["replay", HOSTILE_NAME], "/nope/a\\nb\\x1b[2J: no such trace file"),
+        (
+            ["deploy", "--backend", "emulated", "--onnx", HOSTILE_NAME],
+            "cannot load /nope/a\\nb\\x1b[2J: No such file or directory",
+        ),
+        (
+            ["move", "j1", "0.1", "--config", HOSTILE_NAME],
+            "/nope/a\\nb\\x1b[2J: cannot read config file: No such file or directory",
+        ),
+    ],
+    ids=["status", "eval", "replay", "deploy", "move"],
+)
+def test_a_file_named_with_control_characters_is_named_on_one_line(
+    capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
+    # Seen: the error split in two at the newline, and the escape sequence reached the terminal.
+    assert main(argv) == 2
+    assert one_line_error(capsys, argv[0]) == message
+
+
+def test_the_parsers_own_errors_are_one_line_too(capsys: pytest.CaptureFixture[str]) -> None:
+    from bioscara_gym.cli import build_parser
+
+    with pytest.raises(SystemExit) as done:
+        build_parser().error("argument --json: cannot write /tmp/a\nb")
+    assert done.value.code == 2
+    assert capsys.readouterr().err == "bioscara: error: argument --json: cannot write /tmp/a\\nb\n"
+
+
 def test_collect_refuses_an_empty_datasets_path(
     run: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -93,7 +93,7 @@ import gymnasium as gym
 from rich.console import Console
 from rich.markup import escape
 
-from bioscara_gym.errors import DeployError, MetadataError
+from bioscara_gym.errors import DeployError, MetadataError, one_line
 from bioscara_gym.training.deploy_checks import (
     DEPLOY_BACKENDS,
     DeployArgs,
@@ -476,7 +476,7 @@ def cmd_deploy(ns: argparse.Namespace) -> int:
     try:
         Deployment(_args_from_namespace(ns)).run()
     except DeployError as e:
-        err.print(f"bioscara deploy: error: {e}", markup=False)
+        err.print(one_line(f"bioscara deploy: error: {e}"), markup=False)
         return e.code
     except Interrupted as e:
         err.print(f"bioscara deploy: interrupted by {e}", markup=False)

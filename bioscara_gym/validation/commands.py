@@ -9,10 +9,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from bioscara_gym.errors import CliError
+from bioscara_gym.errors import CliError, one_line
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument, read_bytes, replace_problem
 from bioscara_gym.hardware.config import MAX_CONFIG_BYTES, load_config
-from bioscara_gym.validation.report import one_line
 
 #: The seeds scipy's optimizers take (``numpy.random.RandomState``): 0 to 2**32 - 1.
 SEED_MAX = 2**32 - 1

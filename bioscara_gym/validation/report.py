@@ -9,6 +9,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from bioscara_gym.errors import one_line
+
 __all__ = ["ROWS_KIND", "Row", "is_rows_json", "one_line", "print_table", "rows_to_json", "summary"]
 
 #: What ``validate --json`` replaces (:func:`~bioscara_gym.fsutil.replace_problem`).
@@ -76,14 +78,6 @@ class Row:
     ) -> Row:
         """Row of a yes/no comparison (e.g. whether steps were lost)."""
         return cls(experiment, quantity, real, sim, 0.0 if passed else 1.0, 0.0, "", "", passed, note)
-
-
-def one_line(text: object) -> str:
-    r"""``text`` with its control characters escaped (``\n``), so that a name prints on one line.
-
-    Seen: a recording named with a newline split an error message (and a table row) in two.
-    """
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(text))
 
 
 def summary(rows: Sequence[Row]) -> tuple[int, int]:
