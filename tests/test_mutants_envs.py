@@ -315,6 +315,21 @@ def test_table_points_lie_within_the_sector_the_command_range_and_the_annulus(
     assert max(offsets) > (-0.1 if where == "high" else 0.9)
 
 
+@pytest.mark.parametrize("past", [-5.0, 5.0])
+def test_a_j1_reading_past_the_command_range_draws_from_the_sector_at_the_stop(
+    fresh_pick: BioscaraPickPlaceEnv, past: float
+) -> None:
+    # Seen (a hostile test): a reading more than the sector's 1 rad past a stop (sensor noise
+    # of 0.5 rad) left the draw looking forever for a j1 in range.
+    u = fresh_pick
+    lo, hi = u.command_low[0], u.command_high[0]
+    stop = hi if past > 0 else lo
+    u.np_random = _BoundedRng(seed=1, limit=2000)
+    offsets = [u._sample_table_point(stop + past, 1.0)[1] - stop for _ in range(100)]
+    assert all(lo <= stop + o <= hi and abs(o) <= 1.0 for o in offsets)
+    assert max(map(abs, offsets)) > 0.9  # the whole sector inside the range
+
+
 @pytest.mark.parametrize(("fraction", "radius"), [(0.0, 0.25), (0.5, 0.4), (0.999999, 0.55)])
 def test_a_table_point_is_at_the_drawn_radius(
     fresh_pick: BioscaraPickPlaceEnv, fraction: float, radius: float

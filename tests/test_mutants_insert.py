@@ -302,3 +302,16 @@ def test_the_scene_is_seen_from_the_fixture_with_the_peg_and_the_hole(insert: Bi
     assert list(scene.mocaps) == ["fixture"] and yaw == 0.3
     assert pos.tolist() == [0.4, -0.1, 0.0]
     np.testing.assert_array_equal(scene.goal, u.goal)
+
+
+@pytest.mark.parametrize("past", [10.0, -10.0])
+def test_a_wrist_reading_far_past_its_range_still_gets_a_turn_inside_it(
+    insert: BioscaraInsertEnv, past: float
+) -> None:
+    # Seen (a hostile test): with sensor noise of 10, "min() arg is an empty sequence".
+    insert.hole_yaw = 0.3
+    insert._q = np.array([0.0, 0.1, 0.0, past])
+    turn = insert.wrist_turn()
+    edge = 2.98069 if past > 0 else -2.98069  # j4's command range, the packaged configuration
+    assert -2.98069 <= edge + turn <= 2.98069
+    assert math.remainder(0.3 - past - turn, math.pi / 2) == pytest.approx(0.0, abs=1e-9)

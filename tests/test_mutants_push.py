@@ -89,8 +89,8 @@ def push() -> Iterator[BioscaraPushEnv]:
 
 def test_the_block_is_drawn_around_the_arms_j1_with_its_elbow(push: BioscaraPushEnv) -> None:
     u = push
-    u._q = np.array([1.0, 0.005, 0.5, 0.0])  # the positive elbow at j1 = 1 rad
-    u._tcp = kinematics.forward(u._q)
+    u._q_arm = np.array([1.0, 0.005, 0.5, 0.0])  # the positive elbow at j1 = 1 rad
+    u._tcp_arm = kinematics.forward(u._q_arm)
     # block: radius 0.5 m, j1 offset -0.2 rad (12 cm from the TCP; the other elbow's point is 53 cm away);
     # target: radius 0.4 m, no offset (14 cm from the block); yaw 0
     u.np_random = ScriptedRng([5 / 6, 0.4, 0.5, 0.5, 0.5])
@@ -126,8 +126,8 @@ def test_the_block_yaw_spans_a_quarter_turn_each_way(
     push: BioscaraPushEnv, fraction: float, yaw: float
 ) -> None:
     u = push
-    u._q = np.array([1.0, 0.005, 0.5, 0.0])
-    u._tcp = kinematics.forward(u._q)
+    u._q_arm = np.array([1.0, 0.005, 0.5, 0.0])
+    u._tcp_arm = kinematics.forward(u._q_arm)
     u.np_random = ScriptedRng([5 / 6, 0.4, 0.5, 0.5, fraction])
     u._sample_goal()
     assert u.block_yaw == pytest.approx(yaw, abs=1e-5)

@@ -55,8 +55,9 @@ def stack() -> Iterator[BioscaraStackEnv]:
 
 
 def _pose(u: BioscaraStackEnv, q: list[float]) -> None:
-    u._q = np.array(q)
-    u._tcp = kinematics.forward(u._q)
+    """The arm at ``q`` as it reports it (what the draws start from), read without noise."""
+    u._q = u._q_arm = np.array(q)
+    u._tcp = u._tcp_arm = kinematics.forward(u._q)
 
 
 #: target: radius 0.4 m at the arm's j1; the upper block: radius 0.31 m at the same j1

@@ -225,9 +225,13 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(n_act,), dtype=np.float32)
         self.observation_space = self._make_observation_space()
         self.goal = np.zeros(3)
-        self._q = np.zeros(len(self.joint_names))
+        # The joints and TCP as the arm reports them: what the task draws its goals from and the world
+        # (a kinematic block, the peg) follows. The observation's _q and _tcp add the sensor noise.
+        self._q_arm = np.zeros(len(self.joint_names))
+        self._tcp_arm = kinematics.forward(self._q_arm)
+        self._q = self._q_arm
         self._qd = np.zeros(len(self.joint_names))
-        self._tcp = kinematics.forward(self._q)
+        self._tcp = self._tcp_arm
         self._width = self.config.gripper.backup_init_pos
         self._latency: deque[np.ndarray] = deque()
         self._latency_steps = 0
@@ -466,20 +470,30 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return a
 
     def _measure(self) -> None:
-        """Read the joints and the gripper (with sensor noise, if randomized) and the TCP."""
+        """Read the joints, the gripper and the TCP; the observation's copy with sensor noise, if randomized.
+
+        The noise is the sensor's: what the policy observes and the cartesian
+        controller acts on. The goals are drawn from, and the world follows,
+        the joints as the arm reports them (seen: noise of 0.5 rad on the
+        reading left PickPlace's draw of the block looking forever for a j1
+        in range, and Reach's refused its range ``high < low``).
+        """
         states = self.arm.joint_states
         for i, name in enumerate(self.joint_names):
             st = states[name]
-            self._q[i] = st.position
+            self._q_arm[i] = st.position
             self._qd[i] = st.velocity
         # A stall refused by a write has run the arm's on-error transition, which
         # disconnects the gripper: its width stays the last one read.
         if self.arm.gripper.is_initialized:
             self._width = self.arm.gripper.get_position()
+        self._tcp_arm = kinematics.forward(self._q_arm)  # once per step; observations reuse it
         noise = self.randomization.sensor_noise
         if noise:
-            self._q = self._q + self._noise_rng.normal(0.0, noise, size=self._q.shape)
-        self._tcp = kinematics.forward(self._q)  # once per step; observations reuse it
+            self._q = self._q_arm + self._noise_rng.normal(0.0, noise, size=self._q_arm.shape)
+            self._tcp = kinematics.forward(self._q)
+        else:
+            self._q, self._tcp = self._q_arm, self._tcp_arm
 
     def _joint_obs(self) -> np.ndarray:
         """The arm's part of the observation: ``OBS_SLICES`` joint_pos, joint_vel, gripper, tcp."""

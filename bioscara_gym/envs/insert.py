@@ -296,7 +296,8 @@ class BioscaraInsertEnv(BioscaraEnv):
         it would take j4 past its command range; then a quarter turn less
         the other way.
         """
-        q4, lo, hi = float(self._q[3]), self.command_low[3], self.command_high[3]
+        lo, hi = self.command_low[3], self.command_high[3]
+        q4 = min(max(float(self._q[3]), lo), hi)  # a noisy reading past the range has turns inside it
         err = float(yaw_error(self.hole_yaw, self.peg_yaw()))
         turns = [err + k * QUARTER_TURN for k in range(-4, 5) if lo <= q4 + err + k * QUARTER_TURN <= hi]
         return min(turns, key=abs)

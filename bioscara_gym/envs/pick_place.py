@@ -167,6 +167,7 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
             The point (m) and j1 (rad) there with ``elbow``.
         """
         lo, hi = self.command_low[0], self.command_high[0]
+        j1 = min(max(j1, lo), hi)  # a reading just past the range still has a sector inside it
         while True:
             r = self.np_random.uniform(0.25, 0.55)
             q1 = j1 + self.np_random.uniform(-self.SECTOR, self.SECTOR)
@@ -181,8 +182,8 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
 
     def _sample_goal(self) -> np.ndarray:
         """Place the block on the table, then draw the target: on the table or up to 5 cm above."""
-        tcp = self.tcp_position()
-        q1, elbow = float(self._q[0]), 1.0 if self._q[2] >= 0 else -1.0
+        tcp = self._tcp_arm
+        q1, elbow = float(self._q_arm[0]), 1.0 if self._q_arm[2] >= 0 else -1.0
         while True:
             block, block_j1 = self._sample_table_point(q1, elbow)
             if np.linalg.norm(block[:2] - tcp[:2]) > 0.08:
@@ -209,7 +210,7 @@ class BioscaraPickPlaceEnv(BioscaraEnv):
     def _block_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Block position (m), linear velocity (m/s) and yaw (rad)."""
         if self.sim is None:
-            self._block.update(self.tcp_position(), self.arm.gripper_command)
+            self._block.update(self._tcp_arm.copy(), self.arm.gripper_command)
             return self._block.pos.copy(), np.zeros(3), self._block.yaw
         d, a = self.sim.data, self._block_qadr
         w, x, y, z = d.qpos[a + 3 : a + 7]

@@ -180,8 +180,8 @@ class BioscaraPushEnv(BioscaraPickPlaceEnv):
 
     def _sample_goal(self) -> np.ndarray:
         """Place the block on the table, then draw the target on the table ``PUSH_RANGE`` from it."""
-        tcp = self.tcp_position()
-        q1, elbow = float(self._q[0]), 1.0 if self._q[2] >= 0 else -1.0
+        tcp = self._tcp_arm
+        q1, elbow = float(self._q_arm[0]), 1.0 if self._q_arm[2] >= 0 else -1.0
         while True:
             block, block_j1 = self._sample_table_point(q1, elbow)
             if START_RANGE[0] <= np.linalg.norm(block[:2] - tcp[:2]) <= START_RANGE[1]:
@@ -213,7 +213,7 @@ class BioscaraPushEnv(BioscaraPickPlaceEnv):
         """Block position (m), linear velocity (m/s) and yaw (rad)."""
         if self._sim_block is not None:
             return self._sim_block.state()
-        self._block.update(self.tcp_position(), tool_yaw(self._q))
+        self._block.update(self._tcp_arm.copy(), tool_yaw(self._q_arm))
         return self._block.pos.copy(), np.zeros(3), self._block.yaw
 
     def _get_obs(self) -> dict[str, np.ndarray]:

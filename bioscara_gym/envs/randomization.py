@@ -25,7 +25,9 @@ class DomainRandomization:
         mass: Relative spread of link masses (0.2: each scaled by U(0.8, 1.2)).
         friction: Relative spread of geom friction.
         damping: Relative spread of joint damping.
-        sensor_noise: Std of Gaussian noise on measured joint positions (rad or m).
+        sensor_noise: Std of Gaussian noise on measured joint positions (rad or m): what the
+            policy observes and the cartesian controller acts on. The task draws its goals
+            from, and its objects follow, the joints as the arm reports them.
         latency_steps: Maximum command latency in control steps (drawn 0..N).
     """
 

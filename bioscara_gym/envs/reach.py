@@ -179,13 +179,14 @@ class BioscaraReachEnv(BioscaraEnv):
         draw is shrunk toward the start pose, which always succeeds.
         """
         travel = reachable_travel(self._vmax, self._amax, self.goal_horizon_s)
-        lo = np.maximum(self.command_low, self._q - travel)
-        hi = np.minimum(self.command_high, self._q + travel)
-        tcp = self.tcp_position()
+        q0 = self._q_arm
+        lo = np.maximum(self.command_low, q0 - travel)
+        hi = np.minimum(self.command_high, q0 + travel)
+        tcp = self._tcp_arm
         scale = 1.0
         while True:
             for _ in range(100):
-                q = self._q + scale * (self.np_random.uniform(lo, hi) - self._q)
+                q = q0 + scale * (self.np_random.uniform(lo, hi) - q0)
                 if np.linalg.norm(kinematics.forward(q) - tcp) <= self.goal_radius:
                     self.goal_joints = q
                     return kinematics.forward(q)

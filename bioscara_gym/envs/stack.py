@@ -163,7 +163,7 @@ class BioscaraStackEnv(BioscaraPickPlaceEnv):
 
     def _sample_goal(self) -> np.ndarray:
         """Draw the target, place the upper block, then the lower one (at the target in half the episodes)."""
-        q1, elbow = float(self._q[0]), 1.0 if self._q[2] >= 0 else -1.0
+        q1, elbow = float(self._q_arm[0]), 1.0 if self._q_arm[2] >= 0 else -1.0
         target, target_j1 = self._sample_table_point(q1, elbow)
         upper = self._near(target, target_j1, elbow)
         lower = target.copy()
@@ -200,7 +200,7 @@ class BioscaraStackEnv(BioscaraPickPlaceEnv):
         """Position (m), linear velocity (m/s) and yaw (rad) of the lower block, then the upper one."""
         if self._sim_blocks is not None:
             return [block.state() for block in self._sim_blocks]
-        self._kinematic.update(self.tcp_position(), self.arm.gripper_command)
+        self._kinematic.update(self._tcp_arm.copy(), self.arm.gripper_command)
         return [(b.pos.copy(), np.zeros(3), b.yaw) for b in (self._kinematic.lower, self._kinematic.upper)]
 
     def _get_obs(self) -> dict[str, np.ndarray]:
