@@ -154,6 +154,17 @@ def test_physics_off_leaves_the_model_alone() -> None:
         np.testing.assert_array_equal(getattr(m, name), getattr(nominal, name))
 
 
+def test_nominal_puts_back_every_array_the_draw_scaled() -> None:
+    m, nominal = _model(), _model()
+    physics = PhysicsRandomizer(DomainRandomization(mass=0.2, friction=0.3, damping=0.3))
+    physics.nominal(m)  # before any draw: nothing read, nothing changed
+    physics.randomize(m, np.random.default_rng(3))
+    assert not np.array_equal(m.body_mass, nominal.body_mass)
+    physics.nominal(m)
+    for name in ("body_mass", "body_inertia", "geom_friction", "dof_damping"):
+        np.testing.assert_array_equal(getattr(m, name), getattr(nominal, name))
+
+
 def test_masses_and_inertias_scale_together_per_body() -> None:
     m, nominal = _model(), _model()
     PhysicsRandomizer(DomainRandomization(mass=0.2)).randomize(m, np.random.default_rng(1))

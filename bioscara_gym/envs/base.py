@@ -327,11 +327,15 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
         In simulation every episode starts from the same snapshot of physics
         and firmware taken right after homing (the arm at rest, nothing left
-        over from the previous episode), then the joints are placed at the
-        episode's start pose; so a seed always gives the same episode.
+        over from the previous episode), then the episode's physics is drawn
+        and the joints are placed at its start pose; so a seed always gives
+        the same episode. The arm homes under the nominal physics (seen: it
+        homed under the first episode's draw, which the snapshot then carried
+        into every episode, so a seed's episode depended on the first seed).
         """
         super().reset(seed=seed)
-        self._randomize()
+        if self.sim is not None:
+            self._physics.nominal(self.sim.model)
         if self.arm.state is not Lifecycle.ACTIVE or not all(
             self.arm.joints[n].is_homed() for n in self.joint_names
         ):
@@ -340,6 +344,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             if self._snapshot is None:
                 self._snapshot = self.sim.snapshot()
             self.sim.restore(self._snapshot)
+        self._randomize()
+        if self.sim is not None:
             # The drives' PID-error jitter: a stream of its own, so it does not change the tasks.
             self.sim.seed_drives(int(self._noise_rng.integers(2**63)))
         self._hold()

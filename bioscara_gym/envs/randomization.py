@@ -128,3 +128,13 @@ class PhysicsRandomizer:
         m.body_inertia[:] = nom["inertia"] * scale[:, None]
         m.geom_friction[:] = nom["friction"] * rng.uniform(1 - r.friction, 1 + r.friction, size=(m.ngeom, 1))
         m.dof_damping[:] = nom["damping"] * rng.uniform(1 - r.damping, 1 + r.damping, size=m.nv)
+
+    def nominal(self, model: Any) -> None:
+        """Put ``model``'s nominal values back (nothing to do before the first :meth:`randomize`)."""
+        if self._nominal is None:
+            return
+        nom, m = self._nominal, model
+        m.body_mass[:] = nom["mass"]
+        m.body_inertia[:] = nom["inertia"]
+        m.geom_friction[:] = nom["friction"]
+        m.dof_damping[:] = nom["damping"]
