@@ -206,6 +206,13 @@ def test_gymnasium_check_env_passes(make_env: MakeEnv, env_id: str) -> None:
     gym_check_env(make_env(env_id).unwrapped, skip_render_check=True)
 
 
+@pytest.mark.filterwarnings("ignore:.*A Box observation space (minimum|maximum) value is:UserWarning")
+def test_gymnasium_check_env_passes_on_the_emulated_bus(make_env: MakeEnv) -> None:
+    # Seen (a hostile test): "Deterministic step info are not equivalent for the same seed and
+    # action" on every task: info["bus"] counted since the backend was made.
+    gym_check_env(make_env(REACH, backend="emulated").unwrapped, skip_render_check=True)
+
+
 @pytest.mark.parametrize("env_id", TASK_IDS)
 def test_sb3_check_env_passes(make_env: MakeEnv, env_id: str) -> None:
     sb3_check_env(make_env(env_id).unwrapped, warn=True)
@@ -313,10 +320,32 @@ def test_emulated_info_counts_bus_transactions_per_joint(make_env: MakeEnv) -> N
     _, _, _, _, info = env.step(np.zeros(4, dtype=np.float32))
     after = info["bus"]
     assert set(before) == set(after) == set(JOINTS)
+    counters = ["transactions", "retries", "errors", "bus_errors", "malformed", "implausible", "error_rate"]
     for name in JOINTS:
-        assert after[name]["transactions"] > before[name]["transactions"]
+        assert before[name] == dict.fromkeys(counters, 0)  # counted from the episode's reset
+        assert list(after[name]) == counters
+        assert after[name]["transactions"] > 0
         assert after[name]["errors"] == 0
         assert after[name]["error_rate"] == 0.0
+    stats = env.unwrapped.backend.comm_stats()["j1"]
+    assert after["j1"]["transactions"] < stats.total_transactions  # the homing's are not the episode's
+    env.reset(seed=0)
+    assert env.step(np.zeros(4, dtype=np.float32))[4]["bus"] == after  # the same seed, the same counts
+
+
+def test_emulated_info_counts_the_episodes_bus_errors_and_their_rate(make_env: MakeEnv) -> None:
+    from bioscara_gym.hardware.emulated_bus import FaultPlan
+
+    env = make_env(REACH, backend="emulated", backend_options={"faults": FaultPlan(nack=0.03, seed=3)})
+    env.reset(seed=0)
+    for _ in range(20):
+        bus = env.step(np.zeros(4, dtype=np.float32))[4]["bus"]
+    for name in JOINTS:
+        counts = bus[name]
+        assert counts["errors"] == counts["bus_errors"] > 0  # NACKs are bus errors
+        assert counts["malformed"] == counts["implausible"] == 0
+        assert counts["retries"] >= counts["errors"] - 1  # each failed attempt is retried
+        assert counts["error_rate"] == counts["errors"] / counts["transactions"]
 
 
 def test_control_freq_at_the_deadman_floor_keeps_joints_enabled(make_env: MakeEnv) -> None:

@@ -68,6 +68,8 @@ JOINT_MODE = MappingProxyType(
     }
 )
 REWARD_TYPES = ("dense", "sparse", "log")
+#: What ``info["bus"]`` counts per joint since the episode's reset (``CommStats``' counters).
+BUS_COUNTERS = ("transactions", "retries", "errors", "bus_errors", "malformed", "implausible")
 
 __all__ = [
     "CONTROL_MODES",
@@ -237,6 +239,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._latency_steps = 0
         self._physics = PhysicsRandomizer(self.randomization)
         self._snapshot: Any = None
+        self._bus_at_reset: dict[str, dict[str, int]] = {}
         self._noise_rng = np.random.default_rng(0)
         self._view = None if render_mode is None else rendering.ArmView(render_mode, width, height)
 
@@ -354,6 +357,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._measure()
         self._action_map.elbow = 1.0 if self._q[2] >= 0 else -1.0
         self.goal = self._sample_goal()
+        self._bus_at_reset = self._bus_totals()
         obs = self._get_obs()
         return obs, self._get_info(obs)
 
@@ -541,6 +545,10 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """``is_success``, ``distance`` (m), ``stalled``, ``stalled_joint`` (if known), ``flags``, ``bus``.
 
         And ``field_lost``: the stall was the arm's field watch's, not the firmware's flag.
+        ``bus`` (backends with a bus): per joint, :data:`BUS_COUNTERS` since the
+        episode's reset and their ``error_rate``, so that a seed gives the same
+        info (Gymnasium's ``check_env`` compares it); the totals since the
+        backend was made are in ``backend.comm_stats()``.
         """
         achieved, desired = obs["achieved_goal"], obs["desired_goal"]
         info: dict[str, Any] = {
@@ -552,10 +560,15 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         }
         if stalled_joint is not None:
             info["stalled_joint"] = stalled_joint
-        stats = self.backend.comm_stats()
-        if stats:
-            info["bus"] = {n: s.as_dict() for n, s in stats.items()}
+        totals = self._bus_totals()
+        if totals:
+            info["bus"] = {n: _since(counts, self._bus_at_reset.get(n)) for n, counts in totals.items()}
         return info
+
+    def _bus_totals(self) -> dict[str, dict[str, int]]:
+        """Each joint's :data:`BUS_COUNTERS` since the backend was made (none without a bus)."""
+        stats = self.backend.comm_stats()
+        return {n: {c: getattr(s, f"total_{c}") for c in BUS_COUNTERS} for n, s in stats.items()}
 
     # ------------------------------------------------------------ render
     def _scene(self) -> rendering.SceneState:
@@ -577,3 +590,10 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self._view.close()
         if self.arm.state is not Lifecycle.FINALIZED:
             self.arm.shutdown()
+
+
+def _since(counts: dict[str, int], start: dict[str, int] | None) -> dict[str, float]:
+    """``counts`` less those at ``start`` (none: from zero), with the errors per transaction."""
+    since: dict[str, float] = {c: counts[c] - (start or {}).get(c, 0) for c in BUS_COUNTERS}
+    since["error_rate"] = since["errors"] / since["transactions"] if since["transactions"] else 0.0
+    return since
