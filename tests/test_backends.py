@@ -8,6 +8,7 @@ boundary (:class:`conftest.ScriptedBus`) and a sysfs PWM tree under
 from __future__ import annotations
 
 import dataclasses
+import re
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -409,3 +410,37 @@ def test_init_twice_is_refused_with_a_named_error_and_sends_nothing(
     joint.deinit()
     joint.init()  # after deinit() it connects again
     assert joint.initialized
+
+
+@pytest.mark.parametrize(
+    ("name", "options", "message"),
+    [
+        (
+            "emulated",
+            {"bogus": 1},
+            "the emulated backend takes no option bogus; its options: faults, i2c_clock_hz, initial_qpos, "
+            "model_path, record, retries, seed, state_file",
+        ),
+        (
+            "sim",
+            {"faults": None, "retries": 1},
+            "the sim backend takes no option faults, retries; its options: i2c_clock_hz, initial_qpos, "
+            "model_path, seed, state_file",
+        ),
+    ],
+)
+def test_an_option_the_backend_does_not_take_is_named_with_those_it_takes(
+    name: str, options: dict, message: str
+) -> None:
+    # Seen (a hostile test of the env API): "TypeError: ArmSim.__init__() got an unexpected keyword
+    # argument 'bogus'", from gym.make(..., backend_options={"bogus": 1}).
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        make_backend(name, **options)
+
+
+def test_the_options_a_backend_passes_on_are_taken() -> None:
+    backend = make_backend("sim", seed=3, initial_qpos={"j1": 0.5})  # ArmSim's, through SimBackend's **kwargs
+    try:
+        assert backend.sim.data.qpos[backend.sim.model.joint("j1").qposadr[0]] == pytest.approx(0.5)
+    finally:
+        backend.close()

@@ -29,6 +29,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import importlib
+import inspect
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -141,9 +142,12 @@ class Backend(abc.ABC):
         clock: The backend's time source, s.
         sim: The MuJoCo arm where there is one, else ``None``.
         schedule: The control loop's deadlines on ``clock`` (:meth:`step`).
+        options_to: ``module:Class`` whose ``__init__`` takes the options this
+            backend's ``**kwargs`` passes on (:func:`make_backend` checks them).
     """
 
     name = ""
+    options_to = ""
 
     def __init__(
         self,
@@ -236,6 +240,7 @@ class SimBackend(Backend):
     """
 
     name = "sim"
+    options_to = "bioscara_gym.hardware.sim:ArmSim"
 
     def __init__(
         self,
@@ -280,6 +285,7 @@ class EmulatedBackend(Backend):
     """
 
     name = "emulated"
+    options_to = "bioscara_gym.hardware.sim:ArmSim"
 
     def __init__(
         self,
@@ -417,6 +423,11 @@ def make_backend(
         require_extra(spec.needs[0], f"the {name} backend", spec.needs[1])
     module, _, cls_name = spec.entry_point.partition(":")
     cls: type[Backend] = getattr(importlib.import_module(module), cls_name)
+    takes = _options_of(cls)
+    unknown = sorted(set(options) - takes - {"record"}) if takes is not None else []
+    if unknown:  # seen: a raw TypeError from the class's __init__
+        offered = ", ".join(sorted(takes | ({"record"} if spec.records else set()))) or "none"
+        raise ValueError(f"the {name} backend takes no option {', '.join(unknown)}; its options: {offered}")
     record = options.pop("record", None)
     if record is not None:
         if not spec.records:
@@ -425,3 +436,20 @@ def make_backend(
             record = Recording(Path(record), "")  # type: ignore[arg-type]
         options["wrap_bus"] = recorder(record, name, config)
     return cls(config, **options)  # type: ignore[arg-type]
+
+
+def _options_of(cls: type) -> set[str] | None:
+    """The keyword options ``cls`` takes after its configuration, with those its ``**kwargs`` passes on.
+
+    ``None``: it takes any (``**kwargs`` that goes to no class named in ``options_to``).
+    """
+    params = list(inspect.signature(cls.__init__).parameters.values())[2:]  # self, config
+    names = {p.name for p in params if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD}
+    names.discard("wrap_bus")  # what ``record`` becomes
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        module, _, target = getattr(cls, "options_to", "").partition(":")
+        if not target:
+            return None
+        more = _options_of(getattr(importlib.import_module(module), target))
+        return None if more is None else names | more
+    return names

@@ -965,6 +965,8 @@ def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
                 f"{source}: cannot read the packaged default configuration ({e}); reinstall bioscara_gym"
             ) from e
     else:
+        if not isinstance(path, (str, os.PathLike)):
+            raise ConfigError(f"config {path!r} must be the path of a YAML file (or None: the packaged one)")
         source = os.fspath(path)
         try:
             text = read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8")

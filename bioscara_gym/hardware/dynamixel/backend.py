@@ -140,6 +140,7 @@ class EmulatedDynamixelBackend(DynamixelBackend):
     """
 
     name = "dynamixel-emulated"
+    options_to = "bioscara_gym.hardware.dynamixel.backend:DynamixelBackend"
 
     def __init__(
         self,

@@ -173,6 +173,7 @@ class SitlBackend(Backend):
     """
 
     name = "sitl"
+    options_to = "bioscara_gym.hardware.sitl.arm:SitlArmSim"
 
     def __init__(
         self,
