@@ -13,6 +13,7 @@ turning them on does not change the tasks), the packaged configuration (j1:
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import warnings
 from collections.abc import Iterator
@@ -515,6 +516,8 @@ def test_pick_place_takes_the_base_defaults_25_hz_and_1_cm() -> None:
 
 
 # --------------------------------------------------------------- the arguments
+#: How a refused image size ends.
+FRAME = "(the scene's offscreen framebuffer)"
 
 
 @pytest.mark.parametrize(
@@ -529,13 +532,35 @@ def test_pick_place_takes_the_base_defaults_25_hz_and_1_cm() -> None:
         ({"distance_threshold": "x"}, "distance_threshold 'x' must be a number > 0 (m)"),
         ({"distance_threshold": float("inf")}, "distance_threshold inf must be > 0 (m)"),
         ({"cartesian_lead": "x"}, "cartesian_lead 'x' must be true, false or None (the class's)"),
-        ({"width": "x"}, "width 'x' must be a whole number of pixels >= 1"),
-        ({"height": 0}, "height 0 must be a whole number of pixels >= 1"),
+        ({"width": "x"}, f"width 'x' must be a whole number of pixels from 1 to 640 {FRAME}"),
+        ({"height": 0}, f"height 0 must be a whole number of pixels from 1 to 480 {FRAME}"),
+        # Seen (a hostile test of the env API): taken, then MuJoCo's "Image width 641 > framebuffer
+        # width 640" at the first render().
+        ({"width": 641}, f"width 641 must be a whole number of pixels from 1 to 640 {FRAME}"),
+        ({"height": 481}, f"height 481 must be a whole number of pixels from 1 to 480 {FRAME}"),
+        ({"width": True}, f"width True must be a whole number of pixels from 1 to 640 {FRAME}"),
+        ({"backend_options": "x"}, "backend_options 'x' must be a dict of the backend's options"),
+        (
+            {"backend_options": {"bogus": 1}},
+            "the mock backend takes no option bogus; its options: clock, homing_time_s, state_file",
+        ),
+        ({"config": 123}, "config 123 must be the path of a YAML file (or None: the packaged one)"),
     ],
 )
 def test_a_bad_argument_is_refused_in_one_line_naming_the_choices(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         BioscaraReachEnv(**{"backend": "mock", **kwargs})
+
+
+def test_the_largest_image_fits_the_scenes_framebuffer_and_a_numpy_integer_is_a_size() -> None:
+    from bioscara_gym.envs.rendering import MAX_HEIGHT, MAX_WIDTH
+
+    u = BioscaraReachEnv(backend="sim", width=np.int64(640), height=np.int64(480))
+    try:
+        offscreen = u.sim.model.vis.global_
+        assert (MAX_WIDTH, MAX_HEIGHT) == (offscreen.offwidth, offscreen.offheight) == (640, 480)
+    finally:
+        u.close()
 
 
 def test_the_renderer_is_made_for_the_render_mode_at_480_by_480_by_default(
@@ -639,3 +664,62 @@ def test_a_new_env_has_its_spaces_and_a_zero_goal(cls: type, size: int) -> None:
         assert u.goal.tolist() == [0.0, 0.0, 0.0]  # (3,) m until the first reset draws one
     finally:
         u.close()
+
+
+# ------------------------------------------------ a hostile test of the env API
+def test_step_before_reset_says_so_and_a_closed_env_is_named_closed(envs: list[gym.Env]) -> None:
+    # Seen: "the arm is unconfigured (the episode ended on a stall)" before any reset, and
+    # "cannot claim velocity on j1 while finalized" from reset() after close().
+    u = _make(envs).unwrapped
+    with pytest.raises(gym.error.ResetNeeded, match=r"^call reset\(\) before step\(\)$"):
+        u.step(np.zeros(4))
+    u.reset(seed=0)
+    u.close()
+    closed = r"^BioscaraReachEnv is closed; make a new env$"
+    for call in (lambda: u.reset(seed=0), lambda: u.step(np.zeros(4)), u.render):
+        with pytest.raises(gym.error.ClosedEnvironmentError, match=closed):
+            call()
+    u.close()  # twice is fine
+
+
+@pytest.mark.parametrize("action", [np.zeros(4) + 1j, np.zeros(4, dtype=bool), ["0", "0", "0", "0"]])
+def test_an_action_that_is_not_real_numbers_is_refused(envs: list[gym.Env], action: object) -> None:
+    # Seen: a complex action lost its imaginary part with only numpy's ComplexWarning.
+    env = _make(envs)
+    env.reset(seed=0)
+    dtype = np.asarray(action).dtype
+    with pytest.raises(ValueError, match=f"^action of dtype {dtype} must be real numbers$"):
+        env.step(action)
+    env.step(np.zeros(4, dtype=np.int64))  # whole numbers are numbers
+
+
+@pytest.mark.parametrize(
+    ("env_id", "width", "reward_type"),
+    [
+        (REACH, 3, "dense"),
+        (PICK, 3, "sparse"),
+        ("Bioscara-Push-v0", 3, "sparse"),
+        ("Bioscara-Stack-v0", 6, "sparse"),
+        ("Bioscara-Stack-v0", 6, "dense"),
+    ],
+)
+def test_compute_reward_refuses_goals_of_another_width(
+    envs: list[gym.Env], env_id: str, width: int, reward_type: str
+) -> None:
+    u = _make(envs, env_id, reward_type=reward_type).unwrapped
+    good = np.zeros((5, width))
+    assert u.compute_reward(good, good, None).shape == (5,)
+    message = f"^achieved_goal of shape \\(5, {width + 1}\\): this task's goals are {width} values each$"
+    with pytest.raises(ValueError, match=message):
+        u.compute_reward(np.zeros((5, width + 1)), np.zeros((5, width + 1)), None)
+    scalar = f"^desired_goal of shape \\(\\): this task's goals are {width} values each$"
+    with pytest.raises(ValueError, match=scalar):
+        u.compute_reward(good, 0.0, None)
+
+
+def test_a_sparse_reward_of_a_nan_distance_is_no_success(envs: list[gym.Env]) -> None:
+    # Seen: -(nan >= threshold) is -0.0, success, where _is_success said False.
+    u = _make(envs, reward_type="sparse").unwrapped
+    rewards = u.compute_reward(np.array([[np.nan, 0, 0], [0, 0, 0], [0.02, 0, 0]]), np.zeros((3, 3)), None)
+    np.testing.assert_array_equal(rewards, [-1.0, 0.0, -1.0])
+    assert math.copysign(1.0, rewards[1]) == 1.0  # 0.0, not -0.0

@@ -23,7 +23,7 @@ import contextlib
 import math
 import numbers
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any, ClassVar
 
@@ -184,9 +184,16 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         check_positive("distance_threshold", distance_threshold, "m")
         if cartesian_lead is not None and not isinstance(cartesian_lead, bool):
             raise ValueError(f"cartesian_lead {cartesian_lead!r} must be true, false or None (the class's)")
-        for name, pixels in (("width", width), ("height", height)):
-            if isinstance(pixels, bool) or not isinstance(pixels, int) or pixels < 1:
-                raise ValueError(f"{name} {pixels!r} must be a whole number of pixels >= 1")
+        sizes = (("width", width, rendering.MAX_WIDTH), ("height", height, rendering.MAX_HEIGHT))
+        for name, pixels, most in sizes:
+            whole = isinstance(pixels, numbers.Integral) and not isinstance(pixels, bool)
+            if not whole or not 1 <= pixels <= most:
+                raise ValueError(
+                    f"{name} {pixels!r} must be a whole number of pixels from 1 to {most} "
+                    "(the scene's offscreen framebuffer)"
+                )
+        if backend_options is not None and not isinstance(backend_options, Mapping):
+            raise ValueError(f"backend_options {backend_options!r} must be a dict of the backend's options")
         if render_mode is not None:
             rendering.prepare(render_mode)  # before the backend imports MuJoCo
         self.control_mode = control_mode
@@ -240,6 +247,8 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._physics = PhysicsRandomizer(self.randomization)
         self._snapshot: Any = None
         self._bus_at_reset: dict[str, dict[str, int]] = {}
+        self._was_reset = False
+        self._closed = False
         self._noise_rng = np.random.default_rng(0)
         self._view = None if render_mode is None else rendering.ArmView(render_mode, width, height)
 
@@ -336,6 +345,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         homed under the first episode's draw, which the snapshot then carried
         into every episode, so a seed's episode depended on the first seed).
         """
+        self._check_open()
         super().reset(seed=seed)
         if self.sim is not None:
             self._physics.nominal(self.sim.model)
@@ -358,6 +368,7 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._action_map.elbow = 1.0 if self._q[2] >= 0 else -1.0
         self.goal = self._sample_goal()
         self._bus_at_reset = self._bus_totals()
+        self._was_reset = True
         obs = self._get_obs()
         return obs, self._get_info(obs)
 
@@ -365,15 +376,23 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Command the arm for one control period and observe the result.
 
         Raises:
-            ValueError: The action has the wrong shape or holds NaN or infinity.
-            gymnasium.error.ResetNeeded: The arm is not active (the last episode
-                ended on a stall).
+            ValueError: The action has the wrong shape, is not real numbers or
+                holds NaN or infinity.
+            gymnasium.error.ResetNeeded: Not reset yet, or the arm is not active
+                (the last episode ended on a stall).
+            gymnasium.error.ClosedEnvironmentError: The env was closed.
         """
+        self._check_open()
+        kind = np.asarray(action).dtype.kind
+        if kind not in "iuf":  # seen: a complex action lost its imaginary part with a warning
+            raise ValueError(f"action of dtype {np.asarray(action).dtype} must be real numbers")
         action = np.asarray(action, dtype=np.float64)
         if action.shape != self.action_space.shape:
             raise ValueError(f"action shape {action.shape} != expected {self.action_space.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action {action} holds NaN or infinity")
+        if not self._was_reset:
+            raise gym.error.ResetNeeded("call reset() before step()")
         if self.arm.state is not Lifecycle.ACTIVE:
             raise gym.error.ResetNeeded(
                 f"the arm is {self.arm.state.value} (the episode ended on a stall); call reset()"
@@ -532,12 +551,26 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         centimetre 10 cm away, so a critic resolves the last centimetre that
         success is judged on. The stall penalty is added by :meth:`step`, not here.
         """
-        d = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
-        if self.reward_type == "sparse":
-            return -(d >= self.distance_threshold).astype(np.float64)
+        achieved, desired = self._goal_pair(achieved_goal, desired_goal)
+        d = np.linalg.norm(achieved - desired, axis=-1)
+        if self.reward_type == "sparse":  # a NaN distance is no success: -1, as _is_success says
+            return (d < self.distance_threshold).astype(np.float64) - 1.0
         if self.reward_type == "log":
             return -np.log1p(d / self.distance_threshold)
         return -d
+
+    def _goal_pair(self, achieved: Any, desired: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``achieved`` and ``desired`` as float arrays, checked to be goals of this task (HER's batches too).
+
+        Raises:
+            ValueError: Either's last dimension is not the goal's width.
+        """
+        width = self.observation_space["desired_goal"].shape[-1]
+        pair = np.asarray(achieved, dtype=np.float64), np.asarray(desired, dtype=np.float64)
+        for name, goal in zip(("achieved_goal", "desired_goal"), pair, strict=True):
+            if goal.ndim == 0 or goal.shape[-1] != width:
+                raise ValueError(f"{name} of shape {goal.shape}: this task's goals are {width} values each")
+        return pair
 
     def _get_info(
         self, obs: dict[str, np.ndarray], stalled: bool = False, stalled_joint: str | None = None
@@ -579,17 +612,28 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 
     def render(self) -> np.ndarray | None:
         """An RGB image (``rgb_array``) or a window (``human``) of the arm."""
+        self._check_open()
         if self._view is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
         return self._view.render(self.sim, self._scene())
 
     def close(self) -> None:
-        """Shut the arm down (joints disabled) and release the renderer."""
+        """Shut the arm down (joints disabled) and release the renderer; the env is then done."""
+        self._closed = True
         if self._view is not None:
             self._view.close()
         if self.arm.state is not Lifecycle.FINALIZED:
             self.arm.shutdown()
+
+    def _check_open(self) -> None:
+        """Refuse a closed env (seen: reset() after close() raised "cannot claim velocity ... finalized").
+
+        Raises:
+            gymnasium.error.ClosedEnvironmentError: :meth:`close` was called.
+        """
+        if self._closed:
+            raise gym.error.ClosedEnvironmentError(f"{type(self).__name__} is closed; make a new env")
 
 
 def _since(counts: dict[str, int], start: dict[str, int] | None) -> dict[str, float]:

@@ -233,7 +233,7 @@ class BioscaraPushEnv(BioscaraPickPlaceEnv):
     ) -> np.ndarray | float:
         """Reach's dense and log rewards; sparse: 0 on success (:meth:`_is_success`), else -1."""
         if self.reward_type == "sparse":
-            return self._is_success(achieved_goal, desired_goal).astype(np.float64) - 1.0
+            return self._is_success(*self._goal_pair(achieved_goal, desired_goal)).astype(np.float64) - 1.0
         return super().compute_reward(achieved_goal, desired_goal, info)
 
 

@@ -24,6 +24,9 @@ import numpy as np
 from bioscara_gym.assets import scene_path
 
 RENDER_MODES = ("rgb_array", "human")
+#: Largest image, pixels: the offscreen framebuffer of ``assets/scene.xml`` (MuJoCo's default, no
+#: ``<global offwidth offheight>``); seen: ``width=641`` was taken and failed at the first render().
+MAX_WIDTH, MAX_HEIGHT = 640, 480
 #: Camera of ``assets/scene.xml`` that ``rgb_array`` images are taken with (unless a task names another).
 CAMERA = "overview"
 

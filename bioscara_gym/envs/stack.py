@@ -227,10 +227,10 @@ class BioscaraStackEnv(BioscaraPickPlaceEnv):
         self, achieved_goal: np.ndarray, desired_goal: np.ndarray, info: object
     ) -> np.ndarray | float:
         """Dense: minus the distances (m) summed; log: Reach's log term summed; sparse: success - 1."""
+        a, desired = self._goal_pair(achieved_goal, desired_goal)
         if self.reward_type == "sparse":
-            return self._is_success(achieved_goal, desired_goal).astype(np.float64) - 1.0
-        a = np.asarray(achieved_goal)
-        d = np.linalg.norm((a - np.asarray(desired_goal)).reshape(*a.shape[:-1], 2, 3), axis=-1)
+            return self._is_success(a, desired).astype(np.float64) - 1.0
+        d = np.linalg.norm((a - desired).reshape(*a.shape[:-1], 2, 3), axis=-1)
         if self.reward_type == "log":
             return -np.sum(np.log1p(d / self.distance_threshold), axis=-1)
         return -np.sum(d, axis=-1)
