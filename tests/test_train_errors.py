@@ -435,6 +435,12 @@ CASES = [
         r"cfg\.yaml: Bioscara-Reach-v0\.n_envs 1000: at most \d+ on this machine's \d+ CPUs",
         id="config-n-envs-beyond-the-workers",
     ),
+    pytest.param(  # a hostile test of the config files: it ran the command, then an AttributeError
+        new_run(callback=[{"os.system": {"command": "true"}}]),
+        r"cfg\.yaml: Bioscara-Reach-v0\.callback: os\.system is not a stable-baselines3 callback class "
+        r"\(BaseCallback\)$",
+        id="callback-not-a-callback-class",
+    ),
     pytest.param(
         new_run(policy="os.system"),
         r"cfg\.yaml: Bioscara-Reach-v0\.policy: os\.system is not a stable-baselines3 policy class$",

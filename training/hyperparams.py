@@ -480,6 +480,10 @@ def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple
         if not isinstance(name, str) or not isinstance(kwargs, dict):
             raise HyperparamError(f"{where}: expected a dotted path mapped to its kwargs, got {item!r}")
         cls = import_dotted(name, where)
+        with needs_train("a callback class"):
+            from stable_baselines3.common.callbacks import BaseCallback
+        if not (isinstance(cls, type) and issubclass(cls, BaseCallback)):  # seen: os.system ran a command
+            raise HyperparamError(f"{where}: {name} is not a stable-baselines3 callback class (BaseCallback)")
         try:
             inspect.signature(cls).bind(**kwargs)
         except TypeError as e:
