@@ -39,6 +39,7 @@ from bioscara_gym.errors import (
 )
 from bioscara_gym.fsutil import output_clash, output_problem, path_argument
 from bioscara_gym.hardware.errors import JointError, SitlError
+from bioscara_gym.hardware.gripper import GripperStateWarning
 from bioscara_gym.hardware.sitl.build import add_firmware_option
 from bioscara_gym.stop_signals import after_signal, caught
 from bioscara_gym.training.signals import Interrupted
@@ -113,7 +114,7 @@ def _resume_command(args: argparse.Namespace) -> str:
 
 
 #: The package's own warnings, printed as one line (``bioscara CMD: warning: ...``).
-ONE_LINE_WARNINGS = (CheckpointWarning,)
+ONE_LINE_WARNINGS = (CheckpointWarning, GripperStateWarning)
 
 
 def _one_line_warnings(command: str, err: Console, fallback: Callable[..., None]) -> Callable[..., None]:

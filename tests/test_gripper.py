@@ -415,6 +415,44 @@ def test_disable_saves_width_as_json(enabled: BaseGripper, state_file: Path) -> 
     assert json.loads(state_file.read_text()) == {"width_m": 0.1}
 
 
+@pytest.mark.parametrize(
+    "content", ["my notes\n", '{"colour": "red"}\n', "# an arm configuration\ngripper:\n  min: 0.04\n"]
+)
+def test_a_state_file_that_holds_something_else_is_not_replaced(
+    gripper: BaseGripper, state_file: Path, content: str
+) -> None:
+    # Seen (a hostile test): a configuration whose gripper.state_file named the configuration
+    # itself was replaced by {"width_m": 0.06}; notes.txt was too, after a warning.
+    state_file.parent.mkdir(parents=True)
+    state_file.write_text(content)
+    gripper.init()
+    with pytest.warns(GripperStateWarning):
+        gripper.enable()
+    gripper.set_position(0.1)
+    with pytest.warns(GripperStateWarning) as record:
+        gripper.disable()
+    assert str(record[0].message) == (
+        f"gripper: cannot save width 0.1 m to state file {state_file} (exists and is not a gripper state "
+        'file ({"width_m": ...}); give a new file, or a gripper state file ({"width_m": ...}) to replace '
+        "(or delete it)); the next enable() will not know where the fingers are"
+    )
+    assert state_file.read_text() == content
+
+
+@pytest.mark.parametrize("content", ['{"width_m": "x"}', '{"width_m": NaN}', '{"width_m": 5}', ""])
+def test_a_damaged_state_file_is_mended_by_the_next_save(
+    gripper: BaseGripper, state_file: Path, content: str
+) -> None:
+    state_file.parent.mkdir(parents=True)
+    state_file.write_text(content)
+    gripper.init()
+    with pytest.warns(GripperStateWarning):
+        gripper.enable()
+    gripper.set_position(0.1)
+    gripper.disable()
+    assert json.loads(state_file.read_text()) == {"width_m": 0.1}
+
+
 def test_width_persists_across_disable_enable(enabled: BaseGripper, kernel: FakePwmKernel) -> None:
     """enable() restores and re-commands the width saved by disable()."""
     enabled.set_position(0.1)

@@ -29,18 +29,13 @@ from typing import Any
 
 from bioscara_gym.errors import DeployError
 from bioscara_gym.fsutil import output_clash, output_problem, replace_problem
-from bioscara_gym.hardware.gripper import read_saved_width
+from bioscara_gym.hardware.gripper import STATE_FILE_KIND, is_state_file
 from bioscara_gym.training.deploy_log import is_deploy_log
 from bioscara_gym.training.metadata import policy_files
 
 #: What each output replaces, for :func:`~bioscara_gym.fsutil.replace_problem`.
 LOG_KIND = "a deploy run log"
-STATE_KIND = 'a gripper state file ({"width_m": ...})'
-
-
-def is_state_file(path: Path) -> bool:
-    """Whether ``path`` is a gripper state file: one the gripper reads a width from (``{"width_m": 1}``)."""
-    return read_saved_width(path) is not None
+STATE_KIND = STATE_FILE_KIND
 
 
 def arm_state_file(args: Any, state_file: Path | None) -> Path | None:

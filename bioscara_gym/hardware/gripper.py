@@ -38,7 +38,7 @@ import warnings
 from pathlib import Path
 from types import TracebackType
 
-from bioscara_gym.fsutil import atomic_write_text, read_json
+from bioscara_gym.fsutil import atomic_write_text, read_json, replace_problem
 from bioscara_gym.hardware.clock import Clock, WallClock
 from bioscara_gym.hardware.errors import (
     CommError,
@@ -160,7 +160,9 @@ def _read_width(path: Path) -> float:
         data = read_json(path, max_bytes=STATE_FILE_MAX_BYTES)
     except FileNotFoundError as e:
         raise _UnusableStateFile(f"state file {path} does not exist (first run?)", missing=True) from e
-    except (OSError, UnicodeDecodeError) as e:
+    except OSError as e:
+        raise _UnusableStateFile(f"cannot read state file {path} ({e.strerror or e})") from e
+    except UnicodeDecodeError as e:
         raise _UnusableStateFile(f"cannot read state file {path} ({e})") from e
     except ValueError as e:
         raise _UnusableStateFile(f"state file {path} is not valid JSON ({e})") from e
@@ -193,17 +195,46 @@ def read_saved_width(path: str | os.PathLike[str] | None) -> float | None:
         return None
 
 
+#: What a gripper state file holds, for the messages of a command that would replace another file.
+STATE_FILE_KIND = 'a gripper state file ({"width_m": ...})'
+
+
+def is_state_file(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a gripper state file, ours to replace: a JSON object of ``width_m`` alone.
+
+    Its value may be one a gripper cannot use (``"x"``, NaN, beyond the
+    limits): a damaged state, which the next save mends.
+
+    Raises:
+        OSError: The file cannot be read.
+    """
+    try:
+        data = read_json(path, max_bytes=STATE_FILE_MAX_BYTES)
+    except (ValueError, UnicodeDecodeError):  # not JSON
+        return False
+    except OSError as e:
+        if e.errno == errno.EFBIG:  # larger than any state file
+            return False
+        raise
+    return isinstance(data, dict) and set(data) == {_STATE_KEY}
+
+
 def save_width(path: str | os.PathLike[str], width_m: float) -> None:
-    """Write a width in m to a gripper state file, atomically.
+    """Write a width in m to a gripper state file, atomically; another file there is not replaced.
 
     Args:
         path: The state file; its directory is created if needed.
         width_m: The width in m (finite).
 
     Raises:
-        OSError: The file could not be written.
+        OSError: The file could not be written, or a non-empty file there is
+            not a gripper state file (seen: a configuration's ``state_file``
+            naming the configuration itself replaced it with ``{"width_m": 0.06}``).
         ValueError: ``width_m`` is not finite (JSON has no NaN).
     """
+    problem = replace_problem(path, STATE_FILE_KIND, is_state_file)
+    if problem is not None:
+        raise FileExistsError(errno.EEXIST, f"{problem} (or delete it)", os.fspath(path))
     atomic_write_text(path, json.dumps({_STATE_KEY: width_m}, allow_nan=False) + "\n")
 
 
@@ -641,7 +672,7 @@ class BaseGripper(abc.ABC):
         except OSError as e:
             self.save_error = e
             self._warn_state(
-                f"cannot save width {width_m:g} m to state file {path} ({e}); "
+                f"cannot save width {width_m:g} m to state file {path} ({e.strerror or e}); "
                 "the next enable() will not know where the fingers are"
             )
         else:
