@@ -29,7 +29,7 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.errors import AlreadyInitializedError
+from bioscara_gym.hardware.errors import AlreadyInitializedError, InvalidArgumentError
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -442,5 +442,18 @@ def test_the_options_a_backend_passes_on_are_taken() -> None:
     backend = make_backend("sim", seed=3, initial_qpos={"j1": 0.5})  # ArmSim's, through SimBackend's **kwargs
     try:
         assert backend.sim.data.qpos[backend.sim.model.joint("j1").qposadr[0]] == pytest.approx(0.5)
+    finally:
+        backend.close()
+
+
+def test_the_simulated_servo_refuses_the_pulses_the_real_driver_refuses() -> None:
+    # Seen (a hostile test): the emulated gripper went to -0.5 m where mock and the real driver refuse.
+    backend = make_backend("sim")
+    try:
+        gripper = backend.gripper
+        gripper.init()
+        with pytest.raises(InvalidArgumentError, match=r"^servo angle -1860 deg gives a -8833\.33 us pulse"):
+            gripper.set_servo_position(-1860.0)
+        gripper.set_servo_position(-60.0)  # the packaged 4 cm: a 1166.67 us pulse
     finally:
         backend.close()

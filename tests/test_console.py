@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
+import bioscara_gym
 from bioscara_gym.cli import main
 from bioscara_gym.console import commands
 from bioscara_gym.console.commands import ping_devices
@@ -51,6 +52,7 @@ from bioscara_gym.hardware.errors import (
 from bioscara_gym.hardware.registers import Flag
 
 CONFIG = load_config()
+DEFAULT_CONFIG = Path(bioscara_gym.__file__).parent / "hardware" / "default_config.yaml"
 LIMITS = {j.name: (j.min, j.max) for j in CONFIG.joints}
 ROW = re.compile(r"^\s*(j\d|gripper)\s+(.*)$")
 #: ``bioscara ARGS`` -> exit code, stdout, stderr (whitespace joined).
@@ -527,6 +529,44 @@ def test_gripper_width_outside_the_limits_is_refused(bioscara: Run) -> None:
     code, _, err = bioscara("gripper", "0.2")
     assert code == 2
     assert "gripper: width 0.2 m is outside the limits [0.04, 0.12] m" in err
+
+
+@pytest.mark.parametrize("backend", ["emulated", "sim"])
+def test_a_width_the_servo_cannot_take_is_refused_and_the_gripper_stays_off(
+    bioscara: Run, tmp_path: Path, backend: str
+) -> None:
+    # Seen (a hostile test of the config files, a gripper `min: -1`): the servo was enabled, then
+    # the pulse refused, and the refusal left it driven; on emulated the fingers went to -0.5 m, exit 0.
+    config = tmp_path / "neg.yaml"
+    config.write_text(DEFAULT_CONFIG.read_text().replace("  min: 0.04 ", "  min: -1.0 "))
+    state = tmp_path / "arm.json"
+    options = ("--backend", backend, "--config", str(config), "--state", str(state))
+    assert bioscara("disable", *options)[0] == 0
+    code, _, err = bioscara("gripper", "-0.5", *options)
+    assert (code, err) == (
+        2,
+        "bioscara gripper: error: gripper: width -0.5 m: servo angle -1859.98 deg gives a -8833.23 us pulse; "
+        "must be between 0 and 20000 us (the 50 Hz period); check the configured limits",
+    )
+    code, out, _ = bioscara("status", *options)
+    assert enabled(rows(out), "gripper") == "no"
+
+
+def test_a_configured_state_file_naming_the_configuration_keeps_it_and_warns_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Seen (a hostile test): arm.yaml became {"width_m": 0.06}; the warning took two lines.
+    config = tmp_path / "arm.yaml"
+    text = DEFAULT_CONFIG.read_text().replace("  state_file: null ", f"  state_file: {config} ")
+    config.write_text(text)
+    state = tmp_path / "arm.json"
+    assert main(["gripper", "0.06", "--config", str(config), "--state", str(state)]) == 0
+    capsys.readouterr()
+    assert main(["disable", "gripper", "--config", str(config), "--state", str(state)]) == 0
+    assert config.read_text() == text
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) >= 1 and all(line.startswith("bioscara disable: warning: gripper: ") for line in lines)
+    assert "cannot save width 0.06 m to state file" in lines[-1]
 
 
 def test_home_on_a_busy_joint_is_refused_and_the_homing_goes_on(bioscara: Run, state: Path) -> None:

@@ -42,11 +42,12 @@ from bioscara_gym.hardware.backends import Backend, make_backend
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig
 from bioscara_gym.hardware.errors import (
     IncorrectStateError,
+    InvalidArgumentError,
     JointError,
     NotEnabledError,
     NotHomedError,
 )
-from bioscara_gym.hardware.gripper import Gripper, read_saved_width
+from bioscara_gym.hardware.gripper import Gripper, read_saved_width, servo_pulse_us
 from bioscara_gym.hardware.recording import note_signal
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S
 from bioscara_gym.stop_signals import held
@@ -436,6 +437,12 @@ class Session:
             InvalidArgumentError: The width is outside the gripper's limits.
         """
         check_gripper_width(self.config, width_m)
+        gripper = self.backend.gripper  # the pulse too, before the servo is driven (seen: left enabled)
+        try:
+            servo_pulse_us(gripper.width_to_angle_deg(gripper.clamp_width(width_m)))
+        except InvalidArgumentError as e:
+            problem = f"gripper: width {width_m:g} m: {e}; check the configured limits"
+            raise InvalidArgumentError(problem) from e
         self.enable_gripper()
         self.backend.gripper.set_position(width_m)
         self.arm.set_gripper(width_m)

@@ -31,7 +31,7 @@ from bioscara_gym.hardware.clock import Clock, DeadlineScheduler
 from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
 from bioscara_gym.hardware.drive import IDEAL_DRIVE, DriveParams
 from bioscara_gym.hardware.firmware import FirmwareCore
-from bioscara_gym.hardware.gripper import BaseGripper
+from bioscara_gym.hardware.gripper import BaseGripper, servo_pulse_us
 from bioscara_gym.hardware.i2c_timing import WIRE_ONLY, TransactionTiming, check_clock_hz
 from bioscara_gym.hardware.motor import KinematicStepper
 from bioscara_gym.hardware.registers import (
@@ -604,7 +604,13 @@ class SimGripper(BaseGripper):
         self._act_id = sim.model.actuator("gripper").id
 
     def set_servo_position(self, angle_deg: float) -> None:
-        """Drive the fingers to the width the servo angle stands for."""
+        """Drive the fingers to the width the servo angle stands for (refused where the real pulse is).
+
+        Seen: ``gripper -0.5`` (a configuration's ``min: -1``) drove the
+        simulated fingers, where the real driver and the mock refuse the
+        pulse: a rehearsal passed that the arm would fail.
+        """
+        servo_pulse_us(angle_deg)
         self._sim.data.ctrl[self._act_id] = angle_deg / self.reduction + self.offset
 
 
