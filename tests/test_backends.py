@@ -29,7 +29,7 @@ from bioscara_gym.hardware.backends import (
 )
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.config import load_config
-from bioscara_gym.hardware.errors import AlreadyInitializedError, InvalidArgumentError
+from bioscara_gym.hardware.errors import AlreadyInitializedError, ConfigError, InvalidArgumentError
 from bioscara_gym.hardware.gripper import BaseGripper, Gripper, MockGripper
 from bioscara_gym.hardware.joint import Joint
 from bioscara_gym.hardware.mock import MockJoint
@@ -457,3 +457,17 @@ def test_the_simulated_servo_refuses_the_pulses_the_real_driver_refuses() -> Non
         gripper.set_servo_position(-60.0)  # the packaged 4 cm: a 1166.67 us pulse
     finally:
         backend.close()
+
+
+@pytest.mark.parametrize("backend", ["sim", "emulated"])
+def test_a_configuration_naming_joints_the_model_has_not_is_one_line(tmp_path: Path, backend: str) -> None:
+    # Seen (a hostile test): KeyError: "Invalid name 'shoulder'" from deep in the MuJoCo arm.
+    default = Path(backends.__file__).parent / "default_config.yaml"
+    path = tmp_path / "shoulder.yaml"
+    path.write_text(re.sub(r"\bj1\b", "shoulder", default.read_text()))
+    message = (
+        "joint 'shoulder': the simulated arm's joints are j1, j2, j3, j4 (assets/scene.xml); "
+        "a configuration for it names those"
+    )
+    with pytest.raises(ConfigError, match=f"^{re.escape(message)}$"):
+        make_backend(backend, str(path))

@@ -569,6 +569,20 @@ def test_a_configured_state_file_naming_the_configuration_keeps_it_and_warns_in_
     assert "cannot save width 0.06 m to state file" in lines[-1]
 
 
+def test_status_on_mock_says_the_bus_time_cannot_be_counted_for_an_arm_the_model_has_not(
+    bioscara: Run, tmp_path: Path
+) -> None:
+    # Seen (a hostile test): status on mock failed with its bus budget's emulated arm's error.
+    config = tmp_path / "shoulder.yaml"
+    config.write_text(re.sub(r"\bj1\b", "shoulder", DEFAULT_CONFIG.read_text()))
+    code, out, _ = bioscara("status", "--backend", "mock", "--config", str(config))
+    assert code == 0
+    assert " ".join(out.split()).endswith(
+        "bus time per cycle: not counted (the emulated arm it is counted on failed: joint 'shoulder': the "
+        "simulated arm's joints are j1, j2, j3, j4 (assets/scene.xml); a configuration for it names those)"
+    )
+
+
 def test_home_on_a_busy_joint_is_refused_and_the_homing_goes_on(bioscara: Run, state: Path) -> None:
     # Issue #24 item 8: the refusal sends nothing, so the homing it says to wait
     # for is still there (it used to be aborted and the arm disabled).

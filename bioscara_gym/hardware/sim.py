@@ -28,7 +28,7 @@ from bioscara_gym.assets import scene_path
 from bioscara_gym.hardware import codec
 from bioscara_gym.hardware.base_joint import BaseJoint
 from bioscara_gym.hardware.clock import Clock, DeadlineScheduler
-from bioscara_gym.hardware.config import ArmConfig, GripperConfig, JointConfig
+from bioscara_gym.hardware.config import ArmConfig, ConfigError, GripperConfig, JointConfig
 from bioscara_gym.hardware.drive import IDEAL_DRIVE, DriveParams
 from bioscara_gym.hardware.firmware import FirmwareCore
 from bioscara_gym.hardware.gripper import BaseGripper, servo_pulse_us
@@ -336,6 +336,25 @@ class SimClock:
             self._sim.step(dt)
 
 
+def _check_joints(config: ArmConfig, model: mujoco.MjModel) -> None:
+    """Refuse a configuration whose joints the model does not have (seen: ``KeyError: "Invalid name"``).
+
+    Raises:
+        ConfigError: A configured joint is not one of the model's actuated joints.
+    """
+    arm = [
+        model.joint(model.actuator_trnid[i, 0]).name
+        for i in range(model.nu)
+        if model.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT  # the gripper's drives a tendon
+    ]
+    for j in config.joints:
+        if j.name not in arm:
+            raise ConfigError(
+                f"joint {j.name!r}: the simulated arm's joints are {', '.join(arm)} (assets/scene.xml); "
+                "a configuration for it names those"
+            )
+
+
 class ArmSim:
     """The MuJoCo arm with one firmware core per joint.
 
@@ -360,6 +379,7 @@ class ArmSim:
         self.config = config
         self.model = mujoco.MjModel.from_xml_path(str(model_path or scene_path()))
         self.data = mujoco.MjData(self.model)
+        _check_joints(config, self.model)
         substeps = TICK_S / self.model.opt.timestep
         if abs(substeps - round(substeps)) > 1e-9:
             raise ValueError(f"model timestep {self.model.opt.timestep} must divide the 10 ms firmware tick")
