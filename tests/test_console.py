@@ -910,8 +910,28 @@ def test_record_onto_the_state_file_is_refused_before_anything_is_written(biosca
     saved = state.read_text()
     code, out, err = bioscara("home", "--state", str(state), "--record", str(state))
     assert code == 2 and out == ""
-    assert err == f"bioscara home: error: --state and --record name one file, {state}; each needs its own"
+    assert err == f"bioscara home: error: --state and --record name the same file {state}; each needs its own"
     assert state.read_text() == saved
+
+
+@pytest.mark.parametrize("link", [False, True])
+def test_a_state_file_that_is_the_configuration_is_refused_before_anything_is_written(
+    bioscara: Run, tmp_path: Path, link: bool
+) -> None:
+    # Seen (a hostile test): "... cannot be read ...; delete it to start from a powered-up arm".
+    config = tmp_path / "arm.yaml"
+    config.write_text(DEFAULT_CONFIG.read_text())
+    state = tmp_path / "state.json"
+    if link:
+        state.symlink_to(config)
+    else:
+        state = config
+    code, out, err = bioscara("enable", "--config", str(config), "--state", str(state))
+    assert (code, out) == (2, "")
+    assert err == (
+        f"bioscara enable: error: --state {state} is the --config file; writing it would destroy it"
+    )
+    assert config.read_text() == DEFAULT_CONFIG.read_text()
 
 
 def test_a_trace_that_cannot_be_opened_is_one_line_without_errno(tmp_path: Path, bioscara: Run) -> None:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bioscara_gym.errors import ConsoleUsageError
+from bioscara_gym.fsutil import output_clash
 from bioscara_gym.hardware.arm import check_joint_targets
 from bioscara_gym.hardware.backends import ALL_BACKENDS
 from bioscara_gym.hardware.config import GRIPPER_NAME, ArmConfig, load_config
@@ -58,7 +59,7 @@ class ConsoleOptions:
     def from_args(cls, args: argparse.Namespace) -> ConsoleOptions:
         """Take the common options from parsed arguments."""
         record = getattr(args, "record", None)
-        _check_record_apart(args.state, record)  # before Recording reads the file as a trace
+        _check_apart(args.state, record, args.config)  # before Recording reads the file as a trace
         return cls(
             backend=args.backend,
             config=args.config,
@@ -94,7 +95,7 @@ class ConsoleOptions:
             )
         if self.record is not None:
             trace = Path(self.record.path)
-            _check_record_apart(self.state, trace)
+            _check_apart(self.state, trace, self.config)
             if trace.exists() and not trace.is_file():
                 raise ConsoleUsageError(f"--record {trace} is not a regular file")
 
@@ -219,11 +220,15 @@ def check_gripper_width(config: ArmConfig, width_m: float) -> None:
         )
 
 
-def _check_record_apart(state: Path | None, record: Path | None) -> None:
-    """Refuse ``--state`` and ``--record`` on one file (each would spoil the other).
+def _check_apart(state: Path | None, record: Path | None, config: Path | None) -> None:
+    """Refuse ``--state`` and ``--record`` on one file (each would spoil the other), or on ``--config``.
+
+    Seen (a hostile test): ``--state`` naming the configuration was "cannot be read ...; delete it
+    to start from a powered-up arm", advice to delete the configuration.
 
     Raises:
-        ConsoleUsageError: They name one file.
+        ConsoleUsageError: Two of them name one file.
     """
-    if record is not None and state is not None and Path(record).resolve() == Path(state).resolve():
-        raise ConsoleUsageError(f"--state and --record name one file, {record}; each needs its own")
+    clash = output_clash({"--state": state, "--record": record}, {"--config": config})
+    if clash is not None:
+        raise ConsoleUsageError(clash)
