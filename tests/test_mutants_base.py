@@ -717,6 +717,17 @@ def test_compute_reward_refuses_goals_of_another_width(
         u.compute_reward(good, 0.0, None)
 
 
+@pytest.mark.parametrize("options", [{"goal": [0.3, 0.0, 0.1]}, "x"])
+def test_reset_options_are_refused_since_none_are_taken(envs: list[gym.Env], options: object) -> None:
+    # Seen: options={"goal": ...} was taken silently, and the episode got a random goal.
+    env = _make(envs)
+    message = f"reset options {options!r} are not taken: an episode's start and goal come from the seed"
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        env.reset(seed=0, options=options)
+    env.reset(seed=0, options={})  # what SB3's vector envs pass
+    env.reset(seed=0, options=None)
+
+
 def test_a_sparse_reward_of_a_nan_distance_is_no_success(envs: list[gym.Env]) -> None:
     # Seen: -(nan >= threshold) is -0.0, success, where _is_success said False.
     u = _make(envs, reward_type="sparse").unwrapped

@@ -56,8 +56,10 @@ def test_negative_sensor_noise_is_refused_and_zero_accepted() -> None:
 
 def test_negative_latency_is_refused_and_zero_accepted() -> None:
     assert DomainRandomization(latency_steps=0).latency_steps == 0
-    with pytest.raises(ValueError, match=r"^randomization latency_steps=-1 must be >= 0$"):
-        DomainRandomization(latency_steps=-1)
+    assert DomainRandomization(latency_steps=25).latency_steps == 25  # a second at 25 Hz
+    for steps in (-1, 26, 10**6):  # seen: 10**6 taken, and the arm never moved
+        with pytest.raises(ValueError, match=f"^randomization latency_steps={steps} must be from 0 to 25$"):
+            DomainRandomization(latency_steps=steps)
 
 
 def test_default_on_is_the_moderate_setting() -> None:

@@ -344,8 +344,15 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         the same episode. The arm homes under the nominal physics (seen: it
         homed under the first episode's draw, which the snapshot then carried
         into every episode, so a seed's episode depended on the first seed).
+
+        Raises:
+            ValueError: ``options`` given: none are taken.
+            gymnasium.error.ClosedEnvironmentError: The env was closed.
         """
         self._check_open()
+        if options:  # seen: {"goal": [...]} taken silently, and a random goal drawn
+            why = "an episode's start and goal come from the seed"
+            raise ValueError(f"reset options {options!r} are not taken: {why}")
         super().reset(seed=seed)
         if self.sim is not None:
             self._physics.nominal(self.sim.model)

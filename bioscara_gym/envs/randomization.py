@@ -16,6 +16,11 @@ from typing import Any
 
 import numpy as np
 
+#: Most control steps of command latency: a second at the default 25 Hz. A command reaches
+#: the real joints within the cycle it is sent in (a transaction takes well under a millisecond,
+#: docs/protocol.md), so a longer delay models no arm; it only leaves the policy without control.
+MAX_LATENCY_STEPS = 25
+
 
 @dataclass(frozen=True)
 class DomainRandomization:
@@ -28,7 +33,8 @@ class DomainRandomization:
         sensor_noise: Std of Gaussian noise on measured joint positions (rad or m): what the
             policy observes and the cartesian controller acts on. The task draws its goals
             from, and its objects follow, the joints as the arm reports them.
-        latency_steps: Maximum command latency in control steps (drawn 0..N).
+        latency_steps: Maximum command latency in control steps (drawn 0..N), at most
+            :data:`MAX_LATENCY_STEPS`.
     """
 
     mass: float = 0.0
@@ -51,8 +57,10 @@ class DomainRandomization:
                 raise ValueError(f"randomization {name}={value} must be within [0, 1)")
         if not 0.0 <= self.sensor_noise < math.inf:
             raise ValueError(f"randomization sensor_noise={self.sensor_noise} must be >= 0 and finite")
-        if self.latency_steps < 0:
-            raise ValueError(f"randomization latency_steps={self.latency_steps} must be >= 0")
+        if not 0 <= self.latency_steps <= MAX_LATENCY_STEPS:  # seen: 10**6 taken, and the arm never moved
+            raise ValueError(
+                f"randomization latency_steps={self.latency_steps} must be from 0 to {MAX_LATENCY_STEPS}"
+            )
 
     @property
     def physics(self) -> bool:
