@@ -267,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
         + " (default: the task's without --config: dagger on PickPlace, Push, Stack and Insert, sac on Reach;"
         + " sac with --config; on --resume the run's)",
     )
-    p.add_argument("--config", type=Path, help="hyperparameter YAML (rl-zoo3 format)")
+    p.add_argument("--config", type=path_argument, help="hyperparameter YAML (rl-zoo3 format)")
     p.add_argument("--timesteps", type=int, help="training budget (default: the config's n_timesteps)")
     p.add_argument("--seed", type=int, help="seed of the model and envs (default 0; on --resume the run's)")
     p.add_argument("--out", type=path_argument, default=Path("runs/reach"), help="output directory")

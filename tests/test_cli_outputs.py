@@ -292,6 +292,31 @@ def test_a_file_named_with_control_characters_is_named_on_one_line(
     assert one_line_error(capsys, argv[0]) == message
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["status", "--config", ""],
+        ["move", "j1", "0.1", "--record", ""],
+        ["deploy", "--expert", "--env", "Bioscara-Reach", "--config", ""],
+        ["validate", "--config", ""],
+        ["calibrate", "--config", ""],
+        ["train", "--config", ""],
+    ],
+    ids=["status", "record", "deploy", "validate", "calibrate", "train"],
+)
+def test_an_empty_config_or_record_path_is_named_empty(
+    capsys: pytest.CaptureFixture[str], argv: list[str]
+) -> None:
+    # Seen (a hostile test): --config '' was ". : cannot read config file: not a regular file".
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    assert done.value.code == 2
+    option = argv[-2]
+    assert capsys.readouterr().err == (
+        f"bioscara {argv[0]}: error: argument {option}: an empty path; give a file or folder name\n"
+    )
+
+
 def test_the_parsers_own_errors_are_one_line_too(capsys: pytest.CaptureFixture[str]) -> None:
     from bioscara_gym.cli import build_parser
 

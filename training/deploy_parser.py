@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bioscara_gym.fsutil import path_argument
 from bioscara_gym.hardware.emulated_bus import MAX_DRIFT_PPM, MAX_EXTRA_S
 from bioscara_gym.hardware.sitl.build import add_firmware_option
 from bioscara_gym.training.deploy_checks import DEPLOY_BACKENDS
@@ -35,7 +36,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=DEPLOY_BACKENDS, default="emulated", help="default: emulated")
     add_firmware_option(p)
     p.add_argument("--bus", type=int, help="I2C bus number, /dev/i2c-N (default: the config's)")
-    p.add_argument("--config", type=Path, help="arm configuration YAML (default: the packaged one)")
+    p.add_argument("--config", type=path_argument, help="arm configuration YAML (default: the packaged one)")
     p.add_argument("--episodes", type=int, default=1)
     p.add_argument(
         "--rate",

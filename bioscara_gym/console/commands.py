@@ -75,7 +75,6 @@ import functools
 import math
 import re
 from dataclasses import dataclass
-from pathlib import Path
 
 from rich import box
 from rich.console import Console
@@ -575,7 +574,10 @@ def _common(parser: argparse.ArgumentParser) -> None:
     )
     add_firmware_option(parser)
     parser.add_argument(
-        "--config", type=Path, metavar="FILE", help="arm configuration YAML (default: the packaged one)"
+        "--config",
+        type=path_argument,
+        metavar="FILE",
+        help="arm configuration YAML (default: the packaged one)",
     )
     parser.add_argument(
         "--bus", type=int, metavar="N", help="I2C bus number for --backend i2c (default: the config's)"
@@ -588,7 +590,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--record",
-        type=Path,
+        type=path_argument,
         metavar="FILE",
         help="append every bus transaction to FILE (i2c, emulated; docs/traces.md)",
     )

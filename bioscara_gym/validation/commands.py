@@ -257,7 +257,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="recordings laid out like the arm repository's test/ (default: the packaged ones)",
     )
-    p.add_argument("--config", type=Path, help="arm configuration to judge (default: the packaged one)")
+    p.add_argument(
+        "--config", type=path_argument, help="arm configuration to judge (default: the packaged one)"
+    )
     p.add_argument(
         "--json",
         type=path_argument,
@@ -286,7 +288,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="CONFIG",
         help="where to write the configuration (it replaces only an arm configuration or an empty file)",
     )
-    p.add_argument("--config", type=Path, help="configuration to start from (default: the packaged one)")
+    p.add_argument(
+        "--config", type=path_argument, help="configuration to start from (default: the packaged one)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the optimizer")
     p.add_argument("--maxiter", type=int, default=40, help="generations of the drive fit per joint")
     p.add_argument(
