@@ -61,6 +61,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import reprlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -71,13 +72,17 @@ import yaml
 
 from bioscara_gym.fsutil import read_bytes
 from bioscara_gym.hardware.drive import (
+    AMAX_PER_DPS2,
     IDEAL_DRIVE,
+    VMAX_PER_DPS,
     DriveParams,
     PidNoiseProfile,
     drive_from_dict,
     drive_to_dict,
     noise_from_dict,
     noise_to_dict,
+    position_move_limits,
+    velocity_mode_acceleration,
 )
 from bioscara_gym.hardware.errors import ConfigError, UnknownJointError, closest_name
 from bioscara_gym.hardware.i2c_timing import (
@@ -89,6 +94,7 @@ from bioscara_gym.hardware.i2c_timing import (
 )
 from bioscara_gym.hardware.registers import (
     CURRENT_MAX_PCT,
+    DEADMAN_S,
     DRIVE_CURRENT_MIN_PCT,
     HOMING_RPM_MAX,
     HOMING_RPM_MIN,
@@ -100,6 +106,7 @@ from bioscara_gym.hardware.registers import (
     MOTOR_RPM_MAX,
     SENSITIVITY_MAX,
     STALL_SENSITIVITY_MIN,
+    Reg,
 )
 from bioscara_gym.hardware.registry import DRIVERS
 from bioscara_gym.hardware.transmission import rate_to_degrees, velocity_to_rpm
@@ -135,6 +142,17 @@ _PACKAGE = "bioscara_gym.hardware"
 _DEFAULT_CONFIG = "default_config.yaml"
 #: Largest configuration file read, bytes (the packaged one is about 10 kB).
 MAX_CONFIG_BYTES = 1024 * 1024
+#: Most values (mappings, lists and scalars, each counted once for every place it
+#: appears) a configuration may expand to. A file of MAX_CONFIG_BYTES without YAML
+#: aliases holds fewer values than it has bytes; more can only come from aliases
+#: repeating anchors (an "alias bomb": 11 levels of 9 aliases in 10 kB are 3e10
+#: values, and printing one in a message ran until killed).
+MAX_CONFIG_VALUES = MAX_CONFIG_BYTES
+#: A day, s. A speed limit, or an acceleration, with which a move across its joint's
+#: whole range takes longer than this is no limit a motion can keep (our floor:
+#: ``bioscara move`` waited ~1e300 s on ``max_velocity: 1.0e-300``); the arm's own
+#: limits cross their ranges in seconds (docs/model.md).
+SLOWEST_MOTION_S = 86_400.0
 _DEFAULT_SOURCE = f"{_PACKAGE}/{_DEFAULT_CONFIG}"
 
 
@@ -147,6 +165,25 @@ _DEFAULT_SOURCE = f"{_PACKAGE}/{_DEFAULT_CONFIG}"
 
 def _type_name(value: object) -> str:
     return type(value).__name__
+
+
+_SHOW = reprlib.Repr()
+_SHOW.maxlevel = 2
+_SHOW.maxstring = _SHOW.maxother = _SHOW.maxlong = 40
+_SHOW.maxlist = _SHOW.maxtuple = _SHOW.maxdict = _SHOW.maxset = _SHOW.maxfrozenset = 6
+
+
+def _show(value: object) -> str:
+    """A user's value for a message: ``repr`` cut short (a YAML alias bomb is 3e10 values)."""
+    try:
+        return _SHOW.repr(value)
+    except (ValueError, RecursionError):  # an int of more than 4300 digits
+        return f"<{_type_name(value)}>"
+
+
+def _label(text: str) -> str:
+    """A user's name (joint, group) for a message, as written, cut short if long."""
+    return text if len(text) <= 40 else f"{text[:20]}...{text[-17:]}"
 
 
 def _fmt(value: float) -> str:
@@ -168,10 +205,13 @@ def _number(value: object, what: str) -> float:
                     " (YAML reads an exponent without a dot and a sign, such as 1e-3 or 1.0e12, "
                     "as a string; write 1.0e-3, 1.0e+12)"
                 )
-        raise ConfigError(f"{what} {value!r} ({_type_name(value)}) must be a number{hint}")
-    result = float(value)
+        raise ConfigError(f"{what} {_show(value)} ({_type_name(value)}) must be a number{hint}")
+    try:
+        result = float(value)
+    except OverflowError:  # an int of more than 309 digits
+        raise ConfigError(f"{what} {_show(value)} is beyond any float (1.8e+308)") from None
     if not math.isfinite(result):
-        raise ConfigError(f"{what} {value!r} must be finite")
+        raise ConfigError(f"{what} {_show(value)} must be finite")
     return result
 
 
@@ -192,7 +232,7 @@ def _nonzero(value: object, what: str) -> float:
 def _int(value: object, what: str) -> int:
     """Check that ``value`` is an int (a bool is not)."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{what} {value!r} ({_type_name(value)}) must be an integer")
+        raise ConfigError(f"{what} {_show(value)} ({_type_name(value)}) must be an integer")
     return value
 
 
@@ -225,6 +265,21 @@ def _limits(low: object, high: object, unit: str = "") -> tuple[float, float]:
     if low_f >= high_f:
         raise ConfigError(f"min {_fmt(low_f)}{unit} must be less than max {_fmt(high_f)}{unit}")
     return low_f, high_f
+
+
+def _check_ramp(name: str, acceleration: float, span: float, unit: str) -> None:
+    """Refuse an acceleration that takes more than SLOWEST_MOTION_S to cross the joint's range.
+
+    Whatever the speed limit, a move across ``span`` speeds up half the way and
+    slows down the other half: ``2 sqrt(span / acceleration)`` at the least.
+    """
+    seconds = 2.0 * math.sqrt(span / acceleration)
+    if seconds > SLOWEST_MOTION_S:
+        raise ConfigError(
+            f"{name} {_fmt(acceleration)}{unit}/s² crosses the joint's range ({_fmt(span)}{unit}) in "
+            f"{seconds:.3g} s or more; at least {4.0 * span / SLOWEST_MOTION_S**2:.3g}{unit}/s², "
+            "the range in a day (config.SLOWEST_MOTION_S: a slower ramp is no acceleration)"
+        )
 
 
 def _unit(joint_type: str) -> str:
@@ -334,17 +389,17 @@ class DynamixelBusConfig:
     def __post_init__(self) -> None:
         """Validate; fill ``rates`` with the defaults."""
         if not isinstance(self.port, str) or not self.port:
-            raise ConfigError(f"dynamixel.port {self.port!r} must be a non-empty string")
+            raise ConfigError(f"dynamixel.port {_show(self.port)} must be a non-empty string")
         _integer(self.baudrate, "dynamixel.baudrate", low=9600)
         if not isinstance(self.rs485, bool):
-            raise ConfigError(f"dynamixel.rs485 {self.rs485!r} must be true or false")
+            raise ConfigError(f"dynamixel.rs485 {_show(self.rs485)} must be true or false")
         rates = _mapping(self.rates, "dynamixel.rates")
         for name, rate in rates.items():
             if name not in DYNAMIXEL_LOOP_RATES:
                 known = ", ".join(DYNAMIXEL_LOOP_RATES)
-                raise ConfigError(f"dynamixel.rates: unknown loop {name!r}; known: {known}")
+                raise ConfigError(f"dynamixel.rates: unknown loop {_show(name)}; known: {known}")
             if _number(rate, f"dynamixel.rates.{name}") < 0:
-                raise ConfigError(f"dynamixel.rates.{name} {rate} must be >= 0 Hz (0: never)")
+                raise ConfigError(f"dynamixel.rates.{name} {_show(rate)} must be >= 0 Hz (0: never)")
         merged = {**DYNAMIXEL_LOOP_RATES, **{k: float(v) for k, v in rates.items()}}
         _set(self, "rates", MappingProxyType(merged))
 
@@ -401,16 +456,18 @@ class JointConfig:
         """Validate and normalise the fields (ints given for floats become floats)."""
         if not isinstance(self.name, str) or not self.name:
             raise ConfigError(
-                f"joint name {self.name!r} ({_type_name(self.name)}) must be a non-empty string"
+                f"joint name {_show(self.name)} ({_type_name(self.name)}) must be a non-empty string"
             )
         try:
             self._validate()
         except ConfigError as e:
-            raise ConfigError(f"joint {self.name}: {e}") from None
+            raise ConfigError(f"joint {_label(self.name)}: {e}") from None
 
     def _validate(self) -> None:
         if self.type not in DRIVER_TYPES:
-            raise ConfigError(f"type {self.type!r} must be one of {', '.join(repr(t) for t in DRIVER_TYPES)}")
+            raise ConfigError(
+                f"type {_show(self.type)} must be one of {', '.join(repr(t) for t in DRIVER_TYPES)}"
+            )
         if self.type == "dynamixel":
             if not isinstance(self.dynamixel, DynamixelJointConfig):
                 raise ConfigError("a dynamixel joint needs a 'dynamixel' block with its servo's id")
@@ -424,7 +481,7 @@ class JointConfig:
             )
         if not isinstance(self.joint_type, str) or self.joint_type not in JOINT_TYPES:
             allowed = ", ".join(repr(t) for t in JOINT_TYPES)
-            raise ConfigError(f"joint_type {self.joint_type!r} must be one of {allowed}")
+            raise ConfigError(f"joint_type {_show(self.joint_type)} must be one of {allowed}")
         unit = _unit(self.joint_type)
         _set(self, "reduction", _nonzero(self.reduction, "reduction"))
         low, high = _limits(self.min, self.max, unit)
@@ -447,6 +504,15 @@ class JointConfig:
             "max_acceleration",
             _positive(self.max_acceleration, "max_acceleration", f"{unit}/s²"),
         )
+        span = high - low
+        if span / self.max_velocity > SLOWEST_MOTION_S:
+            raise ConfigError(
+                f"max_velocity {_fmt(self.max_velocity)}{unit}/s crosses the joint's range "
+                f"({_fmt(span)}{unit}) in {span / self.max_velocity:.3g} s; "
+                f"at least {span / SLOWEST_MOTION_S:.3g}{unit}/s, "
+                "the range in a day (config.SLOWEST_MOTION_S: a slower limit is no speed)"
+            )
+        _check_ramp("max_acceleration", self.max_acceleration, span, unit)
         sensitivity = _integer(self.stall_threshold, "stall_threshold", high=SENSITIVITY_MAX)
         if sensitivity < STALL_SENSITIVITY_MIN:
             raise ConfigError(
@@ -460,6 +526,7 @@ class JointConfig:
             raise ConfigError("drive_current 0 % gives the motor no torque: the joint could not move")
         if not isinstance(self.homing, HomingConfig):
             raise ConfigError(f"homing must be a HomingConfig, got {_type_name(self.homing)}")
+        _check_ramp("homing.acceleration", self.homing.acceleration, high - low, unit)
         if self.type == "i2c":
             self._check_motor_limits(unit)
         rpm = self.homing_rpm()
@@ -479,12 +546,26 @@ class JointConfig:
                 f"were measured to 1639 RPM, so at most {MOTOR_RPM_MAX:g} RPM "
                 f"({_fmt(self.max_velocity * MOTOR_RPM_MAX / rpm)}{unit}/s)"
             )
+        dps = abs(rate_to_degrees(self.max_velocity, self.reduction))
+        if position_move_limits(dps, MOTOR_ACCELERATION_MAX_DPS2)[0] == 0.0:
+            raise ConfigError(
+                f"max_velocity {_fmt(self.max_velocity)}{unit}/s is {dps:.4g} deg/s at the motor; the driver "
+                f"chip's speed register (VMAX, whole steps of 1/{VMAX_PER_DPS:.4g} deg/s) holds 0 there and "
+                f"the joint would not move: at least {1 / VMAX_PER_DPS:.4g} deg/s (drive.VMAX_PER_DPS)"
+            )
         limits = (
             ("max_acceleration", self.max_acceleration),
             ("homing.acceleration", self.homing.acceleration),
         )
         for name, value in limits:
             dps2 = abs(rate_to_degrees(value, self.reduction))
+            if velocity_mode_acceleration(dps2) == 0.0:  # position moves ramp with the same AMAX
+                raise ConfigError(
+                    f"{name} {_fmt(value)}{unit}/s² is {dps2:.4g} deg/s² at the motor; the driver chip's "
+                    f"acceleration register (AMAX, whole steps of 1/{AMAX_PER_DPS2:.4g} deg/s²) holds 0 "
+                    f"there and the joint would not ramp: at least {1 / AMAX_PER_DPS2:.4g} deg/s² "
+                    "(drive.AMAX_PER_DPS2)"
+                )
             if dps2 > MOTOR_ACCELERATION_MAX_DPS2 * (1 + 1e-12):
                 most = _fmt(value * MOTOR_ACCELERATION_MAX_DPS2 / dps2)
                 raise ConfigError(
@@ -561,7 +642,7 @@ class GripperConfig:
         _integer(self.pwm_channel, "pwm_channel")
         if self.state_file is not None and (not isinstance(self.state_file, str) or not self.state_file):
             raise ConfigError(
-                f"state_file {self.state_file!r} ({_type_name(self.state_file)}) "
+                f"state_file {_show(self.state_file)} ({_type_name(self.state_file)}) "
                 "must be a non-empty string or null"
             )
 
@@ -612,11 +693,13 @@ class ArmConfig:
                 raise ConfigError(f"joints[{index}] must be a JointConfig, got {_type_name(joint)}")
             if joint.name == GRIPPER_NAME:
                 raise ConfigError(
-                    f"joint {joint.name}: the name {GRIPPER_NAME!r} is reserved "
+                    f"joint {_label(joint.name)}: the name {GRIPPER_NAME!r} is reserved "
                     "for the gripper in joint groups"
                 )
             if joint.name in by_name:
-                raise ConfigError(f"joint {joint.name}: defined more than once; joint names must be unique")
+                raise ConfigError(
+                    f"joint {_label(joint.name)}: defined more than once; joint names must be unique"
+                )
             if joint.dynamixel is not None:
                 twin = by_id.setdefault(joint.dynamixel.id, joint)
                 if twin is not joint:
@@ -644,6 +727,46 @@ class ArmConfig:
             raise ConfigError(str(e)) from e
         if self.dynamixel is not None and not isinstance(self.dynamixel, DynamixelBusConfig):
             raise ConfigError(f"dynamixel must be a DynamixelBusConfig, got {_type_name(self.dynamixel)}")
+        self._check_bus_timing()
+
+    def _check_bus_timing(self) -> None:
+        """Refuse a ``bus_timing`` part longer than the firmware's deadman (registers.DEADMAN_S).
+
+        The firmware stops a joint in velocity mode that hears nothing for 50 ms
+        (docs/firmware.md, "Deadman"), so a transaction, and each part of it,
+        must fit in that window, or talking to one joint starves the others. The
+        arm's own parts take at most 0.36 ms (MOVETOANGLE's handler, RW_test/); the bound is generous.
+        Seen: ``host_overhead_us: 1.0e+9`` charged 1000 s a transaction.
+        """
+        timing = self.bus_timing
+        if not isinstance(timing, TransactionTiming):
+            raise ConfigError(f"bus_timing must be a TransactionTiming, got {_type_name(timing)}")
+        most_us = DEADMAN_S * 1e6
+        parts = [
+            ("host_overhead_us", timing.host_overhead_s),
+            ("program_overhead_us", timing.program_overhead_s),
+        ]
+        for reg, seconds in timing.handler_s.items():
+            try:
+                name = Reg(reg).name
+            except ValueError:  # built in code, not read from a file (timing_from_dict takes names)
+                name = _show(reg)
+            parts.append((f"handler_us.{name}", seconds))
+        for name, seconds in parts:
+            if seconds > DEADMAN_S:
+                raise ConfigError(
+                    f"bus_timing.{name} {_fmt(round(seconds * 1e6, 3))} us is longer than the "
+                    f'firmware\'s deadman, {most_us:g} us (docs/firmware.md, "Deadman"): '
+                    "a transaction must fit in it"
+                )
+        periods_s = timing.extra_periods / self.i2c_clock_hz
+        if periods_s > DEADMAN_S:
+            raise ConfigError(
+                f"bus_timing.extra_periods {_fmt(timing.extra_periods)} clock periods are "
+                f"{periods_s * 1e6:.6g} us at {self.i2c_clock_hz:g} Hz, longer than the firmware's deadman, "
+                f'{most_us:g} us (docs/firmware.md, "Deadman"): a transaction must fit in it; '
+                f"at most {DEADMAN_S * self.i2c_clock_hz:g}"
+            )
 
     def _checked_groups(self) -> dict[str, tuple[str, ...]]:
         if not isinstance(self.groups, Mapping):
@@ -655,18 +778,36 @@ class ArmConfig:
         groups: dict[str, tuple[str, ...]] = {}
         for group, members in self.groups.items():
             if not isinstance(group, str) or not group:
-                raise ConfigError(f"groups: group name {group!r} must be a non-empty string")
-            where = f"groups.{group}"
+                raise ConfigError(f"groups: group name {_show(group)} must be a non-empty string")
+            where = f"groups.{_label(group)}"
             if not _is_list(members):
-                raise ConfigError(f"{where}: {members!r} must be a list of joint names")
+                raise ConfigError(f"{where}: {_show(members)} must be a list of joint names")
             if not members:
                 raise ConfigError(f"{where}: must name at least one joint")
+            for member in members:
+                if not isinstance(member, str):
+                    raise ConfigError(
+                        f"{where}: member {_show(member)} ({_type_name(member)}) "
+                        "must be a joint or group name"
+                    )
+            # A joint's name, and "gripper", mean the joint (the gripper) wherever a
+            # name is taken (console.targets.resolve_target): a group so named is never used.
+            if group in self.names:
+                raise ConfigError(
+                    f"{where}: the name {_show(group)} is joint {_label(group)}'s and means that joint "
+                    "alone; give the group a name of its own"
+                )
+            if group == GRIPPER_NAME and tuple(members) != (GRIPPER_NAME,):
+                raise ConfigError(
+                    f"{where}: the name {GRIPPER_NAME!r} means the gripper alone; its group may only "
+                    f"be [{GRIPPER_NAME}]; give the group a name of its own"
+                )
             nested = [m for m in members if m in groups and m not in known]  # MH5: earlier groups nest
             if nested:
                 members = [n for m in members for n in (groups[m] if m in nested else [m])]
             for member in members:
                 if member not in known:
-                    raise ConfigError(f"{where}: unknown joint {member!r}; known: {', '.join(known)}")
+                    raise ConfigError(f"{where}: unknown joint {_show(member)}; known: {', '.join(known)}")
             if len(set(members)) != len(members):
                 raise ConfigError(f"{where}: lists a joint more than once")
             groups[group] = tuple(members)
@@ -738,7 +879,7 @@ def _check_fields(
                 if close
                 else f"; allowed: {', '.join(prefix + a for a in allowed)}"
             )
-            raise ConfigError(f"unknown field {prefix + str(key)!r}{hint}")
+            raise ConfigError(f"unknown field {_show(prefix + str(key))}{hint}")
     missing = [f"{prefix}{name}" for name in required if name not in data]
     if missing:
         plural = "s" if len(missing) > 1 else ""
@@ -760,13 +901,13 @@ def _homing_from_dict(data: object) -> HomingConfig:
 def _joint_from_dict(data: object, index: int, noise: PidNoiseProfile | None = None) -> JointConfig:
     joint = _mapping(data, f"joints[{index}]")
     name = joint.get("name")
-    where = f"joint {name}" if isinstance(name, str) and name else f"joints[{index}]"
+    where = f"joint {_label(name)}" if isinstance(name, str) and name else f"joints[{index}]"
     try:
         dxl = joint.get("type") == "dynamixel"
         required = tuple(k for k in _JOINT_FIELDS if not (dxl and k == "address"))
         _check_fields(joint, required, (*_JOINT_OPTIONAL, *(("address",) if dxl else ())))
         if not isinstance(name, str) or not name:
-            raise ConfigError(f"name {name!r} ({_type_name(name)}) must be a non-empty string")
+            raise ConfigError(f"name {_show(name)} ({_type_name(name)}) must be a non-empty string")
         values = {key: joint.get(key) for key in _JOINT_FIELDS}
         values["homing"] = _homing_from_dict(joint["homing"])
         values["type"] = joint.get("type", "i2c")
@@ -793,6 +934,47 @@ def _gripper_from_dict(data: object) -> GripperConfig:
         raise ConfigError(f"{GRIPPER_NAME}: {e}") from None
     # GripperConfig names itself ("gripper: ...") in its own errors.
     return GripperConfig(**dict(gripper))
+
+
+def _check_expansion(data: object) -> None:
+    """Refuse data that repeats itself through YAML aliases beyond MAX_CONFIG_VALUES, or contains itself.
+
+    Each distinct mapping or list is visited once (its size remembered), so an
+    alias bomb is measured at once, never walked.
+    """
+    sizes: dict[int, int] = {}
+    open_: set[int] = set()
+
+    def size(node: object) -> int:
+        if isinstance(node, Mapping):
+            children: Any = node.values()
+        elif isinstance(node, (list, tuple)):
+            children = node
+        else:
+            return 1
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in open_:
+            raise ConfigError("a value contains itself (a YAML alias inside its own anchor)")
+        open_.add(key)
+        total = 1 + len(node) if isinstance(node, Mapping) else 1
+        for child in children:
+            total = min(total + size(child), MAX_CONFIG_VALUES + 1)
+        open_.discard(key)
+        sizes[key] = total
+        return total
+
+    try:
+        total = size(data)
+    except RecursionError:
+        raise ConfigError("nested too deeply to be an arm configuration") from None
+    if total > MAX_CONFIG_VALUES:
+        raise ConfigError(
+            f"expands to more than {MAX_CONFIG_VALUES:,} values through YAML aliases (*name); a file "
+            f"without aliases has fewer values than bytes, at most {MAX_CONFIG_BYTES:,} "
+            "(config.MAX_CONFIG_VALUES)"
+        )
 
 
 def _default_groups(names: Sequence[str]) -> dict[str, tuple[str, ...]]:
@@ -823,6 +1005,7 @@ def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConf
     """
     try:
         top = _mapping(data, "the top level")
+        _check_expansion(top)
         _check_fields(top, _TOP_REQUIRED, _TOP_OPTIONAL)
         joints_data = top["joints"]
         if not _is_list(joints_data):
@@ -904,7 +1087,7 @@ def config_to_dict(cfg: ArmConfig) -> dict[str, Any]:
     return out
 
 
-class _StrictSafeLoader(yaml.SafeLoader):
+class StrictSafeLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that refuses duplicate keys in a mapping.
 
     Plain YAML keeps the last of two equal keys silently, so a doubled
@@ -924,7 +1107,7 @@ class _StrictSafeLoader(yaml.SafeLoader):
                 raise yaml.constructor.ConstructorError(
                     "while constructing a mapping",
                     node.start_mark,
-                    f"found duplicate key {key_node.value!r}",
+                    f"found duplicate key {_show(key_node.value)}",
                     key_node.start_mark,
                 )
             seen.add(key)
@@ -934,11 +1117,15 @@ class _StrictSafeLoader(yaml.SafeLoader):
 def _parse_yaml(text: str, source: str) -> Any:
     try:
         # Safe loading (no arbitrary objects), plus a duplicate-key check.
-        return yaml.load(text, Loader=_StrictSafeLoader)
+        return yaml.load(text, Loader=StrictSafeLoader)
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: not valid YAML: {' '.join(str(e).split())}") from e
     except RecursionError as e:
         raise ConfigError(f"{source}: nested too deeply to be an arm configuration") from e
+    except (ValueError, OverflowError) as e:  # a date such as 2024-13-45, an int of 5000 digits
+        raise ConfigError(
+            f"{source}: not valid YAML: a value cannot be read: {' '.join(str(e).split())}"
+        ) from e
 
 
 def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
@@ -966,8 +1153,12 @@ def load_config(path: str | os.PathLike[str] | None = None) -> ArmConfig:
             ) from e
     else:
         if not isinstance(path, (str, os.PathLike)):
-            raise ConfigError(f"config {path!r} must be the path of a YAML file (or None: the packaged one)")
+            raise ConfigError(
+                f"config {_show(path)} must be the path of a YAML file (or None: the packaged one)"
+            )
         source = os.fspath(path)
+        if not source:
+            raise ConfigError("'': cannot read config file: an empty path; name the configuration file")
         try:
             text = read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8")
         except OSError as e:
