@@ -9,11 +9,20 @@ files, so a bad entry gets the same one-line errors.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from bioscara_gym.errors import HyperparamError
+from bioscara_gym.training.hyperparam_values import (
+    MAX_LAYER_WIDTH,
+    MAX_LAYERS,
+    net_arch_problem,
+    refuse_non_finite,
+    refuse_number_string,
+    shown,
+)
 from bioscara_gym.training.hyperparams import read_entry, refuse_unknown_keys
 from bioscara_gym.training.literals import ACTION_LOSSES
 
@@ -76,7 +85,10 @@ class DaggerConfig:
     fit_threads: int = 2
 
     def __post_init__(self) -> None:
-        """Refuse counts below 1 and rates outside their range.
+        """Refuse counts below 1, rates outside their range, and values of the wrong type.
+
+        Types are checked before ranges (seen: ``'>' not supported between
+        'str' and 'int'`` for ``learning_rate: 1e-3``, which YAML reads as text).
 
         Raises:
             HyperparamError: The first bad value, named with the file.
@@ -94,22 +106,30 @@ class DaggerConfig:
         for name in (*counts, "eval_episodes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise HyperparamError(f"{where}: {name} is {value!r}; expected a whole number >= 1")
+                raise HyperparamError(f"{where}: {name} is {shown(value)}; expected a whole number >= 1")
         if isinstance(self.bc_steps, bool) or not isinstance(self.bc_steps, int) or self.bc_steps < 0:
-            raise HyperparamError(f"{where}: bc_steps is {self.bc_steps!r}; expected a whole number >= 0")
+            bc_steps = shown(self.bc_steps)
+            raise HyperparamError(f"{where}: bc_steps is {bc_steps}; expected a whole number >= 0")
+        for name in ("target_success", "beta", "learning_rate"):
+            value = getattr(self, name)
+            refuse_number_string(value, f"{where}: {name}")
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                expected = {"target_success": "in (0, 1]", "beta": "in [0, 1)", "learning_rate": "> 0"}[name]
+                raise HyperparamError(f"{where}: {name} is {shown(value)}; expected a number {expected}")
         if not 0.0 < self.target_success <= 1.0:
-            raise HyperparamError(f"{where}: target_success is {self.target_success!r}; expected (0, 1]")
+            raise HyperparamError(f"{where}: target_success is {shown(self.target_success)}; expected (0, 1]")
         if not 0.0 <= self.beta < 1.0:
-            raise HyperparamError(f"{where}: beta is {self.beta!r}; expected [0, 1)")
-        if self.loss not in ACTION_LOSSES:
+            raise HyperparamError(f"{where}: beta is {shown(self.beta)}; expected [0, 1)")
+        if not isinstance(self.loss, str) or self.loss not in ACTION_LOSSES:
             expected = ", ".join(ACTION_LOSSES)
-            raise HyperparamError(f"{where}: loss is {self.loss!r}; expected one of {expected}")
+            raise HyperparamError(f"{where}: loss is {shown(self.loss)}; expected one of {expected}")
         if not self.learning_rate > 0:
-            raise HyperparamError(f"{where}: learning_rate is {self.learning_rate!r}; expected > 0")
-        if not self.net_arch or any(
-            isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.net_arch
-        ):
-            raise HyperparamError(f"{where}: net_arch is {list(self.net_arch)!r}; expected layer widths >= 1")
+            raise HyperparamError(f"{where}: learning_rate is {shown(self.learning_rate)}; expected > 0")
+        if not self.net_arch or net_arch_problem(list(self.net_arch)):
+            raise HyperparamError(
+                f"{where}: net_arch is {shown(list(self.net_arch))}; expected layer widths >= 1 and at most "
+                f"{MAX_LAYER_WIDTH}, at most {MAX_LAYERS} layers"
+            )
 
     def as_dict(self) -> dict[str, Any]:
         """A JSON-friendly view (for the metadata)."""
@@ -133,6 +153,11 @@ def load_dagger_config(path: str | Path, env_id: str) -> DaggerConfig:
     for key in ("env_kwargs", "features"):
         if not isinstance(entry.get(key, {}), dict):
             raise HyperparamError(f"config {path}: {env_id}.{key} must be a mapping")
+    for key, value in entry.items():
+        refuse_number_string(value, f"config {path}: {env_id}.{key}")
+    for key, value in entry.get("features", {}).items():
+        refuse_number_string(value, f"config {path}: {env_id}.features.{key}")
+    refuse_non_finite(entry, f"config {path}: {env_id}")
     if "net_arch" in entry:
         if not isinstance(entry["net_arch"], list):
             raise HyperparamError(f"config {path}: {env_id}.net_arch must be a list of layer widths")

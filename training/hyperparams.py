@@ -25,7 +25,15 @@ them could not be evaluated, exported or deployed on the plain env. Counts
 [0, 1] and ``stop_success`` (where training stops) in
 [``target_success``, 1]; :func:`check_algo_kwargs` refuses keys the
 algorithm does not take, and :func:`check_her_episodes` a ``learning_starts``
-or ``buffer_size`` below the whole episodes HER samples.
+or ``buffer_size`` below the whole episodes HER samples. A number written
+so that YAML reads a string (``9e-1``, ``"0.9"``) is refused with how to write
+it (``n_timesteps`` alone is still converted, as it always was); infinities and
+NaN are refused anywhere in an entry; rates, coefficients and schedules
+(``lin_<x>``) must be in their range (:data:`ALGO_REALS`); ``net_arch`` has at
+most :data:`MAX_LAYERS` layers of at most :data:`MAX_LAYER_WIDTH` units. A key
+given twice in a mapping is refused (the arm config's strict loader). Values
+are shown in messages with :func:`shown`, bounded (an alias bomb is not
+expanded).
 """
 
 from __future__ import annotations
@@ -42,10 +50,22 @@ import yaml
 
 from bioscara_gym.errors import HyperparamError
 from bioscara_gym.fsutil import read_bytes
-from bioscara_gym.hardware.config import MAX_CONFIG_BYTES
+from bioscara_gym.hardware.config import MAX_CONFIG_BYTES, StrictSafeLoader
 from bioscara_gym.hardware.errors import closest_name
 from bioscara_gym.tasks import TASKS
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.hyperparam_values import (
+    ALGO_COUNTS,
+    ALGO_REALS,
+    IN_CALLBACK,
+    as_number,
+    check_net_arch,
+    check_numbers,
+    check_real,
+    check_train_freq,
+    refuse_non_finite,
+    shown,
+)
 from bioscara_gym.training.literals import import_dotted, parse_literal_call
 
 #: Keys of an entry that are not the algorithm's constructor arguments.
@@ -67,6 +87,7 @@ EXTRA_KEYS = (
 #: rl-zoo3 keys ``bioscara train`` refuses: they change what the policy sees, so the
 #: policy would not run on the plain env that eval, export and deploy give it.
 ZOO_ONLY_KEYS = ("normalize", "frame_stack", "env_wrapper", "vec_env_wrapper")
+
 
 #: The callback whose arguments are the evaluation schedule.
 SUCCESS_CALLBACK = "bioscara_gym.training.zoo.SuccessEvalCallback"
@@ -158,12 +179,14 @@ def read_entry(path: str | Path, env_id: str, kind: str = "") -> dict[str, Any]:
 
     Raises:
         HyperparamError: Unreadable file, not YAML, not a mapping of env ids,
-            no entry for ``env_id`` (the entries are listed), or an entry
-            that is not a mapping; the message names the file.
+            a key given twice in a mapping (with its line), no entry for
+            ``env_id`` (the entries are listed), or an entry that is not a
+            mapping; the message names the file.
     """
     path = Path(path)
     try:
-        data = yaml.safe_load(read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8"))
+        text = read_bytes(path, MAX_CONFIG_BYTES).decode("utf-8")
+        data = yaml.load(text, Loader=StrictSafeLoader)  # safe, and a key given twice is refused
     except UnicodeDecodeError as e:
         raise HyperparamError(f"config {path} is not a UTF-8 text file: {e}") from e
     except OSError as e:
@@ -237,6 +260,7 @@ def load_hyperparams(path: str | Path, env_id: str) -> Hyperparams:
     if legacy and set(legacy) & set(eval_kwargs):
         raise HyperparamError(f"{where}: {', '.join(legacy)} given both at the top and in the callback")
     eval_kwargs.update(legacy)
+    check_numbers(values, extras, env_kwargs, eval_kwargs, legacy, callbacks, where)
     _check_schedule(extras, eval_kwargs, legacy, where)
     try:
         return Hyperparams(
@@ -262,9 +286,6 @@ POSITIVE_COUNTS = {
     "quick_episodes": "episodes per quick success evaluation",
     "first_eval": "env steps before the first success evaluation",
 }
-
-#: How the message names a key of the success callback given inside ``callback``.
-IN_CALLBACK = "callback.SuccessEvalCallback."
 
 
 def _policy_class(name: str, where: str) -> type:
@@ -296,51 +317,32 @@ def _check_schedule(
         if key not in source:
             continue
         name = key if source is extras or key in legacy else IN_CALLBACK + key
-        number = _number(source[key])
+        number = as_number(source[key])
         if number is None or not math.isfinite(number) or number != int(number) or number < 1:
-            raise HyperparamError(f"{where}.{name} is {source[key]!r}; expected a whole number >= 1 ({what})")
+            raise HyperparamError(
+                f"{where}.{name} is {shown(source[key])}; expected a whole number >= 1 ({what})"
+            )
     for key in ("target_success", "stop_success"):
         rate = eval_kwargs.get(key)
         is_rate = isinstance(rate, int | float) and not isinstance(rate, bool) and 0 <= rate <= 1
         if rate is not None and not is_rate:
             name = key if key in legacy else IN_CALLBACK + key
-            raise HyperparamError(f"{where}.{name} is {rate!r}; expected a success rate in [0, 1]")
+            raise HyperparamError(f"{where}.{name} is {shown(rate)}; expected a success rate in [0, 1]")
     target, stop = eval_kwargs.get("target_success", 0.95), eval_kwargs.get("stop_success")
     if stop is not None and stop < target:
         raise HyperparamError(
-            f"{where}.{IN_CALLBACK}stop_success is {stop!r}; expected at least target_success ({target!r}): "
+            f"{where}.{IN_CALLBACK}stop_success is {shown(stop)}; expected at least target_success "
+            f"({shown(target)}): "
             "training stops at stop_success after reaching the target"
         )
 
 
-def _number(value: Any) -> float | None:
-    """``value`` as a float: a number, or a string of one (YAML reads ``3e4`` as text); else ``None``."""
-    if isinstance(value, bool):
-        return None
-    if isinstance(value, int | float):
-        return float(value)
-    if isinstance(value, str):
-        try:
-            return float(value)
-        except ValueError:
-            return None
-    return None
-
-
-#: stable-baselines3 settings that count something and must be at least 1 (SB3 takes 0
-#: and trains on nothing: ``batch_size: 0`` trained and saved a model), with what they count.
-ALGO_COUNTS = {
-    "batch_size": "samples per gradient step",
-    "buffer_size": "transitions the replay buffer holds",
-    "n_steps": "env steps per rollout",
-    "n_epochs": "passes over each rollout",
-    "policy_delay": "critic updates per actor update",
-    "target_update_interval": "env steps between target updates",
-}
-
-
 def check_algo_counts(hp: Hyperparams, env_id: str) -> None:
-    """Refuse a count below 1, a negative ``learning_starts`` and a ``gamma`` or ``tau`` outside (0, 1].
+    """Refuse a count below 1, a negative ``learning_starts``, a value of :data:`ALGO_REALS` out of range.
+
+    Then a ``net_arch`` too wide or too deep, a bad ``train_freq`` or
+    ``gradient_steps``, a negative or infinite ``noise_std``, and an
+    infinity or NaN anywhere in the algorithm's arguments.
 
     Raises:
         HyperparamError: One line naming the key, the file and what was expected.
@@ -348,48 +350,28 @@ def check_algo_counts(hp: Hyperparams, env_id: str) -> None:
     where = f"config {hp.source}: {env_id}"
     for key, what in ALGO_COUNTS.items():
         if key in hp.algo_kwargs:
-            number = _number(hp.algo_kwargs[key])
+            number = as_number(hp.algo_kwargs[key])
             if number is None or not math.isfinite(number) or number != int(number) or number < 1:
                 raise HyperparamError(
-                    f"{where}.{key} is {hp.algo_kwargs[key]!r}; expected a whole number >= 1 ({what})"
+                    f"{where}.{key} is {shown(hp.algo_kwargs[key])}; expected a whole number >= 1 ({what})"
                 )
     if "learning_starts" in hp.algo_kwargs:
-        number = _number(hp.algo_kwargs["learning_starts"])
+        number = as_number(hp.algo_kwargs["learning_starts"])
         if number is None or not math.isfinite(number) or number != int(number) or number < 0:
             raise HyperparamError(
-                f"{where}.learning_starts is {hp.algo_kwargs['learning_starts']!r}; expected a whole number "
-                ">= 0 (env steps before learning starts)"
+                f"{where}.learning_starts is {shown(hp.algo_kwargs['learning_starts'])}; expected a whole "
+                "number >= 0 (env steps before learning starts)"
             )
-    for key in ("gamma", "tau"):
+    for key in ALGO_REALS:
         if key in hp.algo_kwargs:
-            number = _number(hp.algo_kwargs[key])
-            if number is None or not 0 < number <= 1:
-                value = hp.algo_kwargs[key]
-                raise HyperparamError(f"{where}.{key} is {value!r}; expected a number in (0, 1]")
+            check_real(hp.algo_kwargs[key], key, where)
+    check_train_freq(hp.algo_kwargs, where)
+    if not (as_number(hp.noise_std) is not None and math.isfinite(hp.noise_std) and hp.noise_std >= 0):
+        raise HyperparamError(f"{where}.noise_std is {shown(hp.noise_std)}; expected a finite number >= 0")
+    refuse_non_finite(hp.algo_kwargs, where)
     policy_kwargs = hp.algo_kwargs.get("policy_kwargs")
     if isinstance(policy_kwargs, dict) and "net_arch" in policy_kwargs:
-        _check_net_arch(policy_kwargs["net_arch"], f"{where}.policy_kwargs.net_arch")
-
-
-def _check_net_arch(net_arch: Any, where: str) -> None:
-    """SB3's ``net_arch``: a list of layer widths, or a mapping of such lists (``pi``, ``qf``, ``vf``).
-
-    Raises:
-        HyperparamError: A width that is not a whole number >= 1 (torch
-            failed on a negative one with a 47-line traceback).
-    """
-    if net_arch is None:  # SB3's default network
-        return
-    groups = list(net_arch.values()) if isinstance(net_arch, dict) else [net_arch]
-    if any(
-        not isinstance(layers, list)
-        or any(isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in layers)
-        for layers in groups
-    ):
-        raise HyperparamError(
-            f"{where} is {net_arch!r}; expected layer widths, whole numbers >= 1 "
-            "(a list, or a mapping of pi, qf or vf to lists)"
-        )
+        check_net_arch(policy_kwargs["net_arch"], f"{where}.policy_kwargs.net_arch")
 
 
 def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
@@ -402,6 +384,12 @@ def check_algo_kwargs(hp: Hyperparams, algo_cls: type, env_id: str) -> None:
     """
     check_algo_counts(hp, env_id)
     parameters = inspect.signature(algo_cls).parameters
+    ent_coef = hp.algo_kwargs.get("ent_coef")
+    if isinstance(ent_coef, str) and "target_entropy" not in parameters:  # "auto" is SAC's
+        raise HyperparamError(
+            f"config {hp.source}: {env_id}.ent_coef is {shown(ent_coef)}; expected a finite number >= 0 "
+            f"({algo_cls.__name__} has no automatic entropy coefficient)"
+        )
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         return
     known = [name for name in parameters if name not in ("policy", "env")]
@@ -446,13 +434,13 @@ def check_her_episodes(
     needed = int(episode_steps) * n_envs
     defaults = {k: p.default for k, p in inspect.signature(algo_cls).parameters.items()}
     for key in ("learning_starts", "buffer_size"):
-        value = _number(kwargs[key]) if key in kwargs else _number(defaults.get(key))
+        value = as_number(kwargs[key]) if key in kwargs else as_number(defaults.get(key))
         if value is None or value >= needed:  # not a number: check_algo_counts names it
             continue
-        shown = repr(kwargs[key]) if key in kwargs else f"{defaults[key]} ({algo_cls.__name__}'s default)"
+        given = shown(kwargs[key]) if key in kwargs else f"{defaults[key]} ({algo_cls.__name__}'s default)"
         envs = "the 1 env" if n_envs == 1 else f"each of the {n_envs} envs"
         raise HyperparamError(
-            f"config {hp.source}: {env_id}.{key} is {shown}; HerReplayBuffer samples only whole episodes, "
+            f"config {hp.source}: {env_id}.{key} is {given}; HerReplayBuffer samples only whole episodes, "
             f"so it must be at least {needed} (an episode of {episode_steps} steps on {envs})"
         )
 
@@ -476,9 +464,9 @@ def _split_callbacks(spec: Any, where: str) -> tuple[dict[str, Any], tuple[tuple
             name, kwargs = next(iter(item.items()))
             kwargs = {} if kwargs is None else kwargs
         else:
-            raise HyperparamError(f"{where}: expected a dotted path or {{path: kwargs}}, got {item!r}")
+            raise HyperparamError(f"{where}: expected a dotted path or {{path: kwargs}}, got {shown(item)}")
         if not isinstance(name, str) or not isinstance(kwargs, dict):
-            raise HyperparamError(f"{where}: expected a dotted path mapped to its kwargs, got {item!r}")
+            raise HyperparamError(f"{where}: expected a dotted path mapped to its kwargs, got {shown(item)}")
         cls = import_dotted(name, where)
         with needs_train("a callback class"):
             from stable_baselines3.common.callbacks import BaseCallback

@@ -35,6 +35,7 @@ from bioscara_gym.training.checkpoints import (
 )
 from bioscara_gym.training.evaluate import EvalStats
 from bioscara_gym.training.extras import needs_train
+from bioscara_gym.training.hyperparam_values import schedule_start, shown
 from bioscara_gym.training.hyperparams import Hyperparams, check_algo_kwargs, load_hyperparams
 from bioscara_gym.training.signals import SignalGuard
 
@@ -90,20 +91,17 @@ def algo_kwargs(hp: Hyperparams, env: Any, algo: str) -> dict[str, Any]:
     kwargs = dict(hp.algo_kwargs)
     for key in SCHEDULE_KEYS:
         value = kwargs.get(key)
-        if isinstance(value, str):
-            kind, _, initial = value.partition("_")
-            try:
-                if kind != "lin":
-                    raise ValueError(kind)
-                kwargs[key] = _linear_schedule(float(initial))
-            except ValueError as e:
-                raise TrainingError(f"config {hp.source}: {key} {value!r} is not a number or lin_<x>") from e
+        if isinstance(value, str):  # check_algo_counts checked x when the file was read
+            initial = schedule_start(value)
+            if initial is None:
+                raise TrainingError(f"config {hp.source}: {key} {shown(value)} is not a number or lin_<x>")
+            kwargs[key] = _linear_schedule(initial)
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])  # YAML has no tuples; SB3 wants (n, unit)
     rb = kwargs.get("replay_buffer_class")
     if isinstance(rb, str):
         if rb not in REPLAY_BUFFERS:
-            raise TrainingError(f"config {hp.source}: unknown replay_buffer_class {rb!r}")
+            raise TrainingError(f"config {hp.source}: unknown replay_buffer_class {shown(rb)}")
         kwargs["replay_buffer_class"] = REPLAY_BUFFERS[rb]
     space = env.observation_space
     is_goal_env = isinstance(space, gym.spaces.Dict) and "desired_goal" in space.spaces
@@ -112,11 +110,10 @@ def algo_kwargs(hp: Hyperparams, env: Any, algo: str) -> dict[str, Any]:
         kwargs.setdefault("replay_buffer_kwargs", {"goal_selection_strategy": "future", "n_sampled_goal": 4})
     if hp.noise_type:
         n = env.action_space.shape[0]
-        noise_cls = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}.get(
-            hp.noise_type
-        )
+        noises = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}
+        noise_cls = noises.get(hp.noise_type) if isinstance(hp.noise_type, str) else None
         if noise_cls is None:
-            raise TrainingError(f"config {hp.source}: unknown noise_type {hp.noise_type!r}")
+            raise TrainingError(f"config {hp.source}: unknown noise_type {shown(hp.noise_type)}")
         kwargs["action_noise"] = noise_cls(np.zeros(n), hp.noise_std * np.ones(n))
     return kwargs
 
