@@ -25,6 +25,7 @@ from rigs import DeployRun, run_deployment
 
 from bioscara_gym.cli import main
 from bioscara_gym.errors import DeployError
+from bioscara_gym.fsutil import path_argument
 from bioscara_gym.training import deploy as deploy_module
 from bioscara_gym.training.deploy import DeployArgs, Deployment
 from bioscara_gym.training.metadata import build_metadata
@@ -475,7 +476,7 @@ def test_bioscara_deploy_help_states_each_option_its_default_and_the_exit_codes(
             "joint firmware source for --backend sitl (Arduino/joint/; default $BIOSCARA_FIRMWARE)",
         ),
         "--bus": (None, int, None, "I2C bus number, /dev/i2c-N (default: the config's)"),
-        "--config": (None, Path, None, "arm configuration YAML (default: the packaged one)"),
+        "--config": (None, path_argument, None, "arm configuration YAML (default: the packaged one)"),
         "--episodes": (1, int, None, None),
         "--rate": (
             None,

@@ -426,7 +426,7 @@ def make_backend(
     takes = _options_of(cls)
     unknown = sorted(set(options) - takes - {"record"}) if takes is not None else []
     if unknown:  # seen: a raw TypeError from the class's __init__
-        offered = ", ".join(sorted(takes | ({"record"} if spec.records else set()))) or "none"
+        offered = ", ".join(sorted(takes - {"wrap_bus"} | ({"record"} if spec.records else set())))
         raise ValueError(f"the {name} backend takes no option {', '.join(unknown)}; its options: {offered}")
     record = options.pop("record", None)
     if record is not None:
@@ -445,7 +445,6 @@ def _options_of(cls: type) -> set[str] | None:
     """
     params = list(inspect.signature(cls.__init__).parameters.values())[2:]  # self, config
     names = {p.name for p in params if p.kind is p.KEYWORD_ONLY or p.kind is p.POSITIONAL_OR_KEYWORD}
-    names.discard("wrap_bus")  # what ``record`` becomes
     if any(p.kind is p.VAR_KEYWORD for p in params):
         module, _, target = getattr(cls, "options_to", "").partition(":")
         if not target:
