@@ -471,3 +471,15 @@ def test_a_configuration_naming_joints_the_model_has_not_is_one_line(tmp_path: P
     )
     with pytest.raises(ConfigError, match=f"^{re.escape(message)}$"):
         make_backend(backend, str(path))
+
+
+def test_a_configuration_whose_joint_type_is_not_the_models_is_one_line(tmp_path: Path) -> None:
+    # Seen (a hostile test): j2 as revolute "homed at max: +0.3380 rad".
+    text = (Path(backends.__file__).parent / "default_config.yaml").read_text()
+    j2 = text.index("name: j2")
+    at = text.index("joint_type: prismatic", j2)
+    path = tmp_path / "revolute_j2.yaml"
+    path.write_text(text[:at] + "joint_type: revolute " + text[at + len("joint_type: prismatic") :])
+    message = "joint j2: joint_type revolute where the simulated arm's is prismatic (assets/scene.xml)"
+    with pytest.raises(ConfigError, match=f"^{re.escape(message)}$"):
+        make_backend("sim", str(path))

@@ -337,10 +337,14 @@ class SimClock:
 
 
 def _check_joints(config: ArmConfig, model: mujoco.MjModel) -> None:
-    """Refuse a configuration whose joints the model does not have (seen: ``KeyError: "Invalid name"``).
+    """Refuse a configuration whose joints the model does not have, or has of another type.
+
+    Seen: ``KeyError: "Invalid name"`` for a joint named ``shoulder``; j2 as
+    ``revolute`` "homed at max: +0.3380 rad".
 
     Raises:
-        ConfigError: A configured joint is not one of the model's actuated joints.
+        ConfigError: A configured joint is not one of the model's actuated
+            joints, or its ``joint_type`` is not the model's.
     """
     arm = [
         model.joint(model.actuator_trnid[i, 0]).name
@@ -352,6 +356,13 @@ def _check_joints(config: ArmConfig, model: mujoco.MjModel) -> None:
             raise ConfigError(
                 f"joint {j.name!r}: the simulated arm's joints are {', '.join(arm)} (assets/scene.xml); "
                 "a configuration for it names those"
+            )
+        slides = model.jnt_type[model.joint(j.name).id] == mujoco.mjtJoint.mjJNT_SLIDE
+        kind = "prismatic" if slides else "revolute"
+        if j.joint_type != kind:
+            raise ConfigError(
+                f"joint {j.name}: joint_type {j.joint_type} where the simulated arm's is {kind} "
+                "(assets/scene.xml)"
             )
 
 
