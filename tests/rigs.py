@@ -23,6 +23,7 @@ import io
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -1050,6 +1051,29 @@ class ScriptedRng:
 
 
 # ---------------------------------------------------------- command outputs
+def files_under(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` and its contents (to show a refusal wrote nothing)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def train_refusal(root: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str) -> str:
+    """``bioscara train ...``: one line matching ``message``, exit 2, nothing written; the line."""
+    from bioscara_gym.cli import main
+
+    before = files_under(root)
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, f"expected one line, got {len(lines)}:\n{err}"
+    assert lines[0].startswith("bioscara train: error: "), lines[0]
+    assert re.search(message, lines[0]), lines[0]
+    assert rc == 2
+    assert files_under(root) == before  # nothing trained, nothing written
+    assert not (root / "run" / "tb").exists()
+    return lines[0]
+
+
 def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
     """The single line on stderr after ``bioscara COMMAND: error: ``."""
     lines = capsys.readouterr().err.strip().splitlines()

@@ -415,6 +415,16 @@ def test_disable_saves_width_as_json(enabled: BaseGripper, state_file: Path) -> 
     assert json.loads(state_file.read_text()) == {"width_m": 0.1}
 
 
+def _at_width_over(gripper: BaseGripper, state_file: Path, content: str) -> None:
+    """``gripper`` enabled over a state file holding ``content`` (it warns), then commanded to 0.1 m."""
+    state_file.parent.mkdir(parents=True)
+    state_file.write_text(content)
+    gripper.init()
+    with pytest.warns(GripperStateWarning):
+        gripper.enable()
+    gripper.set_position(0.1)
+
+
 @pytest.mark.parametrize(
     "content", ["my notes\n", '{"colour": "red"}\n', "# an arm configuration\ngripper:\n  min: 0.04\n"]
 )
@@ -423,12 +433,7 @@ def test_a_state_file_that_holds_something_else_is_not_replaced(
 ) -> None:
     # Seen (a hostile test): a configuration whose gripper.state_file named the configuration
     # itself was replaced by {"width_m": 0.06}; notes.txt was too, after a warning.
-    state_file.parent.mkdir(parents=True)
-    state_file.write_text(content)
-    gripper.init()
-    with pytest.warns(GripperStateWarning):
-        gripper.enable()
-    gripper.set_position(0.1)
+    _at_width_over(gripper, state_file, content)
     with pytest.warns(GripperStateWarning) as record:
         gripper.disable()
     assert str(record[0].message) == (
@@ -443,12 +448,7 @@ def test_a_state_file_that_holds_something_else_is_not_replaced(
 def test_a_damaged_state_file_is_mended_by_the_next_save(
     gripper: BaseGripper, state_file: Path, content: str
 ) -> None:
-    state_file.parent.mkdir(parents=True)
-    state_file.write_text(content)
-    gripper.init()
-    with pytest.warns(GripperStateWarning):
-        gripper.enable()
-    gripper.set_position(0.1)
+    _at_width_over(gripper, state_file, content)
     gripper.disable()
     assert json.loads(state_file.read_text()) == {"width_m": 0.1}
 

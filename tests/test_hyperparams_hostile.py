@@ -19,10 +19,9 @@ from typing import Any
 
 import pytest
 import yaml
-from rigs import TINY_SAC_ENTRY
+from rigs import TINY_SAC_ENTRY, train_refusal
 
-from bioscara_gym.cli import main
-from bioscara_gym.errors import EXIT_ERROR, HyperparamError
+from bioscara_gym.errors import HyperparamError
 from bioscara_gym.training.algos import sb3_class
 from bioscara_gym.training.dagger_config import load_dagger_config
 from bioscara_gym.training.hyperparams import check_algo_kwargs, load_hyperparams
@@ -265,25 +264,12 @@ CASES = [
 ]
 
 
-def _snapshot(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
 @pytest.mark.parametrize(("setup", "message"), CASES)
 def test_hostile_config_is_one_line_exit_2_and_nothing_written(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], setup: Setup, message: str
 ) -> None:
-    argv = setup(tmp_path)
-    before = _snapshot(tmp_path)
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, f"expected one line, got {len(lines)}:\n{err}"
-    assert lines[0].startswith("bioscara train: error: config "), lines[0]
-    assert re.search(message, lines[0]), lines[0]
-    assert rc == EXIT_ERROR
-    assert _snapshot(tmp_path) == before
+    line = train_refusal(tmp_path, capsys, setup(tmp_path), message)
+    assert line.startswith("bioscara train: error: config "), line
     assert not (tmp_path / "run").exists()
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import threading
 import time
 import zipfile
@@ -23,7 +22,7 @@ from typing import Any
 
 import pytest
 import yaml
-from rigs import TINY_SAC_ENTRY
+from rigs import TINY_SAC_ENTRY, train_refusal
 
 from bioscara_gym.cli import main
 from bioscara_gym.errors import EXIT_ERROR
@@ -479,27 +478,11 @@ CASES = [
 ]
 
 
-def _snapshot(root: Path) -> dict[str, bytes]:
-    """Every file under ``root`` and its contents."""
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
 @pytest.mark.parametrize(("setup", "message"), CASES)
 def test_bad_train_input_is_one_line_exit_2_and_nothing_written(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], setup: Setup, message: str
 ) -> None:
-    argv = setup(tmp_path)
-    before = _snapshot(tmp_path)
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, f"expected one line, got {len(lines)}:\n{err}"
-    assert lines[0].startswith("bioscara train: error: "), lines[0]
-    assert re.search(message, lines[0]), lines[0]
-    assert rc == EXIT_ERROR
-    assert _snapshot(tmp_path) == before  # nothing trained, nothing written
-    assert not (tmp_path / "run" / "tb").exists()
+    train_refusal(tmp_path, capsys, setup(tmp_path), message)
 
 
 def test_a_dagger_resume_allows_a_phase_of_the_configs_own_episode_length(
