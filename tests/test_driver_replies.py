@@ -201,6 +201,20 @@ def test_implausible_angle_twice_raises_comm_error_with_joint_register_and_bytes
     assert info.value.register is Reg.ANGLEMOVED
     assert bad.hex(" ") in str(info.value)
     assert joint.stats.errors_by_kind == {"bus": 0, "malformed": 0, "implausible": 2}
+    # Seen (a hostile test): a configuration's j2 max of 0.2 m said "Check wiring, power and the address".
+    assert str(info.value).endswith(
+        "Check the configuration's limits and reduction against the joint, then wiring and power"
+    )
+
+
+def test_a_reply_that_never_came_still_says_check_the_wiring(
+    scripted_bus: Any, make_j1: Callable[..., Joint]
+) -> None:
+    joint = make_j1(retries=1)
+    scripted_bus.queue(OSError(121, "Remote I/O error"), OSError(121, "Remote I/O error"))
+    with pytest.raises(CommError) as info:
+        joint.get_position()
+    assert str(info.value).endswith("Check wiring, power and the address")
 
 
 @pytest.mark.parametrize(
