@@ -1013,5 +1013,8 @@ def test_a_dynamixel_joint_is_not_bound_by_the_steppers_limits() -> None:
     # An XL430 is not the Bioscara's stepper: its limits are the servo's.
     path = Path(__file__).parent.parent / "bioscara_gym" / "hardware" / "dynamixel" / "dynamixel_arm.yaml"
     data = yaml.safe_load(path.read_text())
-    data["joints"][0]["max_velocity"] = 300.0  # 2865 RPM at "reduction 1"
+    data["joints"][0]["max_acceleration"] = 1000.0  # 57,296 deg/s² at reduction 1: past the stepper's 20,900
     config_from_dict(data, source="dynamixel_arm.yaml")
+    data["joints"][0]["max_velocity"] = 300.0  # 2865 RPM: past the servo's Velocity Limit (61 RPM)
+    with pytest.raises(ConfigError, match=r"beyond its Velocity Limit \(6\.355 rad/s"):
+        config_from_dict(data, source="dynamixel_arm.yaml")

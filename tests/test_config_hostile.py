@@ -285,3 +285,54 @@ def test_an_empty_path_is_named() -> None:
     with pytest.raises(ConfigError) as info:
         load_config("")
     assert str(info.value) == "'': cannot read config file: an empty path; name the configuration file"
+
+
+DXL_EXAMPLE = Path(__file__).parent.parent / "bioscara_gym" / "hardware" / "dynamixel" / "dynamixel_arm.yaml"
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "max_velocity: 2.3980823922402 # 100 velocity units",
+            "max_velocity: 1.0e+6",
+            "joint j1: max_velocity 1000000.0 rad/s is 1e+06 rad/s at the servo, beyond its Velocity Limit "
+            "(6.355 rad/s: 265 units of 0.229 rev/min, the XL430's default; e-Manual)",
+        ),
+        (
+            "max: 3.067961575772",
+            "max: 100.0",
+            "joint j1: max 100.0 rad is servo angle 100 rad, beyond the servo's turn (-3.14006..3.14159 rad: "
+            "Goal Position 0-4095 about its centre 2047, position mode; e-Manual)",
+        ),
+        (
+            "baudrate: 1000000",
+            "baudrate: 1000000000000000000000000000000",
+            "dynamixel.baudrate 1000000000000000000000000000000 is none of the servo's 9600, 57600, 115200, "
+            "1000000, 2000000, 3000000, 4000000, 4500000 (e-Manual)",
+        ),
+    ],
+    ids=["speed", "range", "baudrate"],
+)
+def test_a_dynamixel_limit_the_servo_cannot_keep_is_refused(
+    tmp_path: Path, old: str, new: str, message: str
+) -> None:
+    # Seen (a hostile test): each loaded; a 2 rad move at 1e6 rad/s took the emulated servo 0.02 s.
+    text = DXL_EXAMPLE.read_text(encoding="utf-8")
+    assert old in text, old
+    path = tmp_path / "dxl.yaml"
+    path.write_text(text.replace(old, new, 1), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: {message}"
+
+
+def test_the_servo_bounds_are_the_control_tables() -> None:
+    from bioscara_gym.hardware import config
+    from bioscara_gym.hardware.dynamixel import control_table as ct
+
+    velocity_limit = next(f.default for f in ct.CONTROL_TABLE if f.name == "Velocity Limit")
+    assert velocity_limit * ct.VELOCITY_RADS_PER_UNIT == config.DXL_SPEED_MAX_RAD_S
+    assert pytest.approx(ct.position_from_raw(4095)) == config.DXL_ANGLE_MAX_RAD
+    assert pytest.approx(ct.position_from_raw(0)) == config.DXL_ANGLE_MIN_RAD
+    assert tuple(ct.BAUD_RATES.values()) == config.DXL_BAUD_RATES

@@ -153,6 +153,14 @@ MAX_CONFIG_VALUES = MAX_CONFIG_BYTES
 #: ``bioscara move`` waited ~1e300 s on ``max_velocity: 1.0e-300``); the arm's own
 #: limits cross their ranges in seconds (docs/model.md).
 SLOWEST_MOTION_S = 86_400.0
+#: An XL430's fastest speed, rad/s: its Velocity Limit's default, 265 units of 0.229 rev/min
+#: (ROBOTIS e-Manual; dynamixel.control_table, where the units are kept with the protocol).
+DXL_SPEED_MAX_RAD_S = 265 * 0.023980823922402
+#: The servo angles position mode reaches, rad: Goal Position 0..4095 about the centre 2047, 0.088 deg each.
+DXL_ANGLE_MIN_RAD = (0 - 2047) * 0.001533980787886
+DXL_ANGLE_MAX_RAD = (4095 - 2047) * 0.001533980787886
+#: The Baud Rate item's speeds, bit/s (e-Manual).
+DXL_BAUD_RATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
 _DEFAULT_SOURCE = f"{_PACKAGE}/{_DEFAULT_CONFIG}"
 
 
@@ -391,6 +399,9 @@ class DynamixelBusConfig:
         if not isinstance(self.port, str) or not self.port:
             raise ConfigError(f"dynamixel.port {_show(self.port)} must be a non-empty string")
         _integer(self.baudrate, "dynamixel.baudrate", low=9600)
+        if self.baudrate not in DXL_BAUD_RATES:  # seen: 10**30 loaded
+            rates = ", ".join(str(r) for r in DXL_BAUD_RATES)
+            raise ConfigError(f"dynamixel.baudrate {self.baudrate} is none of the servo's {rates} (e-Manual)")
         if not isinstance(self.rs485, bool):
             raise ConfigError(f"dynamixel.rs485 {_show(self.rs485)} must be true or false")
         rates = _mapping(self.rates, "dynamixel.rates")
@@ -529,6 +540,8 @@ class JointConfig:
         _check_ramp("homing.acceleration", self.homing.acceleration, high - low, unit)
         if self.type == "i2c":
             self._check_motor_limits(unit)
+        else:
+            self._check_servo_limits(unit)
         rpm = self.homing_rpm()
         if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
             raise ConfigError(
@@ -536,6 +549,28 @@ class JointConfig:
                 f"the motor; |RPM| must be strictly between {HOMING_RPM_MIN:g} "
                 f"and {HOMING_RPM_MAX:g}"
             )
+
+    def _check_servo_limits(self, unit: str) -> None:
+        """Refuse limits an XL430 cannot keep: a speed beyond its Velocity Limit, a range beyond its turn.
+
+        Seen (a hostile test): ``max_velocity: 1.0e+6`` and limits of ±100 rad loaded.
+        """
+        assert self.dynamixel is not None  # _validate checked it
+        speed = abs(self.max_velocity * self.reduction)
+        if speed > DXL_SPEED_MAX_RAD_S * (1 + 1e-12):
+            raise ConfigError(
+                f"max_velocity {_fmt(self.max_velocity)}{unit}/s is {speed:.4g} rad/s at the servo, beyond "
+                f"its Velocity Limit ({DXL_SPEED_MAX_RAD_S:.4g} rad/s: 265 units of 0.229 rev/min, "
+                "the XL430's default; e-Manual)"
+            )
+        for name, q in (("min", self.min), ("max", self.max)):
+            angle = (q - self.dynamixel.offset) * self.reduction
+            if not DXL_ANGLE_MIN_RAD <= angle <= DXL_ANGLE_MAX_RAD:
+                raise ConfigError(
+                    f"{name} {_fmt(q)}{unit} is servo angle {angle:.4g} rad, beyond the servo's turn "
+                    f"({DXL_ANGLE_MIN_RAD:.6g}..{DXL_ANGLE_MAX_RAD:.6g} rad: Goal Position 0-4095 about "
+                    "its centre 2047, position mode; e-Manual)"
+                )
 
     def _check_motor_limits(self, unit: str) -> None:
         """Refuse a speed or acceleration limit the stepper motor cannot honour (registers.MOTOR_*)."""
