@@ -567,13 +567,13 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return -d
 
     def _goal_pair(self, achieved: Any, desired: Any) -> tuple[np.ndarray, np.ndarray]:
-        """``achieved`` and ``desired`` as float arrays, checked to be goals of this task (HER's batches too).
+        """``achieved`` and ``desired`` as arrays (their own dtype: HER's float32 batches stay so), checked.
 
         Raises:
             ValueError: Either's last dimension is not the goal's width.
         """
         width = self.observation_space["desired_goal"].shape[-1]
-        pair = np.asarray(achieved, dtype=np.float64), np.asarray(desired, dtype=np.float64)
+        pair = np.asarray(achieved), np.asarray(desired)
         for name, goal in zip(("achieved_goal", "desired_goal"), pair, strict=True):
             if goal.ndim == 0 or goal.shape[-1] != width:
                 raise ValueError(f"{name} of shape {goal.shape}: this task's goals are {width} values each")
