@@ -336,3 +336,14 @@ def test_the_servo_bounds_are_the_control_tables() -> None:
     assert pytest.approx(ct.position_from_raw(4095)) == config.DXL_ANGLE_MAX_RAD
     assert pytest.approx(ct.position_from_raw(0)) == config.DXL_ANGLE_MIN_RAD
     assert tuple(ct.BAUD_RATES.values()) == config.DXL_BAUD_RATES
+
+
+def test_a_joint_named_like_a_default_group_takes_that_name_from_it(tmp_path: Path) -> None:
+    # A reviewer's: with no groups section, the loader's own default group "arm" was refused
+    # as named like the joint, a group the file never wrote.
+    text = PACKAGED.read_text(encoding="utf-8")
+    text = text[: text.index("groups:")] + text[text.index("pid_noise:") :]  # no groups section
+    path = tmp_path / "config.yaml"
+    path.write_text(text.replace("name: j1", "name: arm", 1), encoding="utf-8")
+    config = load_config(path)
+    assert dict(config.groups) == {"all": ("arm", "j2", "j3", "j4", "gripper"), "gripper": ("gripper",)}

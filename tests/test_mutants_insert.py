@@ -315,3 +315,12 @@ def test_a_wrist_reading_far_past_its_range_still_gets_a_turn_inside_it(
     edge = 2.98069 if past > 0 else -2.98069  # j4's command range, the packaged configuration
     assert -2.98069 <= edge + turn <= 2.98069
     assert math.remainder(0.3 - past - turn, math.pi / 2) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_wrist_reading_just_past_its_range_turns_the_long_way_as_before(insert: BioscaraInsertEnv) -> None:
+    # A reviewer's: clamping every reading changed this observation with no noise (j4 reads up
+    # to 16 mrad past its range in simulation): -0.005 rad, which leaves j4 past the range.
+    insert.hole_yaw = 2.98069 + 0.010 - 0.005  # the peg 5 mrad past square, j4 10 mrad past its top
+    insert._q = np.array([0.0, 0.1, 0.0, 2.98069 + 0.010])
+    assert insert.wrist_turn() == pytest.approx(-0.005 - math.pi / 2, abs=1e-9)
+

@@ -296,11 +296,14 @@ class BioscaraInsertEnv(BioscaraEnv):
         it would take j4 past its command range; then a quarter turn less
         the other way.
         """
-        lo, hi = self.command_low[3], self.command_high[3]
-        q4 = min(max(float(self._q[3]), lo), hi)  # a noisy reading past the range has turns inside it
+        q4, lo, hi = float(self._q[3]), self.command_low[3], self.command_high[3]
         err = float(yaw_error(self.hole_yaw, self.peg_yaw()))
-        turns = [err + k * QUARTER_TURN for k in range(-4, 5) if lo <= q4 + err + k * QUARTER_TURN <= hi]
-        return min(turns, key=abs)
+
+        def turns_from(q: float) -> list[float]:
+            return [err + k * QUARTER_TURN for k in range(-4, 5) if lo <= q + err + k * QUARTER_TURN <= hi]
+
+        # A reading far past the range (sensor noise of 10 rad) has no turn inside it: turn from its edge.
+        return min(turns_from(q4) or turns_from(min(max(q4, lo), hi)), key=abs)
 
     def _get_obs(self) -> dict[str, np.ndarray]:
         tip = self.peg_tip()

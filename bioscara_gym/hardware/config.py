@@ -540,7 +540,7 @@ class JointConfig:
         _check_ramp("homing.acceleration", self.homing.acceleration, high - low, unit)
         if self.type == "i2c":
             self._check_motor_limits(unit)
-        else:
+        elif self.type == "dynamixel":
             self._check_servo_limits(unit)
         rpm = self.homing_rpm()
         if not HOMING_RPM_MIN < abs(rpm) < HOMING_RPM_MAX:
@@ -555,7 +555,7 @@ class JointConfig:
 
         Seen (a hostile test): ``max_velocity: 1.0e+6`` and limits of ±100 rad loaded.
         """
-        assert self.dynamixel is not None  # _validate checked it
+        assert self.dynamixel is not None  # _validate checked it for a dynamixel joint
         speed = abs(self.max_velocity * self.reduction)
         if speed > DXL_SPEED_MAX_RAD_S * (1 + 1e-12):
             raise ConfigError(
@@ -1013,11 +1013,9 @@ def _check_expansion(data: object) -> None:
 
 
 def _default_groups(names: Sequence[str]) -> dict[str, tuple[str, ...]]:
-    return {
-        "all": (*names, GRIPPER_NAME),
-        "arm": tuple(names),
-        GRIPPER_NAME: (GRIPPER_NAME,),
-    }
+    """``all``, ``arm`` and ``gripper``, less a group named like a joint (that name means the joint)."""
+    groups = {"all": (*names, GRIPPER_NAME), "arm": tuple(names), GRIPPER_NAME: (GRIPPER_NAME,)}
+    return {name: members for name, members in groups.items() if name not in names}
 
 
 def config_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> ArmConfig:

@@ -203,7 +203,9 @@ def is_state_file(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is a gripper state file, ours to replace: a JSON object of ``width_m`` alone.
 
     Its value may be one a gripper cannot use (``"x"``, NaN, beyond the
-    limits): a damaged state, which the next save mends.
+    limits): a damaged state, which the next save mends. A file that is not
+    such JSON at all is not replaced, whatever made it (a configuration, notes,
+    a state file damaged past reading): the save's warning says to delete it.
 
     Raises:
         OSError: The file cannot be read.
