@@ -88,20 +88,24 @@ def refuse_non_finite(value: Any, where: str, seen: set[int] | None = None) -> N
     objects, so an alias bomb is walked once per distinct list.
 
     Raises:
-        HyperparamError: ``{where}.KEY[INDEX] is nan; expected a finite number``.
+        HyperparamError: ``{where}.KEY[INDEX] is nan; expected a finite number``,
+            or ``value`` nested past Python's recursion limit (named at ``where``).
     """
-    seen = set() if seen is None else seen
+    try:
+        _refuse_non_finite(value, where, set() if seen is None else seen)
+    except RecursionError as e:  # named where the walk began: the path to the depth is thousands of keys
+        raise HyperparamError(f"{where} is nested too deeply to be a hyperparameter") from e
+
+
+def _refuse_non_finite(value: Any, where: str, seen: set[int]) -> None:
     if isinstance(value, float) and not math.isfinite(value):
         raise HyperparamError(f"{where} is {shown(value)}; expected a finite number")
     if not isinstance(value, dict | list | tuple) or id(value) in seen:
         return
     seen.add(id(value))
     items = value.items() if isinstance(value, dict) else enumerate(value)
-    try:
-        for key, item in items:
-            refuse_non_finite(item, f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]", seen)
-    except RecursionError as e:
-        raise HyperparamError(f"{where} is nested too deeply to be a hyperparameter") from e
+    for key, item in items:
+        _refuse_non_finite(item, f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]", seen)
 
 
 #: Real-valued stable-baselines3 settings: (low, low allowed, high, high allowed, None allowed).
