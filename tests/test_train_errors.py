@@ -440,6 +440,12 @@ CASES = [
         r"\(BaseCallback\)$",
         id="callback-not-a-callback-class",
     ),
+    pytest.param(  # the last hostile test's: numpy's 'Unable to allocate 21.8 TiB' traceback
+        new_run(buffer_size=10**12),
+        r"cfg\.yaml: Bioscara-Reach-v0: the model does not fit in memory \(MemoryError: Unable to "
+        r"allocate .* for an array with shape \(1000000000000, 1, .*\); lower buffer_size$",
+        id="buffer-size-beyond-memory",
+    ),
     pytest.param(
         new_run(policy="os.system"),
         r"cfg\.yaml: Bioscara-Reach-v0\.policy: os\.system is not a stable-baselines3 policy class$",

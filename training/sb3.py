@@ -354,6 +354,11 @@ class SB3Method(TrainingMethod):
             )
         except (TypeError, ValueError) as e:  # e.g. a key inside policy_kwargs the policy does not take
             raise TrainingError(f"config {hp.source}: {self.env_id}: {reason(e)}") from e
+        except MemoryError as e:  # seen: buffer_size 10**12, numpy's "Unable to allocate 21.8 TiB" traceback
+            raise TrainingError(
+                f"config {hp.source}: {self.env_id}: the model does not fit in memory ({reason(e)}); "
+                "lower buffer_size"
+            ) from e
 
     def learn(self, plan: RunPlan, callbacks: list[Any], guard: SignalGuard) -> None:
         """``model.learn`` for what is left of the budget; the success evaluation may stop it early."""
