@@ -1074,11 +1074,11 @@ def train_refusal(root: Path, capsys: pytest.CaptureFixture[str], argv: list[str
     return lines[0]
 
 
-def one_line_error(capsys: pytest.CaptureFixture[str], command: str) -> str:
-    """The single line on stderr after ``bioscara COMMAND: error: ``."""
+def one_line_error(capsys: pytest.CaptureFixture[str], command: str, kind: str = "error: ") -> str:
+    """The single line on stderr after ``bioscara COMMAND: KIND`` (``kind=""``: an interruption too)."""
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1, lines
-    prefix = f"bioscara {command}: error: "
+    prefix = f"bioscara {command}: {kind}"
     assert lines[0].startswith(prefix), lines[0]
     return lines[0].removeprefix(prefix)
 

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rigs import one_line_error
 
 import bioscara_gym  # noqa: F401
 from bioscara_gym.cli import main
@@ -44,14 +45,6 @@ def collect(*args: str) -> int:
 
 def episodes_in(dataset_id: str) -> int:
     return minari.load_dataset(dataset_id).total_episodes
-
-
-def one_error_line(capsys: pytest.CaptureFixture[str], command: str) -> str:
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1, lines
-    prefix = f"bioscara {command}: "
-    assert lines[0].startswith(prefix), lines[0]
-    return lines[0].removeprefix(prefix)
 
 
 # ----------------------------------------------------------- collect --overwrite
@@ -105,7 +98,7 @@ def test_a_signal_the_moment_the_old_data_goes_leaves_a_whole_dataset(
         fired = _signal_when_gone(datasets / "ow-v0" / "data" / "main_data.hdf5", signum, mp)
         assert collect("--episodes", "2", "--dataset", "ow", "--overwrite") == 128 + signum
     assert fired()
-    assert one_error_line(capsys, "collect").startswith("interrupted")
+    assert one_line_error(capsys, "collect", kind="").startswith("interrupted")
     assert episodes_in("ow-v0") in (1, 2)  # the old dataset whole, or the new one
     assert sorted(p.name for p in datasets.iterdir()) == ["ow-v0"]
 
@@ -143,7 +136,7 @@ def test_a_dataset_written_meanwhile_is_not_replaced_without_overwrite(
     # Seen: both collects exited 0; the disk held the second's 30 episodes.
     _competing_writer(monkeypatch, "race")
     assert collect("--episodes", "3", "--dataset", "race") == 2
-    error = one_error_line(capsys, "collect")
+    error = one_line_error(capsys, "collect", kind="")
     assert error.startswith("error: dataset race-v0 ") and "3 episodes" in error and "--overwrite" in error
     assert episodes_in("race-v0") == 1
     assert sorted(p.name for p in datasets.iterdir()) == ["race-v0"]
@@ -206,5 +199,5 @@ def test_eval_interrupted_removes_the_video_folders_it_made(
     monkeypatch.chdir(tmp_path)
     argv = ["eval", "--expert", "--env", "Bioscara-Reach", "--episodes", "30", "--video", "nd1/a/b/v.mp4"]
     assert main(argv) == 130
-    assert one_error_line(capsys, "eval") == "interrupted"
+    assert one_line_error(capsys, "eval", kind="") == "interrupted"
     assert list(tmp_path.iterdir()) == []
