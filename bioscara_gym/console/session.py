@@ -47,7 +47,7 @@ from bioscara_gym.hardware.errors import (
     NotEnabledError,
     NotHomedError,
 )
-from bioscara_gym.hardware.gripper import Gripper, read_saved_width, servo_pulse_us
+from bioscara_gym.hardware.gripper import Gripper, read_saved_width
 from bioscara_gym.hardware.recording import note_signal
 from bioscara_gym.hardware.registers import BLOCKING_PICKUP_S
 from bioscara_gym.stop_signals import held
@@ -437,9 +437,8 @@ class Session:
             InvalidArgumentError: The width is outside the gripper's limits.
         """
         check_gripper_width(self.config, width_m)
-        gripper = self.backend.gripper  # the pulse too, before the servo is driven (seen: left enabled)
-        try:
-            servo_pulse_us(gripper.width_to_angle_deg(gripper.clamp_width(width_m)))
+        try:  # the pulse too, before the servo is driven (seen: left enabled)
+            self.backend.gripper.check_width(width_m)
         except InvalidArgumentError as e:
             problem = f"gripper: width {width_m:g} m: {e}; check the configured limits"
             raise InvalidArgumentError(problem) from e

@@ -390,10 +390,10 @@ class BioscaraEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             gymnasium.error.ClosedEnvironmentError: The env was closed.
         """
         self._check_open()
-        kind = np.asarray(action).dtype.kind
-        if kind not in "iuf":  # seen: a complex action lost its imaginary part with a warning
-            raise ValueError(f"action of dtype {np.asarray(action).dtype} must be real numbers")
-        action = np.asarray(action, dtype=np.float64)
+        given = np.asarray(action)
+        if given.dtype.kind not in "iuf":  # seen: a complex action lost its imaginary part with a warning
+            raise ValueError(f"action of dtype {given.dtype} must be real numbers")
+        action = given.astype(np.float64, copy=False)
         if action.shape != self.action_space.shape:
             raise ValueError(f"action shape {action.shape} != expected {self.action_space.shape}")
         if not np.all(np.isfinite(action)):

@@ -396,6 +396,14 @@ class BaseGripper(abc.ABC):
 
     # -- transmission ---------------------------------------------------------
 
+    def check_width(self, width_m: float) -> None:
+        """Refuse a width whose servo pulse the driver cannot send, before anything is driven.
+
+        Raises:
+            InvalidArgumentError: As :func:`servo_pulse_us`, for the clamped width's angle.
+        """
+        servo_pulse_us(self.width_to_angle_deg(self.clamp_width(width_m)))
+
     def clamp_width(self, width_m: float) -> float:
         """Clamp a width in m to ``[min, max]``.
 
